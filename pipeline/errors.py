@@ -1,0 +1,13 @@
+"""Exceptions a user can act on. The command lines print their message on one line."""
+
+
+class PipelineError(Exception):
+    """Base class: bad input or a state the user must fix. Exit code 2 on the CLI."""
+
+
+class ViewGraphError(PipelineError, ValueError):
+    """A view graph that breaks an invariant (see ``ViewGraph.validate``)."""
+
+
+class InputFileError(PipelineError, ValueError):
+    """A file that is missing, unreadable or malformed."""

@@ -1,0 +1,1 @@
+"""Readers and writers: rotations text files, ``.mat`` layouts, camera references."""

@@ -1,0 +1,85 @@
+"""Rotations text files.
+
+One camera per line: ``name r11 r12 r13 r21 r22 r23 r31 r32 r33``, the
+cam_from_world rotation in row-major order. ``#`` starts a comment; blank lines
+are ignored. Names may not contain whitespace.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import so3
+from ..atomic import atomic_open
+from ..errors import InputFileError
+
+
+def write_rotations(path: str | os.PathLike, names: list[str], R: np.ndarray, header: str | None = None) -> Path:
+    """Write rotations atomically.
+
+    Args:
+        path: output file.
+        names: N camera names (no whitespace).
+        R: (N, 3, 3) cam_from_world rotations.
+        header: optional comment lines written first.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (len(names), 3, 3):
+        raise ValueError(f"R.shape={R.shape} but expected ({len(names)}, 3, 3)")
+    bad = [n for n in names if not n or any(c.isspace() for c in n)]
+    if bad:
+        raise ValueError(f"camera names may not be empty or contain whitespace: {bad[:3]}")
+    with atomic_open(path) as f:
+        if header:
+            for line in header.splitlines():
+                f.write(f"# {line}\n")
+        f.write("# name r11 r12 r13 r21 r22 r23 r31 r32 r33 (cam_from_world, row-major)\n")
+        for name, Ri in zip(names, R):
+            f.write(name + " " + " ".join(f"{x:.17g}" for x in Ri.ravel()) + "\n")
+    return Path(path)
+
+
+def read_rotations(path: str | os.PathLike, tol: float = 1e-6) -> tuple[list[str], np.ndarray]:
+    """Read a rotations file.
+
+    Returns:
+        names: N camera names, in file order.
+        R: (N, 3, 3) cam_from_world rotations.
+
+    Raises:
+        InputFileError: missing file, a line without 10 fields, a value that is
+            not a number, a repeated name, or a matrix that is not a rotation.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"rotations file {path} does not exist")
+    names: list[str] = []
+    rows: list[list[float]] = []
+    with open(path) as f:
+        for lineno, line in enumerate(f, 1):
+            line = line.split("#", 1)[0].strip()
+            if not line:
+                continue
+            parts = line.split()
+            if len(parts) != 10:
+                raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields), got {len(parts)}")
+            try:
+                vals = [float(x) for x in parts[1:]]
+            except ValueError:
+                raise InputFileError(f"{path}:{lineno}: rotation entries must be numbers") from None
+            names.append(parts[0])
+            rows.append(vals)
+    if not names:
+        raise InputFileError(f"{path} holds no rotations")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputFileError(f"{path}: camera names repeat: {dup[:5]}")
+    R = np.array(rows).reshape(-1, 3, 3)
+    ok = so3.is_rotation(R, tol)
+    if not np.all(ok):
+        k = int(np.flatnonzero(~ok)[0])
+        raise InputFileError(f"{path}: the matrix of camera {names[k]!r} is not a rotation (or has NaN)")
+    return names, R
