@@ -124,7 +124,7 @@ class ViewGraph:
         if M and (self.edges.min() < 0 or self.edges.max() >= N):
             k = int(np.flatnonzero((self.edges < 0).any(1) | (self.edges >= N).any(1))[0])
             raise ViewGraphError(
-                f"edge {k} {tuple(self.edges[k])} has a camera index out of range [0, {N}); "
+                f"edge {k} {tuple(self.edges[k].tolist())} has a camera index out of range [0, {N}); "
                 "check the camera list and the edge indices (0-based)"
             )
         self_edges = np.flatnonzero(self.edges[:, 0] == self.edges[:, 1])
@@ -134,7 +134,7 @@ class ViewGraph:
         if M and np.any(self.edges[:, 0] > self.edges[:, 1]):
             k = int(np.flatnonzero(self.edges[:, 0] > self.edges[:, 1])[0])
             raise ViewGraphError(
-                f"edge {k} {tuple(self.edges[k])} is not stored with i < j; "
+                f"edge {k} {tuple(self.edges[k].tolist())} is not stored with i < j; "
                 "use ViewGraph.from_edges to orient edges and invert their rotations"
             )
         if M:
@@ -148,13 +148,13 @@ class ViewGraph:
                 )
         if not np.all(np.isfinite(self.R_rel)):
             k = int(np.flatnonzero(~np.isfinite(self.R_rel).all(axis=(1, 2)))[0])
-            raise ViewGraphError(f"R_rel of edge {k} {tuple(self.edges[k])} has NaN or inf")
+            raise ViewGraphError(f"R_rel of edge {k} {tuple(self.edges[k].tolist())} has NaN or inf")
         ok = so3.is_rotation(self.R_rel, ROTATION_TOL)
         if not np.all(ok):
             k = int(np.flatnonzero(~ok)[0])
             R = self.R_rel[k]
             raise ViewGraphError(
-                f"R_rel of edge {k} {tuple(self.edges[k])} is not a rotation "
+                f"R_rel of edge {k} {tuple(self.edges[k].tolist())} is not a rotation "
                 f"(det={np.linalg.det(R):.6g}, max|RᵀR−I|={np.abs(R.T @ R - np.eye(3)).max():.3g}, "
                 f"tolerance {ROTATION_TOL}); project it with so3.project_to_so3"
             )
@@ -163,20 +163,20 @@ class ViewGraph:
                 raise ViewGraphError(f"H.shape={self.H.shape} but expected ({M}, 3, 3)")
             if not np.all(np.isfinite(self.H)):
                 k = int(np.flatnonzero(~np.isfinite(self.H).all(axis=(1, 2)))[0])
-                raise ViewGraphError(f"H of edge {k} {tuple(self.edges[k])} has NaN or inf")
+                raise ViewGraphError(f"H of edge {k} {tuple(self.edges[k].tolist())} has NaN or inf")
             scale = np.maximum(np.abs(self.H).max(axis=(1, 2)), 1e-300)
             asym = np.abs(self.H - np.swapaxes(self.H, 1, 2)).max(axis=(1, 2)) / scale
             if np.any(asym > 1e-8):
                 k = int(np.argmax(asym))
                 raise ViewGraphError(
-                    f"H of edge {k} {tuple(self.edges[k])} is not symmetric "
+                    f"H of edge {k} {tuple(self.edges[k].tolist())} is not symmetric "
                     f"(relative asymmetry {asym[k]:.3g}); H must be a symmetric positive-definite precision"
                 )
             lam = np.linalg.eigvalsh(0.5 * (self.H + np.swapaxes(self.H, 1, 2)))
             if np.any(lam[:, 0] <= 0):
                 k = int(np.argmin(lam[:, 0]))
                 raise ViewGraphError(
-                    f"H of edge {k} {tuple(self.edges[k])} is not positive definite "
+                    f"H of edge {k} {tuple(self.edges[k].tolist())} is not positive definite "
                     f"(smallest eigenvalue {lam[k, 0]:.3g}); H must be a precision in 1/rad²"
                 )
         if self.inliers is not None and self.inliers.shape != (M,):
@@ -328,6 +328,8 @@ class ViewGraph:
             raise InputFileError(f"{path} is not a readable view-graph .npz file ({exc}); re-run the stage that wrote it") from exc
         if str(data.get("format", "")) != FORMAT:
             raise InputFileError(f"{path} is not a view-graph file (missing format tag {FORMAT!r})")
+        if "format_version" not in data:
+            raise InputFileError(f"{path} lacks the array 'format_version'; re-run the stage that wrote it")
         if int(data["format_version"]) > FORMAT_VERSION:
             raise InputFileError(f"{path} has format_version {int(data['format_version'])}; this code reads <= {FORMAT_VERSION}")
         for key in ("names", "edges", "R_rel"):

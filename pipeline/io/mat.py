@@ -1,0 +1,289 @@
+"""MATLAB ``.mat`` view graphs: the LU Sphinx layout and the ℓ1-averaging layout.
+
+Camera names are the 0-based indices as strings (``"0"``, ``"1"``, …).
+
+**LU Sphinx layout** (paper 2's repository, ``../shared/data/lu_sphinx``):
+
+- ``Rgt`` (3N, 3): stacked ground-truth cam_from_world rotations, block i in rows
+  3i…3i+2.
+- ``Rrel`` (3N, 3N): block (i, j), i < j, is the measured ``R̃_ij ≈ R_j R_iᵀ``;
+  all-zero blocks mean "no edge".
+- ``Alpha`` (3N, 3N, optional): block (i, j) is ``M_ij``; the precision is
+  ``H_ij = tr(M_ij)·I − M_ij`` (paper 2, eq. 4–5).
+
+  Convention, checked on LU Sphinx (``tests/test_io.py``): ``H_ij`` is the
+  precision of the LEFT perturbation ``R_j R_iᵀ = exp([Δω]×) R̃_ij``, the
+  project's convention. Against ``Rgt`` the Gaussian log-likelihood of the
+  left residuals is higher than that of the right ones (``R̃ᵀ R_j R_iᵀ``).
+  The file's H carries an arbitrary global scale (about 1/1.2·10⁵ of the
+  precision implied by the residuals against ``Rgt``); it is kept as stored,
+  since paper 2's cost and its Mahalanobis error (eq. C.13) use it as stored.
+
+**ℓ1 layout** (public ℓ1 / IRLS rotation-averaging code):
+
+- ``RR`` (3, 3, M): ``RR[:, :, k] ≈ R_j R_iᵀ`` for ``(i, j) = I[:, k]``.
+- ``I`` (2, M): 1-based camera indices, either orientation.
+- ``Rgt`` (3, 3, N, optional): cam_from_world truth; an all-zero block marks a
+  camera without ground truth.
+- ``H`` (3, 3, M, optional): precisions, an addition of this project written by
+  :func:`write_l1_mat` when the view graph has them.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.io as sio
+
+from .. import so3
+from ..atomic import atomic_path
+from ..errors import InputFileError, ViewGraphError
+from ..viewgraph import ViewGraph
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["MatData", "read_lu_sphinx", "read_l1_mat", "write_l1_mat", "read_mat", "read_input_graph"]
+
+GT_TOL = 1e-5
+
+
+@dataclass
+class MatData:
+    """A view graph read from a file, with its ground truth when the file has one.
+
+    Attributes:
+        vg: the view graph (names "0", "1", …).
+        R_gt: (N, 3, 3) cam_from_world ground truth (identity where missing) or None.
+        gt_mask: (N,) True where the ground truth exists, or None.
+    """
+
+    vg: ViewGraph
+    R_gt: np.ndarray | None
+    gt_mask: np.ndarray | None
+
+
+def _load(path: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f".mat file {path} does not exist")
+    try:
+        data = sio.loadmat(path, squeeze_me=False)
+    except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
+        raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')") from exc
+    except Exception as exc:  # noqa: BLE001 - any reader failure means a bad file
+        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from exc
+    return path, {k: v for k, v in data.items() if not k.startswith("__")}
+
+
+def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
+    a = data[key]
+    if hasattr(a, "toarray") and not isinstance(a, np.ndarray):  # a MATLAB sparse variable
+        a = a.toarray()
+    if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
+        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {type(a).__name__}")
+    a = np.asarray(a, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise InputFileError(f"{path}: variable {key!r} has NaN or inf entries")
+    return a
+
+
+def _ground_truth(path: Path, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate (N, 3, 3) truth blocks; all-zero blocks become identity + mask False."""
+    mask = np.abs(blocks).sum(axis=(1, 2)) > 0
+    R = np.where(mask[:, None, None], blocks, np.eye(3))
+    ok = so3.is_rotation(R, GT_TOL)
+    if not np.all(ok):
+        k = int(np.flatnonzero(~ok)[0])
+        raise InputFileError(
+            f"{path}: Rgt block of camera {k} is not a rotation "
+            f"(det={np.linalg.det(R[k]):.6g}); expected cam_from_world rotations or an all-zero block"
+        )
+    return R, mask
+
+
+def _make_graph(path: Path, names: list[str], edges: np.ndarray, R_rel: np.ndarray, H: np.ndarray | None) -> ViewGraph:
+    n = len(names)
+    if edges.shape[0] == 0:
+        raise InputFileError(f"{path} holds no edges (no relative rotations); nothing to average")
+    deg = np.bincount(edges.ravel(), minlength=n) if edges.size else np.zeros(n, int)
+    isolated = int(np.sum(deg == 0))
+    if isolated:
+        logger.warning("%s: %d of %d cameras have no edge; they are kept (restrict to the largest component)", path, isolated, n)
+    try:
+        return ViewGraph.from_edges(names, edges, R_rel, H=H, allow_isolated=isolated > 0)
+    except ViewGraphError as exc:
+        raise InputFileError(f"{path}: {exc}") from exc
+
+
+def read_lu_sphinx(path: str | os.PathLike) -> MatData:
+    """Read the LU Sphinx layout (``Rgt``, ``Rrel``, optional ``Alpha``).
+
+    Args:
+        path: a ``.mat`` file.
+
+    Returns:
+        MatData with ``H_ij = tr(M_ij)·I − M_ij`` (symmetrized) when ``Alpha`` is present.
+
+    Raises:
+        InputFileError: missing variables, shapes that are not multiples of 3,
+            non-rotation blocks, or H that is not positive definite.
+    """
+    path, data = _load(path)
+    if "Rrel" not in data:
+        raise InputFileError(f"{path}: no variable 'Rrel'; the LU Sphinx layout needs Rrel (3N×3N), found {sorted(data)}")
+    Rrel = _numeric(path, data, "Rrel")
+    if Rrel.ndim != 2 or Rrel.shape[0] != Rrel.shape[1] or Rrel.shape[0] % 3:
+        raise InputFileError(f"{path}: Rrel.shape={Rrel.shape} but expected (3N, 3N)")
+    n = Rrel.shape[0] // 3
+    # blocks[i, j] = Rrel[3i:3i+3, 3j:3j+3]
+    blocks = Rrel.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)
+    present = np.abs(blocks).sum(axis=(2, 3)) > 0
+    if np.any(np.diag(present)):
+        k = int(np.flatnonzero(np.diag(present))[0])
+        raise InputFileError(f"{path}: Rrel has a non-zero diagonal block ({k}, {k}); diagonal blocks must be zero (no self-edges)")
+    # Both (i, j) and (j, i) given: keep the upper block, as the layout stores i < j.
+    lower_dup = np.tril(present, -1) & present.T
+    if np.any(lower_dup):
+        logger.info("%s: %d pairs stored in both triangles; using the upper blocks", path, int(lower_dup.sum()))
+    present &= ~lower_dup
+    i, j = np.nonzero(present)
+    edges = np.stack([i, j], axis=1)
+    R_rel = blocks[i, j]
+    H = None
+    if "Alpha" in data:
+        Alpha = _numeric(path, data, "Alpha")
+        if Alpha.shape != Rrel.shape:
+            raise InputFileError(f"{path}: Alpha.shape={Alpha.shape} but expected Rrel's shape {Rrel.shape}")
+        M = Alpha.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[i, j]
+        # The file stores M to single-precision symmetry; H must be symmetric.
+        M = 0.5 * (M + np.swapaxes(M, 1, 2))
+        H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
+        # An edge stored as (j, i) carries M_ji; from_edges turns H into that of (i, j).
+    R_gt = gt_mask = None
+    if "Rgt" in data:
+        Rgt = _numeric(path, data, "Rgt")
+        if Rgt.shape != (3 * n, 3):
+            raise InputFileError(f"{path}: Rgt.shape={Rgt.shape} but expected ({3 * n}, 3) for {n} cameras")
+        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3))
+    vg = _make_graph(path, [str(k) for k in range(n)], edges, R_rel, H)
+    return MatData(vg, R_gt, gt_mask)
+
+
+def _stack3(path: Path, a: np.ndarray, key: str) -> np.ndarray:
+    """(3, 3, K) MATLAB array → (K, 3, 3); MATLAB drops a trailing singleton K."""
+    if a.ndim == 2 and a.shape == (3, 3):
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[:2] != (3, 3):
+        raise InputFileError(f"{path}: {key}.shape={a.shape} but expected (3, 3, K)")
+    return np.ascontiguousarray(np.moveaxis(a, 2, 0))
+
+
+def read_l1_mat(path: str | os.PathLike) -> MatData:
+    """Read the ℓ1 layout (``RR`` 3×3×M, ``I`` 2×M 1-based, optional ``Rgt`` 3×3×N).
+
+    Args:
+        path: a ``.mat`` file.
+
+    Returns:
+        MatData; N is the size of ``Rgt`` when present, else the largest index in ``I``.
+
+    Raises:
+        InputFileError: missing variables, bad shapes, indices that are not
+            positive integers or exceed N, non-rotation blocks.
+    """
+    path, data = _load(path)
+    missing = [k for k in ("RR", "I") if k not in data]
+    if missing:
+        raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
+    RR = _stack3(path, _numeric(path, data, "RR"), "RR")
+    I = _numeric(path, data, "I")
+    if I.ndim != 2 or I.shape[0] != 2:
+        if I.ndim == 2 and I.shape[1] == 2 and I.shape[0] != 2:
+            raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M); transpose it")
+        raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
+    if I.shape[1] != RR.shape[0]:
+        raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
+    if np.any(I != np.round(I)) or (I.size and I.min() < 1):
+        raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
+    edges = I.T.astype(np.int64) - 1
+    R_gt = gt_mask = None
+    if "Rgt" in data:
+        Rgt = _stack3(path, _numeric(path, data, "Rgt"), "Rgt")
+        n = Rgt.shape[0]
+        R_gt, gt_mask = _ground_truth(path, Rgt)
+    else:
+        n = int(edges.max()) + 1 if edges.size else 0
+    if edges.size and edges.max() >= n:
+        raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
+    H = None
+    if "H" in data:
+        H = _stack3(path, _numeric(path, data, "H"), "H")
+        if H.shape[0] != RR.shape[0]:
+            raise InputFileError(f"{path}: H has {H.shape[0]} blocks but RR has {RR.shape[0]}")
+    vg = _make_graph(path, [str(k) for k in range(n)], edges, RR, H)
+    return MatData(vg, R_gt, gt_mask)
+
+
+def write_l1_mat(path: str | os.PathLike, vg: ViewGraph, R_gt: np.ndarray | None = None) -> Path:
+    """Write a view graph in the ℓ1 layout, atomically.
+
+    Args:
+        path: output ``.mat`` file.
+        vg: view graph; its cameras are written in order (index k ↔ name k).
+        R_gt: (N, 3, 3) ground truth; rows with NaN are written as zero blocks
+            (no ground truth).
+
+    Returns:
+        The path written.
+    """
+    arrays: dict[str, np.ndarray] = {
+        "RR": np.moveaxis(vg.R_rel, 0, 2),
+        "I": (vg.edges.T + 1).astype(np.float64),
+    }
+    if R_gt is not None:
+        R_gt = np.asarray(R_gt, dtype=np.float64)
+        if R_gt.shape != (vg.n_cameras, 3, 3):
+            raise ValueError(f"R_gt.shape={R_gt.shape} but expected ({vg.n_cameras}, 3, 3)")
+        R_gt = np.where(np.isfinite(R_gt).all(axis=(1, 2))[:, None, None], R_gt, 0.0)
+        arrays["Rgt"] = np.moveaxis(R_gt, 0, 2)
+    if vg.H is not None:
+        arrays["H"] = np.moveaxis(vg.H, 0, 2)
+    with atomic_path(path, suffix=".mat") as tmp:
+        sio.savemat(tmp, arrays, do_compression=True)
+    return Path(path)
+
+
+def read_mat(path: str | os.PathLike) -> MatData:
+    """Read a ``.mat`` view graph, detecting the layout from its variables.
+
+    ``Rrel`` → LU Sphinx layout; ``RR`` and ``I`` → ℓ1 layout.
+    """
+    p, data = _load(path)
+    if "Rrel" in data:
+        return read_lu_sphinx(p)
+    if "RR" in data and "I" in data:
+        return read_l1_mat(p)
+    raise InputFileError(
+        f"{p}: unknown .mat layout with variables {sorted(data)}; expected Rrel (+Rgt, Alpha) "
+        "as in LU Sphinx, or RR and I (+Rgt) as in the ℓ1 layout"
+    )
+
+
+def read_input_graph(path: str | os.PathLike) -> MatData:
+    """Read a view graph to average: a ``.npz`` from ``ViewGraph.save`` or a supported ``.mat``.
+
+    Returns:
+        MatData (``R_gt`` is None for ``.npz`` files).
+    """
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
+        return MatData(ViewGraph.load(p, allow_isolated=True), None, None)
+    if suffix == ".mat":
+        return read_mat(p)
+    raise InputFileError(f"{p}: unsupported view-graph file; expected a .npz written by ViewGraph.save or a .mat file")

@@ -1,0 +1,262 @@
+"""The run report: ``OUT/report.md`` with one table per reference, and PNG plots.
+
+Plots (matplotlib, Agg backend, never shown):
+
+- ``errors_<ref>.png``: per-camera error histogram and cumulative distribution of
+  every method against one reference (paper 1, Fig. 5a–b).
+- ``convergence.png``: error (median over cameras when the method recorded it per
+  iteration, otherwise its cost) against time for the iterative methods
+  (paper 1, Fig. 5c).
+- ``edge_errors_<ref>.png``: log-log distribution of the relative-rotation
+  errors of the view graph's edges against the reference (paper 1, Fig. 2),
+  after RANSAC and after two-view BA.
+- ``viewgraph.png``: the view graph, cameras placed at their reference centres
+  when known (else a spectral layout), edges coloured by error or weight.
+
+:func:`write_report` takes plain arrays and dicts so that anything (run.py, a
+benchmark, a notebook) can call it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .atomic import atomic_open, atomic_path
+
+logger = logging.getLogger(__name__)
+
+TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
+              ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
+
+
+@dataclass
+class ReportData:
+    """Everything the report shows.
+
+    Attributes:
+        metrics: ``{reference: {method: summary}}``, summaries as returned by
+            :func:`pipeline.evaluate.summarize` (plus optional ``time_s``,
+            ``certified``, ``rank``, ``gap``).
+        camera_errors: ``{reference: {method: (N,) degrees, NaN = unevaluated}}``.
+        edge_errors: ``{reference: {label: (M,) degrees}}``, labels such as
+            ``"ransac"`` and ``"ba"``.
+        histories: ``{method: [{"time_s", "cost", optional "median_deg"}, ...]}``
+            of the iterative methods.
+        vg_edges: (M, 2) edges of the view graph, or None.
+        vg_names: camera names of the view graph.
+        edge_values: ``{label: (M,)}`` values to colour edges by (error, weight).
+        positions: (N, 2 or 3) camera positions for the picture, or None.
+        notes: free lines appended under "Notes" (unregistered images, dropped
+            cameras, warnings).
+        stages: ``{stage: seconds}``.
+        title: report title.
+    """
+
+    metrics: dict[str, dict[str, dict[str, Any]]]
+    camera_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    edge_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    histories: dict[str, list[dict[str, float]]] = field(default_factory=dict)
+    vg_edges: np.ndarray | None = None
+    vg_names: list[str] = field(default_factory=list)
+    edge_values: dict[str, np.ndarray] = field(default_factory=dict)
+    positions: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
+    stages: dict[str, float] = field(default_factory=dict)
+    title: str = "Rotation averaging report"
+
+
+def _plt():
+    import matplotlib  # noqa: PLC0415  (lazy: only the report needs it)
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    return plt
+
+
+def _slug(s: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in s)
+
+
+def _savefig(fig, path: Path) -> Path:
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    _plt().close(fig)
+    return path
+
+
+def _fmt(v: Any, f: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    try:
+        return f.format(int(v) if f == "{:d}" else float(v))
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """Markdown table lines of ``{method: summary}``."""
+    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "certificate"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, m in rows.items():
+        pct = m.get("pct_below", {}) or {}
+        cert = ""
+        if "certified" in m:
+            cert = ("certified" if m["certified"] else "NOT certified") + (
+                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "")
+        cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
+                 _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), cert]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def plot_error_distribution(errors: dict[str, np.ndarray], path: Path, ref: str) -> Path:
+    """Histogram and CDF of per-camera errors of each method (paper 1, Fig. 5a–b)."""
+    plt = _plt()
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    finite = {k: np.asarray(v, float)[np.isfinite(v)] for k, v in errors.items()}
+    allv = np.concatenate([v for v in finite.values() if v.size] or [np.zeros(1)])
+    hi = max(float(np.percentile(allv, 99)) if allv.size else 1.0, 1e-3) * 1.05
+    bins = np.linspace(0, hi, 30)
+    for k, v in finite.items():
+        if not v.size:
+            continue
+        ax1.hist(np.clip(v, 0, hi), bins=bins, histtype="step", lw=1.6, label=f"{k} (n={v.size})")
+        s = np.sort(v)
+        ax2.step(s, np.arange(1, s.size + 1) / s.size, where="post", lw=1.6, label=k)
+    ax1.set(xlabel="camera rotation error (°)", ylabel="cameras", title=f"error histogram vs {ref}")
+    ax2.set(xlabel="camera rotation error (°)", ylabel="fraction of cameras ≤ x", title=f"cumulative vs {ref}",
+            ylim=(0, 1.02))
+    ax1.legend(fontsize=8)
+    ax2.legend(fontsize=8)
+    return _savefig(fig, path)
+
+
+def plot_convergence(histories: dict[str, list[dict[str, float]]], path: Path) -> Path | None:
+    """Median error (or cost) against cumulative time, per iterative method (paper 1, Fig. 5c)."""
+    usable = {k: h for k, h in histories.items() if h}
+    if not usable:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    ylabel = "median camera error (°)"
+    for k, h in usable.items():
+        t = np.array([r.get("time_s", np.nan) for r in h], float)
+        if np.all(np.isfinite(t)) and np.any(np.diff(t) < 0):
+            t = np.cumsum(t)  # per-iteration times: make them cumulative
+        key = "median_deg" if all("median_deg" in r for r in h) else "cost"
+        if key == "cost":
+            ylabel = "median error (°) or cost (where no per-iteration error)"
+        y = np.array([r.get(key, np.nan) for r in h], float)
+        ax.plot(t, y, marker="o", ms=3, label=f"{k} ({'median' if key == 'median_deg' else 'cost'})")
+    ax.set_yscale("log")
+    ax.set(xlabel="time (s)", ylabel=ylabel, title="convergence of the iterative methods")
+    ax.legend(fontsize=8)
+    return _savefig(fig, path)
+
+
+def plot_edge_errors(edge_errors: dict[str, np.ndarray], path: Path, ref: str) -> Path | None:
+    """Log-log distribution of the edges' relative-rotation errors (paper 1, Fig. 2)."""
+    finite = {k: np.asarray(v, float)[np.isfinite(v)] for k, v in edge_errors.items()}
+    finite = {k: v for k, v in finite.items() if v.size}
+    if not finite:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    allv = np.concatenate(list(finite.values()))
+    lo = max(float(allv[allv > 0].min()) if np.any(allv > 0) else 1e-3, 1e-4)
+    bins = np.logspace(np.log10(lo), np.log10(max(180.0, allv.max())), 30)
+    for k, v in finite.items():
+        counts, edges = np.histogram(np.maximum(v, lo), bins=bins)
+        centers = np.sqrt(edges[:-1] * edges[1:])
+        keep = counts > 0
+        ax.loglog(centers[keep], counts[keep] / v.size, marker="o", ms=3, label=f"{k} (M={v.size})")
+    ax.set(xlabel="relative rotation error (°)", ylabel="fraction of edges", title=f"edge errors vs {ref}")
+    ax.legend(fontsize=8)
+    return _savefig(fig, path)
+
+
+def spectral_layout(n: int, edges: np.ndarray) -> np.ndarray:
+    """(n, 2) positions from the 2nd/3rd Laplacian eigenvectors (a picture when no centres are known)."""
+    if n <= 2 or len(edges) == 0:
+        ang = 2 * np.pi * np.arange(n) / max(n, 1)
+        return np.c_[np.cos(ang), np.sin(ang)]
+    A = np.zeros((n, n))
+    A[edges[:, 0], edges[:, 1]] = A[edges[:, 1], edges[:, 0]] = 1.0
+    L = np.diag(A.sum(1)) - A
+    w, V = np.linalg.eigh(L)
+    return V[:, 1:3]
+
+
+def plot_viewgraph(n: int, edges: np.ndarray, values: np.ndarray | None, path: Path, label: str,
+                   positions: np.ndarray | None = None, names: list[str] | None = None) -> Path:
+    """The view graph with edges coloured by ``values`` (error or weight)."""
+    plt = _plt()
+    from matplotlib.collections import LineCollection  # noqa: PLC0415
+
+    P = np.asarray(positions, float)[:, :2] if positions is not None else spectral_layout(n, edges)
+    if positions is not None and np.asarray(positions).shape[1] == 3:
+        # project the centres on their two principal directions: cameras on a ring or an arc stay readable
+        C = np.asarray(positions, float)
+        C0 = C - C.mean(0)
+        _, _, Vt = np.linalg.svd(C0, full_matrices=False)
+        P = C0 @ Vt[:2].T
+    fig, ax = plt.subplots(figsize=(6, 5))
+    segs = np.stack([P[edges[:, 0]], P[edges[:, 1]]], axis=1) if len(edges) else np.zeros((0, 2, 2))
+    v = np.asarray(values, float) if values is not None else np.ones(len(edges))
+    lc = LineCollection(segs, array=np.where(np.isfinite(v), v, np.nan), cmap="viridis", linewidths=1.5)
+    ax.add_collection(lc)
+    ax.scatter(P[:, 0], P[:, 1], s=25, c="k", zorder=3)
+    if names is not None and n <= 40:
+        for k, nm in enumerate(names):
+            ax.annotate(Path(nm).stem, P[k], fontsize=6, xytext=(3, 3), textcoords="offset points")
+    fig.colorbar(lc, ax=ax, label=label)
+    ax.autoscale()
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set(title=f"view graph: {n} cameras, {len(edges)} edges", xticks=[], yticks=[])
+    return _savefig(fig, path)
+
+
+def write_report(out: str | os.PathLike, data: ReportData) -> Path:
+    """Write ``out/report.md`` and its PNGs; returns the report path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [f"# {data.title}", ""]
+    if data.stages:
+        total = sum(data.stages.values())
+        lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
+        lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
+        lines += [f"| **total** | {total:.2f} |", ""]
+    for ref, rows in data.metrics.items():
+        lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
+        errs = data.camera_errors.get(ref)
+        if errs:
+            p = plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)
+            lines += [f"![camera errors vs {ref}]({p.name})", ""]
+        e = data.edge_errors.get(ref)
+        if e:
+            p = plot_edge_errors(e, out / f"edge_errors_{_slug(ref)}.png", ref)
+            if p is not None:
+                lines += [f"![edge errors vs {ref}]({p.name})", ""]
+    p = plot_convergence(data.histories, out / "convergence.png")
+    if p is not None:
+        lines += ["## Convergence", "", f"![convergence]({p.name})", ""]
+    if data.vg_edges is not None and len(data.vg_names):
+        for label, vals in (data.edge_values or {"edge": None}).items():
+            p = plot_viewgraph(len(data.vg_names), np.asarray(data.vg_edges, int), vals,
+                               out / f"viewgraph_{_slug(label)}.png", label, data.positions, data.vg_names)
+            lines += [f"## View graph ({label})", "", f"![view graph]({p.name})", ""]
+    if data.notes:
+        lines += ["## Notes", "", *[f"- {n}" for n in data.notes], ""]
+    path = out / "report.md"
+    with atomic_open(path) as f:
+        f.write("\n".join(lines))
+    logger.info("report: %s", path)
+    return path

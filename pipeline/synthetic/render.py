@@ -1,0 +1,503 @@
+"""Rendered synthetic scenes with known cameras, for the image front end's tests.
+
+The scene is a set of textured rectangles that are not coplanar: a ground plane,
+a back wall and two boxes standing on the ground (5 visible faces each). Every
+rectangle carries its own procedural texture, rich in blob and corner structure
+at several scales so that SIFT finds features at every octave.
+
+Rendering is exact for planar geometry: a rectangle with corner ``P0`` and edge
+vectors ``a`` and ``b`` (world units per texture pixel) maps texture pixel
+``(u, v, 1)`` to the image through the plane-induced homography
+``K [R a | R b | R P0 + t]``; ``cv2.warpPerspective`` resamples the texture and
+a z-buffer of inverse depth (an affine function of the pixel for a plane)
+resolves occlusions. Views are rendered at ``supersample`` times the size and
+area-averaged down, which removes the aliasing of plain bilinear warping.
+
+Conventions: world z is up; ``R`` is cam_from_world (``x_cam = R X + t``);
+camera axes x right, y down, z forward (OpenCV/COLMAP pinhole).
+
+Output folder (``render_scene(out=...)`` or the command line)::
+
+    DIR/view_000.png ...     the images (8-bit RGB PNG)
+    DIR/cameras.txt          one line per image: name fx fy cx cy r11 .. r33 t1 t2 t3
+    DIR/points3d.txt         (optional) x y z of points sampled on the visible surfaces
+
+Command line::
+
+    python -m pipeline.synthetic.render --views 12 --seed 0 --out DIR [--noise 0.5] [--points]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..atomic import atomic_open, atomic_path
+from ..errors import PipelineError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "SceneConfig",
+    "Plane",
+    "RenderedScene",
+    "make_planes",
+    "ring_cameras",
+    "render_view",
+    "render_scene",
+    "essential_from_Rt",
+    "write_cameras_txt",
+    "main",
+    "main_cli",
+]
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneConfig:
+    """Scene and camera parameters of a rendered scene.
+
+    Attributes:
+        n_views: number of cameras.
+        width, height: image size in pixels.
+        focal: focal length in pixels (``fx = fy``); principal point at the centre.
+        arc_deg: angular extent of the camera arc around the object (degrees).
+            The arc faces the back wall, so every view sees most of the scene and
+            all pairs of a 12-view arc overlap.
+        radius: horizontal distance of the cameras from the look-at point.
+        height_cam: camera height above the ground.
+        jitter: random perturbation of camera positions (world units), so that
+            the views are not exactly on a circle.
+        noise_sigma: standard deviation of additive Gaussian pixel noise (0-255 scale).
+        supersample: render at this factor and area-average down (anti-aliasing).
+        texture_px_per_unit: texture resolution (pixels per world unit).
+    """
+
+    n_views: int = 12
+    width: int = 640
+    height: int = 480
+    focal: float = 560.0
+    arc_deg: float = 80.0
+    radius: float = 7.0
+    height_cam: float = 3.2
+    jitter: float = 0.15
+    noise_sigma: float = 0.0
+    supersample: int = 2
+    texture_px_per_unit: float = 220.0
+
+
+@dataclass
+class Plane:
+    """A textured rectangle ``X(u, v) = origin + u·a + v·b`` for texture pixel ``(u, v)``.
+
+    Attributes:
+        origin: (3,) world position of texture pixel (0, 0).
+        a, b: (3,) world displacement per texture pixel along u and v.
+        texture: (h, w, 3) uint8 texture image.
+        name: label for debugging.
+    """
+
+    origin: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    texture: np.ndarray
+    name: str = ""
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.cross(self.a, self.b)
+        return n / np.linalg.norm(n)
+
+    @property
+    def rgba(self) -> np.ndarray:
+        """(h, w, 4) texture with an opaque alpha channel (cached)."""
+        if getattr(self, "_rgba", None) is None:
+            alpha = np.full(self.texture.shape[:2] + (1,), 255, np.uint8)
+            self._rgba = np.concatenate([self.texture, alpha], axis=2)
+        return self._rgba
+
+    def corners(self) -> np.ndarray:
+        """(4, 3) world corners."""
+        h, w = self.texture.shape[:2]
+        return np.stack([self.origin, self.origin + w * self.a, self.origin + w * self.a + h * self.b, self.origin + h * self.b])
+
+
+@dataclass
+class RenderedScene:
+    """Images and true cameras of a rendered scene.
+
+    Attributes:
+        names: N image names (``view_000.png`` ...).
+        images: N (h, w, 3) uint8 RGB images.
+        K: (N, 3, 3) intrinsics.
+        R: (N, 3, 3) cam_from_world rotations.
+        t: (N, 3) cam_from_world translations.
+        points: (P, 3) world points sampled on the scene surfaces (visible in >= 2 views).
+        depth: N (h, w) float32 depth maps (z in the camera frame; inf where nothing is seen).
+        out: output folder, if written.
+    """
+
+    names: list[str]
+    images: list[np.ndarray]
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    points: np.ndarray
+    depth: list[np.ndarray] = field(default_factory=list)
+    out: Path | None = None
+
+    @property
+    def centers(self) -> np.ndarray:
+        """(N, 3) camera centres ``-Rᵀ t``."""
+        return -np.einsum("nji,nj->ni", self.R, self.t)
+
+    def relative_pose(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(R_ij, t_ij)`` with ``x_j = R_ij x_i + t_ij``; ``t_ij`` of unit norm."""
+        R_ij = self.R[j] @ self.R[i].T
+        t_ij = self.t[j] - R_ij @ self.t[i]
+        return R_ij, t_ij / np.linalg.norm(t_ij)
+
+    def project(self, i: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points X (P, 3) into view i: pixels (P, 2) and depths (P,)."""
+        Xc = X @ self.R[i].T + self.t[i]
+        x = Xc @ self.K[i].T
+        return x[:, :2] / x[:, 2:3], Xc[:, 2]
+
+
+# --------------------------------------------------------------------- texture
+
+
+def procedural_texture(h: int, w: int, rng: np.random.Generator) -> np.ndarray:
+    """A colour texture with structure at several scales (RGB uint8, (h, w, 3)).
+
+    Layers, from coarse to fine: smooth multi-octave value noise (blobs at every
+    scale SIFT's pyramid looks at), random filled ellipses, rectangles and
+    polygons (corners and edges), thin random lines, and fine speckle. Random
+    colours per shape give distinct descriptors after grey conversion.
+    """
+    img = np.zeros((h, w, 3), np.float32)
+    # multi-octave value noise: random grids upsampled with cubic interpolation
+    amp = 1.0
+    for cell in (256, 128, 64, 32, 16, 8):
+        gh, gw = max(2, h // cell + 2), max(2, w // cell + 2)
+        grid = rng.standard_normal((gh, gw, 3)).astype(np.float32)
+        up = cv2.resize(grid, (gw * cell, gh * cell), interpolation=cv2.INTER_CUBIC)[:h, :w]
+        img += amp * up
+        amp *= 0.75
+    img = (img - img.mean()) / (img.std() + 1e-6)
+    img = np.clip(128 + 40 * img, 0, 255)
+    canvas = img.astype(np.uint8).copy()
+    area = h * w
+    n_shapes = int(area / 700)
+    # log-uniform sizes (shapes at every octave), painted largest first so that
+    # the fine structure stays on top
+    sizes = np.sort(np.exp(rng.uniform(np.log(4), np.log(max(8.0, min(h, w) / 10)), n_shapes)))[::-1]
+    for size in sizes:
+        size = float(size)
+        kind = rng.integers(0, 4)
+        color = tuple(int(c) for c in rng.integers(0, 256, 3))
+        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+        if kind == 0:
+            axes = (max(1, int(size)), max(1, int(size * rng.uniform(0.3, 1.0))))
+            cv2.ellipse(canvas, (cx, cy), axes, float(rng.uniform(0, 180)), 0, 360, color, -1, cv2.LINE_AA)
+        elif kind == 1:
+            s2 = size * rng.uniform(0.3, 1.0)
+            ang = rng.uniform(0, np.pi)
+            c, s = np.cos(ang), np.sin(ang)
+            pts = np.array([[-size, -s2], [size, -s2], [size, s2], [-size, s2]]) @ np.array([[c, s], [-s, c]])
+            cv2.fillConvexPoly(canvas, (pts + [cx, cy]).astype(np.int32), color, cv2.LINE_AA)
+        elif kind == 2:
+            k = int(rng.integers(3, 7))
+            ang = np.sort(rng.uniform(0, 2 * np.pi, k))
+            rad = size * rng.uniform(0.4, 1.0, k)
+            pts = np.stack([cx + rad * np.cos(ang), cy + rad * np.sin(ang)], 1)
+            cv2.fillPoly(canvas, [pts.astype(np.int32)], color, cv2.LINE_AA)
+        else:
+            ang = rng.uniform(0, np.pi)
+            d = np.array([np.cos(ang), np.sin(ang)]) * size * 2
+            p0 = (int(cx - d[0]), int(cy - d[1]))
+            p1 = (int(cx + d[0]), int(cy + d[1]))
+            cv2.line(canvas, p0, p1, color, int(rng.integers(1, 4)), cv2.LINE_AA)
+    speckle = rng.normal(0, 6, (h, w, 1)).astype(np.float32)
+    out = np.clip(canvas.astype(np.float32) + speckle, 0, 255)
+    return out.astype(np.uint8)
+
+
+def _rect(origin, u_vec, v_vec, px_per_unit: float, rng: np.random.Generator, name: str) -> Plane:
+    """A rectangle spanned by world vectors ``u_vec`` and ``v_vec`` from ``origin``."""
+    u_vec, v_vec, origin = (np.asarray(x, float) for x in (u_vec, v_vec, origin))
+    w = max(16, int(round(np.linalg.norm(u_vec) * px_per_unit)))
+    h = max(16, int(round(np.linalg.norm(v_vec) * px_per_unit)))
+    tex = procedural_texture(h, w, rng)
+    return Plane(origin, u_vec / w, v_vec / h, tex, name)
+
+
+def _box(center_xy, size, yaw: float, px_per_unit: float, rng: np.random.Generator, name: str) -> list[Plane]:
+    """Five faces (4 sides + top) of a box standing on the ground, yawed about z."""
+    sx, sy, sz = size
+    c, s = np.cos(yaw), np.sin(yaw)
+    ex, ey, ez = np.array([c, s, 0.0]) * sx, np.array([-s, c, 0.0]) * sy, np.array([0, 0, 1.0]) * sz
+    o = np.array([center_xy[0], center_xy[1], 0.0]) - ex / 2 - ey / 2
+    # each face spanned so that its normal a×b points out of the box
+    faces = [
+        (o + ez, ex, -ez, "front"),  # y-min side: normal = ex × (-ez) = -ey direction
+        (o + ey + ex + ez, -ex, -ez, "back"),
+        (o + ex + ez, ey, -ez, "right"),
+        (o + ey + ez, -ey, -ez, "left"),
+        (o + ez + ey, ex, -ey, "top"),
+    ]
+    return [_rect(p, a, b, px_per_unit, rng, f"{name}-{n}") for p, a, b, n in faces]
+
+
+def make_planes(seed: int = 0, px_per_unit: float = 220.0) -> list[Plane]:
+    """The scene's textured rectangles: ground, back wall and two boxes (12 planes).
+
+    Args:
+        seed: texture seed; the geometry is fixed.
+        px_per_unit: texture resolution.
+    Returns:
+        list of :class:`Plane`.
+    """
+    rng = np.random.default_rng(seed)
+    planes = [
+        # ground z = 0, x in [-4, 4], y in [-3.5, 3]
+        _rect([-4.0, 3.0, 0.0], [8.0, 0, 0], [0, -6.5, 0], px_per_unit * 0.7, rng, "ground"),
+        # back wall y = 3, x in [-4, 4], z in [0, 4]
+        _rect([-4.0, 3.0, 4.0], [8.0, 0, 0], [0, 0, -4.0], px_per_unit * 0.7, rng, "wall"),
+    ]
+    planes += _box((0.0, 0.2), (1.6, 1.3, 1.2), np.deg2rad(25), px_per_unit, rng, "box1")
+    planes += _box((1.9, 1.6), (0.9, 0.9, 1.8), np.deg2rad(-15), px_per_unit, rng, "box2")
+    return planes
+
+
+# --------------------------------------------------------------------- cameras
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """cam_from_world ``(R, t)`` of a camera at ``center`` looking at ``target``."""
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, float))
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)  # image y points down
+    R = np.stack([x, y, z])
+    return R, -R @ center
+
+
+def ring_cameras(cfg: SceneConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Cameras on an arc in front of the back wall, all looking at the boxes.
+
+    Returns:
+        K (N, 3, 3), R (N, 3, 3) cam_from_world, t (N, 3).
+    """
+    n = cfg.n_views
+    target = np.array([0.5, 0.8, 0.6])
+    half = np.deg2rad(cfg.arc_deg) / 2
+    ang = np.linspace(-half, half, n) if n > 1 else np.zeros(1)
+    K = np.array([[cfg.focal, 0, (cfg.width - 1) / 2], [0, cfg.focal, (cfg.height - 1) / 2], [0, 0, 1]])
+    Rs, ts = [], []
+    for a in ang:
+        c = target + np.array([cfg.radius * np.sin(a), -cfg.radius * np.cos(a), cfg.height_cam - target[2]])
+        c = c + rng.normal(0, cfg.jitter, 3)
+        aim = target + rng.normal(0, 0.2, 3)
+        R, t = look_at(c, aim)
+        # a small random roll so the rotations are not all about z
+        roll = rng.normal(0, np.deg2rad(3))
+        cr, sr = np.cos(roll), np.sin(roll)
+        Rz = np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+        Rs.append(Rz @ R)
+        ts.append(Rz @ t)
+    return np.repeat(K[None], n, 0), np.array(Rs), np.array(ts)
+
+
+# --------------------------------------------------------------------- rendering
+
+
+def render_view(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
+                supersample: int = 2, background: int = 90) -> tuple[np.ndarray, np.ndarray]:
+    """Render one view of textured planes with a z-buffer.
+
+    Args:
+        planes: the scene.
+        K: (3, 3) intrinsics; R: (3, 3) cam_from_world; t: (3,).
+        width, height: output size.
+        supersample: render at this factor, then area-average down.
+    Returns:
+        image (height, width, 3) uint8 RGB and depth (height, width) float32 (inf = empty).
+    """
+    s = int(supersample)
+    S = np.diag([s, s, 1.0])
+    # pixel centres: x_s = s·(x + 0.5) − 0.5 keeps the principal point consistent
+    S[0, 2] = S[1, 2] = (s - 1) / 2
+    Ks = S @ K
+    W, H = width * s, height * s
+    Kinv = np.linalg.inv(Ks)
+    uu = np.arange(W, dtype=np.float32)[None, :]
+    vv = np.arange(H, dtype=np.float32)[:, None]
+    best = np.zeros((H, W), np.float32)  # inverse depth of the nearest surface so far
+    image = np.full((H, W, 3), background, np.uint8)
+    for pl in planes:
+        # plane-induced homography: texture pixel -> image pixel, with the texture's
+        # pixel-centre convention (texel (u, v) covers [u, u+1) x [v, v+1))
+        Hm = Ks @ np.column_stack([R @ pl.a, R @ pl.b, R @ pl.origin + t])
+        Hc = Hm @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
+        # the alpha channel marks the rectangle's pixels
+        warped = cv2.warpPerspective(pl.rgba, Hc, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                     borderValue=(0, 0, 0, 0))
+        n_c = R @ pl.normal
+        d_c = float(n_c @ (R @ pl.origin + t))  # the plane is n_c·X = d_c in the camera frame
+        if abs(d_c) < 1e-9:
+            continue  # seen edge-on
+        # inverse depth 1/z = n_c·(K⁻¹ x) / d_c is affine in the pixel; its sign also
+        # removes the mirror image the homography gives of points behind the camera
+        coef = ((n_c @ Kinv) / d_c).astype(np.float32)
+        invz = coef[0] * uu + (coef[1] * vv + coef[2])
+        closer = (warped[..., 3] >= 128) & (invz > best)
+        best[closer] = invz[closer]
+        image[closer] = warped[..., :3][closer]
+    if s > 1:
+        image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+        best = best[s // 2::s, s // 2::s][:height, :width]
+    depth = np.where(best > 0, 1.0 / np.maximum(best, 1e-12), np.inf).astype(np.float32)
+    return image, depth
+
+
+def essential_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``E = [t]× R`` for ``x_j = R x_i + t`` (normalized so that ‖E‖_F = √2 for unit t)."""
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    return tx @ R
+
+
+def _sample_points(planes: list[Plane], scene_K, scene_R, scene_t, depths, rng, n_per_plane: int = 400) -> np.ndarray:
+    """Points on the planes that are visible (not occluded) in at least two views."""
+    pts = []
+    for pl in planes:
+        h, w = pl.texture.shape[:2]
+        uv = rng.uniform([0, 0], [w, h], (n_per_plane, 2))
+        pts.append(pl.origin + uv[:, :1] * pl.a + uv[:, 1:] * pl.b)
+    X = np.concatenate(pts)
+    n_vis = np.zeros(len(X), int)
+    for K, R, t, D in zip(scene_K, scene_R, scene_t, depths):
+        Xc = X @ R.T + t
+        z = Xc[:, 2]
+        x = Xc @ K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = x[:, 0] / x[:, 2], x[:, 1] / x[:, 2]
+        hh, ww = D.shape
+        ok = (z > 0) & (u >= 0) & (u <= ww - 1) & (v >= 0) & (v <= hh - 1)
+        ui, vi = np.clip(np.round(u).astype(int), 0, ww - 1), np.clip(np.round(v).astype(int), 0, hh - 1)
+        ok &= np.abs(D[vi, ui] - z) < 0.02 * z
+        n_vis += ok
+    return X[n_vis >= 2]
+
+
+def write_cameras_txt(path: Path, names: list[str], K: np.ndarray, R: np.ndarray, t: np.ndarray) -> Path:
+    """Write ``name fx fy cx cy r11 .. r33 t1 t2 t3`` per line (cam_from_world), atomically."""
+    try:  # helper A's writer, when present, keeps one implementation of the format
+        from ..io.references import write_cameras_file  # type: ignore
+
+        return Path(write_cameras_file(path, names, K, R, t))
+    except ImportError:
+        pass
+    with atomic_open(path) as f:
+        f.write("# name fx fy cx cy r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3 (cam_from_world)\n")
+        for n, k, r, tt in zip(names, K, R, t):
+            vals = [k[0, 0], k[1, 1], k[0, 2], k[1, 2], *r.ravel(), *tt]
+            f.write(n + " " + " ".join(f"{v:.12g}" for v in vals) + "\n")
+    return Path(path)
+
+
+def render_scene(n_views: int = 12, seed: int = 0, out: str | Path | None = None, *,
+                 config: SceneConfig | None = None, noise_sigma: float | None = None,
+                 write_points: bool = False, overwrite: bool = True) -> RenderedScene:
+    """Render a seeded scene; optionally write images, ``cameras.txt`` and ``points3d.txt``.
+
+    Args:
+        n_views: number of views (overrides ``config.n_views``).
+        seed: seeds textures, camera jitter and pixel noise; same seed → same images.
+        out: output folder, or None to keep everything in memory.
+        config: scene parameters (defaults: :class:`SceneConfig`).
+        noise_sigma: overrides ``config.noise_sigma``.
+        write_points: also write ``points3d.txt``.
+        overwrite: when False and ``out/cameras.txt`` exists, images are not re-written.
+    Returns:
+        :class:`RenderedScene`.
+    """
+    cfg = config or SceneConfig()
+    if n_views < 2:
+        raise PipelineError(f"n_views={n_views} but a scene needs at least 2 views")
+    kw = dict(cfg.__dict__)
+    kw["n_views"] = int(n_views)
+    if noise_sigma is not None:
+        kw["noise_sigma"] = float(noise_sigma)
+    cfg = SceneConfig(**kw)
+    rng = np.random.default_rng(seed)
+    planes = make_planes(int(rng.integers(2**31)), cfg.texture_px_per_unit)
+    K, R, t = ring_cameras(cfg, np.random.default_rng(int(rng.integers(2**31))))
+    noise_rng = np.random.default_rng(int(rng.integers(2**31)))
+    names = [f"view_{i:03d}.png" for i in range(cfg.n_views)]
+    images, depths = [], []
+    t0 = time.perf_counter()
+    for i in range(cfg.n_views):
+        img, depth = render_view(planes, K[i], R[i], t[i], cfg.width, cfg.height, cfg.supersample)
+        if cfg.noise_sigma > 0:
+            img = np.clip(img + noise_rng.normal(0, cfg.noise_sigma, img.shape), 0, 255).astype(np.uint8)
+        images.append(img)
+        depths.append(depth)
+    logger.debug("rendered %d views in %.2f s", cfg.n_views, time.perf_counter() - t0)
+    points = _sample_points(planes, K, R, t, depths, np.random.default_rng(seed + 1))
+    scene = RenderedScene(names, images, K, R, t, points, depths)
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        for name, img in zip(names, images):
+            with atomic_path(out / name, suffix=".png") as tmp:
+                if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
+                    raise PipelineError(f"could not write {out / name}")
+        write_cameras_txt(out / "cameras.txt", names, K, R, t)
+        if write_points:
+            with atomic_open(out / "points3d.txt") as f:
+                f.write("# x y z (world)\n")
+                np.savetxt(f, points, fmt="%.9g")
+        scene.out = out
+    return scene
+
+
+def main(out: str | Path, n_views: int = 12, seed: int = 0, noise_sigma: float = 0.0, write_points: bool = False,
+         config: SceneConfig | None = None) -> Path:
+    """Render a scene into ``out`` and return the path of its ``cameras.txt``."""
+    t0 = time.perf_counter()
+    scene = render_scene(n_views, seed, out, config=config, noise_sigma=noise_sigma, write_points=write_points)
+    logger.info("rendered %d views (%dx%d) into %s in %.2f s", len(scene.names), scene.images[0].shape[1],
+                scene.images[0].shape[0], out, time.perf_counter() - t0)
+    return Path(out) / "cameras.txt"
+
+
+def main_cli(argv: list[str] | None = None) -> int:
+    from ..cli import run_cli
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.synthetic.render", description=__doc__.split("\n")[0])
+    p.add_argument("--views", type=int, default=12, help="number of views (default 12)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (textures, cameras, noise)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--noise", type=float, default=0.0, help="Gaussian pixel noise sigma, 0-255 scale (default 0)")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--points", action="store_true", help="also write points3d.txt (true 3D points)")
+
+    def body(a: argparse.Namespace) -> int:
+        cfg = SceneConfig(width=a.width, height=a.height, focal=560.0 * a.width / 640)
+        main(a.out, a.views, a.seed, a.noise, a.points, cfg)
+        return 0
+
+    return run_cli(body, p, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())

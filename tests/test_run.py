@@ -1,0 +1,204 @@
+"""Tests of run.py: the whole chain, stage-by-stage equivalence, resuming, interruption."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pipeline.errors import PipelineError  # noqa: E402
+from pipeline.io.rotations import read_rotations  # noqa: E402
+from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL = SceneConfig(width=320, height=240, focal=280.0, supersample=1)
+
+
+def load_run():
+    spec = importlib.util.spec_from_file_location("run_module", REPO / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+run = load_run()
+
+
+@pytest.fixture(scope="session")
+def scene(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("scene")
+    render_scene(6, 0, out, config=SMALL)
+    return out
+
+
+@pytest.fixture(scope="session")
+def fast_config(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
+    p.write_text("run:\n  plots: false\n")
+    return p
+
+
+@pytest.fixture(scope="session")
+def full_run(scene, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("full")
+    run.main(scene, out, gt=scene / "cameras.txt", quiet=True)
+    return out
+
+
+@pytest.mark.slow
+def test_full_run_metrics_and_report(full_run):
+    m = json.loads((full_run / "metrics.json").read_text())
+    assert set(m) >= {"methods", "edges", "pycolmap", "stages"}
+    assert set(m["methods"]) == {"irls-l0.5", "sdp-cso3"}  # N=6 <= sdp_max_n
+    irls = m["methods"]["irls-l0.5"]
+    assert irls["reference"] == "truth" and irls["n_evaluated"] == 6
+    assert irls["median_deg"] < 0.3, irls
+    assert set(irls["references"]) == {"truth", "pycolmap"}
+    for k in ("mean_deg", "rms_deg", "max_deg", "frobenius", "pct_below", "time_s"):
+        assert k in irls
+    sdp = m["methods"]["sdp-cso3"]
+    assert "certified" in sdp and "rank" in sdp and sdp["median_deg"] < 0.5
+    for tag in ("ransac", "ba"):
+        e = m["edges"][tag]
+        assert set(e) >= {"median_deg", "mean_deg", "rms_deg", "pct_above"}
+        assert set(e["pct_above"]) == {"10", "30", "60", "90"}
+    p = m["pycolmap"]
+    assert p["n_registered"] == 6 and p["median_deg"] < 0.5 and p["time_s"] > 0
+    assert set(m["stages"]) >= {"features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging",
+                                "reference", "evaluation", "report"}
+    text = (full_run / "report.md").read_text()
+    assert "## Against truth" in text and "## Against pycolmap" in text
+    for png in ("errors_truth.png", "edge_errors_truth.png", "errors_pycolmap.png"):
+        assert (full_run / png).is_file(), png
+    assert list(full_run.glob("viewgraph_*.png"))
+
+
+@pytest.mark.slow
+def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
+    """features → matching → two_view → two_view_ba → average by their commands equals run.py."""
+    work = tmp_path / "work"
+    py = sys.executable
+    cmds = [
+        [py, "-m", "pipeline.features", "--images", str(scene), "--work", str(work)],
+        [py, "-m", "pipeline.matching", "--work", str(work)],
+        [py, "-m", "pipeline.two_view", "--work", str(work)],
+        [py, "-m", "pipeline.two_view_ba", "--work", str(work)],
+        [py, "-m", "pipeline.average", str(work / "viewgraph.npz"), "--method", "irls", "--loss", "l0.5",
+         "--out", str(tmp_path / "irls.txt")],
+    ]
+    for c in cmds:
+        r = subprocess.run(c + ["-q"], capture_output=True, text=True)
+        assert r.returncode == 0, (c, r.stderr)
+    n1, R1 = read_rotations(tmp_path / "irls.txt")
+    n2, R2 = read_rotations(full_run / "rotations" / "irls-l0.5.txt")
+    assert list(n1) == list(n2)
+    np.testing.assert_allclose(R1, R2, atol=1e-8)
+
+
+@pytest.mark.slow
+def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
+    import pycolmap
+
+    from pipeline import average, features, two_view_ba
+
+    calls = {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
+
+    def count(key, fn):
+        def wrapped(*a, **k):
+            calls[key] += 1
+            return fn(*a, **k)
+        return wrapped
+
+    monkeypatch.setattr(features, "extract_sift", count("sift", features.extract_sift))
+    monkeypatch.setattr(two_view_ba, "refine_pairs", count("ba", two_view_ba.refine_pairs))
+    monkeypatch.setattr(average, "main", count("avg", average.main))
+    monkeypatch.setattr(pycolmap, "extract_features", count("colmap", pycolmap.extract_features))
+    monkeypatch.setattr(pycolmap, "incremental_mapping", count("colmap", pycolmap.incremental_mapping))
+    before = json.loads((full_run / "metrics.json").read_text())
+    run.main(scene, full_run, gt=scene / "cameras.txt", quiet=True)
+    assert calls == {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
+    after = json.loads((full_run / "metrics.json").read_text())
+    assert after["stages_reused"]["features"] and after["stages_reused"]["two_view_ba"]
+    assert after["stages_reused"]["reference"]
+    assert after["methods"]["irls-l0.5"]["median_deg"] == before["methods"]["irls-l0.5"]["median_deg"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("where", ["features", "two_view_ba"])
+def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_config, tmp_path, monkeypatch, where):
+    from pipeline import features, two_view_ba
+
+    out = tmp_path / "out"
+    if where == "features":
+        real = features.extract_sift
+        n = {"k": 0}
+
+        def flaky(*a, **k):  # Ctrl-C after 3 images were extracted and cached
+            n["k"] += 1
+            if n["k"] > 3:
+                raise KeyboardInterrupt
+            return real(*a, **k)
+
+        monkeypatch.setattr(features, "extract_sift", flaky)
+    else:
+        def interrupted(*a, **k):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr(two_view_ba, "refine_pairs", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
+    monkeypatch.undo()
+    run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
+    for label in ("irls-l0.5", "sdp-cso3"):
+        n1, R1 = read_rotations(out / "rotations" / f"{label}.txt")
+        n2, R2 = read_rotations(full_run / "rotations" / f"{label}.txt")
+        assert list(n1) == list(n2)
+        np.testing.assert_allclose(R1, R2, atol=1e-6)
+
+
+def test_parse_method():
+    assert run.parse_method("irls").label == "irls-l0.5"
+    assert run.parse_method("irls-geman-mcclure").options == {"method": "irls", "loss": "geman-mcclure"}
+    assert run.parse_method("sdp").options["variant"] == "cso3"
+    assert run.parse_method("sdp-o3-iso").options["variant"] == "o3-iso"
+    assert run.parse_method("l1").options == {"method": "l1"}
+    assert run.parse_method("weiszfeld").label == "weiszfeld"
+
+
+def test_parse_method_rejects_unknown():
+    with pytest.raises(PipelineError, match="unknown SDP variant"):
+        run.parse_method("sdp-so4")
+    with pytest.raises(PipelineError, match="unknown method"):
+        run.parse_method("irls-nosuchloss")
+
+
+def test_bad_config_key(tmp_path, scene):
+    p = tmp_path / "bad.yaml"
+    p.write_text("run:\n  no_such_key: 1\n")
+    with pytest.raises(PipelineError, match="unknown key"):
+        run.main(scene, tmp_path / "out", config=p, quiet=True)
+    p.write_text("nonsense_stage:\n  a: 1\n")
+    with pytest.raises(PipelineError, match="unknown section"):
+        run.main(scene, tmp_path / "out", config=p, quiet=True)
+
+
+def test_help():
+    r = subprocess.run([sys.executable, str(REPO / "run.py"), "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--methods" in r.stdout and "--gt" in r.stdout
+
+
+@pytest.mark.parametrize("module", ["pipeline.reference", "pipeline.features", "pipeline.matching",
+                                    "pipeline.two_view", "pipeline.two_view_ba", "pipeline.average",
+                                    "pipeline.evaluate"])
+def test_stage_help(module):
+    r = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "usage" in r.stdout.lower()

@@ -1,0 +1,170 @@
+"""run.py tried as a new user would (issue 7, acceptance item 5)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pipeline.errors import PipelineError  # noqa: E402
+from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL = SceneConfig(width=320, height=240, focal=280.0, supersample=1)
+
+
+def load_run():
+    spec = importlib.util.spec_from_file_location("run_module_user", REPO / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+run = load_run()
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(REPO / "run.py"), *args, "-q"], capture_output=True, text=True)
+
+
+def assert_one_line_error(r: subprocess.CompletedProcess, pattern: str) -> None:
+    assert r.returncode == 2, r.stderr
+    err = r.stderr.strip()
+    assert err.startswith("error:") and len(err.splitlines()) == 1, err
+    assert pattern in err, err
+
+
+@pytest.fixture(scope="session")
+def fast_config(tmp_path_factory) -> Path:
+    p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
+    p.write_text("run:\n  plots: false\n")
+    return p
+
+
+@pytest.fixture(scope="session")
+def messy(tmp_path_factory) -> Path:
+    """5 rendered views, no K file (PNGs carry no EXIF), plus a text file named .jpg and a truncated JPEG."""
+    src = tmp_path_factory.mktemp("src")
+    render_scene(5, 2, src, config=SMALL)
+    folder = tmp_path_factory.mktemp("messy")
+    for p in sorted(src.glob("*.png")):
+        shutil.copy(p, folder / p.name)
+    (folder / "notes.jpg").write_text("this is not an image\n")
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", cv2.imread(str(src / "view_000.png")))
+    (folder / "truncated.jpg").write_bytes(buf.tobytes()[: len(buf) // 3])
+    (folder / "README.txt").write_text("not an image either\n")
+    return folder
+
+
+@pytest.fixture(scope="session")
+def messy_run(messy, fast_config, tmp_path_factory):
+    out = tmp_path_factory.mktemp("messy_out")
+    records: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(record)
+
+    h = Keep(level=logging.WARNING)
+    logging.getLogger().addHandler(h)
+    try:
+        run.main(messy, out, config=fast_config, quiet=True, reference=False)
+    finally:
+        logging.getLogger().removeHandler(h)
+    return out, [r.getMessage() for r in records if r.levelno >= logging.WARNING]
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert_one_line_error(run_cli(str(tmp_path / "empty"), "--out", str(tmp_path / "o")), "at least 2")
+
+
+def test_single_image(tmp_path):
+    folder = tmp_path / "one"
+    render_scene(2, 0, tmp_path / "two", config=SMALL)
+    folder.mkdir()
+    shutil.copy(tmp_path / "two" / "view_000.png", folder)
+    assert_one_line_error(run_cli(str(folder), "--out", str(tmp_path / "o")), "at least 2")
+
+
+def test_missing_folder(tmp_path):
+    assert_one_line_error(run_cli(str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "does not exist")
+
+
+def test_output_folder_not_writable(tmp_path):
+    render_scene(2, 0, tmp_path / "imgs", config=SMALL)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")  # a folder cannot be created under a file, even by root
+    assert_one_line_error(run_cli(str(tmp_path / "imgs"), "--out", str(blocker / "out")), "cannot write")
+    if os.geteuid() != 0:  # permissions bind only non-root users
+        ro = tmp_path / "ro"
+        ro.mkdir()
+        ro.chmod(0o500)
+        assert_one_line_error(run_cli(str(tmp_path / "imgs"), "--out", str(ro / "out")), "cannot write")
+
+
+def test_bad_gt(tmp_path):
+    render_scene(2, 0, tmp_path / "imgs", config=SMALL)
+    (tmp_path / "gt.txt").write_text("garbage line\n")
+    r = run_cli(str(tmp_path / "imgs"), "--out", str(tmp_path / "o"), "--gt", str(tmp_path / "gt.txt"))
+    assert r.returncode == 2 and r.stderr.strip().startswith("error:") and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_unreadable_files_are_skipped_and_named(messy_run):
+    out, warnings = messy_run
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["input"]["n_images"] == 5  # the 5 good views, not notes.jpg nor truncated.jpg
+    assert any("notes.jpg" in w for w in warnings) and any("truncated.jpg" in w for w in warnings), warnings
+    assert m["methods"]["irls-l0.5"]["n_cameras"] == 5
+
+
+@pytest.mark.slow
+def test_no_K_no_exif_warns_and_uses_default_focal(messy_run):
+    out, warnings = messy_run
+    assert any("focal" in w.lower() for w in warnings), warnings
+    man = json.loads((out / "work" / "features.json").read_text())
+    assert set(man["K_source"]) == {"default"}
+    K = np.array(man["K"])
+    np.testing.assert_allclose(K[:, 0, 0], 1.2 * 320)
+    m = json.loads((out / "metrics.json").read_text())
+    assert any("default focal" in n for n in m["notes"])
+    # no reference was asked for: the run still succeeds and says so
+    assert any("no reference" in n for n in m["notes"])
+
+
+@pytest.mark.slow
+def test_two_groups_without_overlap(tmp_path_factory, fast_config):
+    """Largest component is solved; a message names every image left out."""
+    folder = tmp_path_factory.mktemp("groups")
+    for prefix, n, seed in (("a", 5, 3), ("b", 3, 11)):
+        src = tmp_path_factory.mktemp(f"g{prefix}")
+        render_scene(n, seed, src, config=SMALL)
+        for p in sorted(src.glob("*.png")):
+            shutil.copy(p, folder / f"{prefix}_{p.name}")
+    np.savetxt(folder / "K.txt", [[280.0, 0, 159.5], [0, 280.0, 119.5], [0, 0, 1]])
+    out = tmp_path_factory.mktemp("groups_out")
+    r = subprocess.run([sys.executable, str(REPO / "run.py"), str(folder), "--out", str(out), "--config",
+                        str(fast_config)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    b_names = [f"b_view_{k:03d}.png" for k in range(3)]
+    assert sorted(m["input"]["left_out"]) == b_names
+    assert m["methods"]["irls-l0.5"]["n_cameras"] == 5
+    assert "not connected" in r.stderr and all(n in r.stderr for n in b_names)
+    assert any(all(n in note for n in b_names) for note in m["notes"])
+    # the pycolmap reference reports the other group's images with a reason
+    unreg = m["pycolmap"]["unregistered"]
+    assert set(b_names) <= set(unreg)

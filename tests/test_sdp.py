@@ -1,0 +1,331 @@
+"""Tests of the SDP rotation averaging (paper 2): pipeline.averaging.sdp / certificate / sdp_cvxpy."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from pipeline import so3
+from pipeline.averaging.certificate import (
+    edge_cost,
+    numerical_rank,
+    relative_gap,
+    round_to_rotations,
+    weight_matrices,
+)
+from pipeline.averaging.sdp import (
+    VARIANTS,
+    build_conic,
+    conv_so3_lmi,
+    edge_weights,
+    solve_sdp,
+    svec_index,
+    unsvec,
+)
+from pipeline.errors import ViewGraphError
+from pipeline.viewgraph import ViewGraph
+
+
+# ----------------------------------------------------------------- fixtures
+def random_precisions(m: int, lo: float, hi: float, rng: np.random.Generator) -> np.ndarray:
+    Q = so3.random_rotations(m, rng)
+    lam = rng.uniform(lo, hi, (m, 3))
+    return Q @ (lam[:, :, None] * np.swapaxes(Q, 1, 2))
+
+
+def noisy_graph(n: int, p: float, seed: int, eig=(1.0, 10.0), noise: bool = True, cov_eig: bool = False):
+    """Paper 2 §5.1 protocol in our convention: R̃_ij = exp([Δω]×) R_j R_iᵀ, Δω ~ N(0, H⁻¹).
+
+    ``eig`` is the range of the eigenvalues of H, or of H⁻¹ when ``cov_eig``.
+    """
+    rng = np.random.default_rng(seed)
+    R = so3.random_rotations(n, rng)
+    ii, jj = np.triu_indices(n, 1)
+    keep = rng.random(ii.size) < p
+    keep[np.flatnonzero(jj == ii + 1)] = True  # a path keeps the graph connected
+    E = np.c_[ii, jj][keep]
+    H = random_precisions(len(E), *eig, rng)
+    if cov_eig:
+        H = np.linalg.inv(H)
+    R_rel = R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2)
+    if noise:
+        L = np.linalg.cholesky(np.linalg.inv(H))
+        dw = (L @ rng.standard_normal((len(E), 3, 1)))[..., 0]
+        R_rel = so3.exp(dw) @ R_rel
+    vg = ViewGraph([f"c{k}" for k in range(n)], E, R_rel, H=H)
+    return vg, R
+
+
+def aligned_errors_deg(R_est: np.ndarray, R_ref: np.ndarray) -> np.ndarray:
+    """Per-camera angle after the ℓ2-optimal global rotation G: R_est ≈ R_ref G."""
+    G = so3.project_to_so3(np.einsum("nji,njk->ik", R_ref, R_est))
+    return np.degrees(so3.angle_between(R_est, R_ref @ G))
+
+
+def frob_error(R_est: np.ndarray, R_ref: np.ndarray) -> float:
+    """Paper 2's √Σ‖R_i − R_i*‖²_F after the optimal global alignment."""
+    G = so3.project_to_so3(np.einsum("nji,njk->ik", R_ref, R_est))
+    return float(np.sqrt(np.sum((R_est - R_ref @ G) ** 2)))
+
+
+@pytest.fixture(scope="module")
+def clean_graph():
+    return noisy_graph(8, 0.5, seed=1, noise=False)
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    return noisy_graph(9, 0.5, seed=2)
+
+
+# ------------------------------------------------------- building blocks
+def test_conv_so3_lmi_is_rank_one_psd_on_rotations_and_rejects_reflections():
+    rng = np.random.default_rng(0)
+    Z = conv_so3_lmi(so3.random_rotations(20, rng))
+    lam = np.linalg.eigvalsh(Z)
+    assert np.all(lam[:, :3] > -1e-9) and np.allclose(lam[:, :3], 0, atol=1e-9)
+    assert np.allclose(lam[:, 3], 4.0)  # tr(𝒜(R) + I) = 4 and rank 1
+    # det −1 orthogonal matrices are outside conv(SO(3)): the LMI must fail
+    refl = -so3.random_rotations(20, rng)
+    assert np.all(np.linalg.eigvalsh(conv_so3_lmi(refl))[:, 0] < -1.0)
+    # the centre of conv(SO(3)) (Y = 0) is strictly inside
+    assert np.allclose(conv_so3_lmi(np.zeros((3, 3))), np.eye(4))
+
+
+def test_svec_index_orders_match_each_solver_convention():
+    n = 3
+    p, q = np.tril_indices(n)
+    # SCS: lower triangle column-major: (0,0),(1,0),(2,0),(1,1),(2,1),(2,2)
+    scs_order = [(0, 0), (1, 0), (2, 0), (1, 1), (2, 1), (2, 2)]
+    # Clarabel: upper triangle column-major: (0,0),(0,1),(1,1),(0,2),(1,2),(2,2) = (p>=q) row-major
+    cla_order = [(0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)]
+    for solver, order in (("scs", scs_order), ("clarabel", cla_order)):
+        idx = svec_index(p, q, n, solver)
+        got = [None] * len(idx)
+        for k, (a, b) in zip(idx, zip(p, q)):
+            got[k] = (int(a), int(b))
+        assert got == order, solver
+    for solver in ("scs", "clarabel"):
+        n = 7
+        p, q = np.tril_indices(n)
+        assert np.array_equal(np.sort(svec_index(p, q, n, solver)), np.arange(n * (n + 1) // 2))
+
+
+@pytest.mark.parametrize("solver", ["scs", "clarabel"])
+def test_unsvec_inverts_an_isometric_svec(solver):
+    rng = np.random.default_rng(3)
+    S = rng.standard_normal((6, 6))
+    S = S + S.T
+    p, q = np.tril_indices(6)
+    v = np.zeros(21)
+    v[svec_index(p, q, 6, solver)] = np.where(p == q, 1.0, np.sqrt(2)) * S[p, q]
+    assert np.allclose(unsvec(v, 6, solver), S)
+    assert np.isclose(v @ v, np.sum(S * S))  # ⟨svec A, svec B⟩ = ⟨A, B⟩
+
+
+def test_weight_matrices_reproduce_the_quadratic_form_eq4():
+    rng = np.random.default_rng(4)
+    H = random_precisions(10, 0.5, 20.0, rng)
+    M = weight_matrices(H)
+    w = rng.standard_normal((10, 3))
+    W = so3.hat(w)
+    lhs = np.einsum("ni,nij,nj->n", w, H, w)
+    rhs = np.trace(np.swapaxes(W, 1, 2) @ M @ W, axis1=1, axis2=2)
+    assert np.allclose(lhs, rhs)
+    assert np.allclose(weight_matrices(np.diag([1.0, 2.0, 3.0])[None]), np.diag([2.0, 1.0, 0.0]))
+
+
+def test_numerical_rank_follows_the_999_rule():
+    assert numerical_rank(np.array([1.0, 1.0, 1.0, 0.0, 0.0])) == 3
+    assert numerical_rank(np.array([1.0, 1.0, 1.0, 0.01])) == 4  # 3/3.01 < 0.999
+    assert numerical_rank(np.array([0.0005, 1.0, 1.0, 1.0])) == 3  # 3/3.0005 > 0.999
+    assert numerical_rank(np.array([2.0, 1.0, -1e-9])) == 2
+
+
+def test_round_to_rotations_recovers_rotations_up_to_gauge_and_fixes_the_sign():
+    rng = np.random.default_rng(5)
+    R = so3.random_rotations(6, rng)
+    Y = R.reshape(18, 3)
+    R_hat, lam = round_to_rotations(Y @ Y.T)
+    assert np.allclose(lam[:3], 6.0) and np.allclose(lam[3:], 0.0, atol=1e-9)
+    assert np.all(np.linalg.det(R_hat) > 0)
+    assert aligned_errors_deg(R_hat, R).max() < 1e-6
+    with pytest.raises(ValueError, match=r"expected \(3N, 3N\)"):
+        round_to_rotations(np.eye(4))
+
+
+def test_direct_build_objective_matches_the_cost_definition(noisy):
+    """cᵀ svec(YYᵀ) of the primal form equals −Σ⟨C_e, R_j R_iᵀ⟩ for both svec conventions."""
+    vg, R = noisy
+    C, _ = edge_weights(vg, anisotropic=True)
+    X = R.reshape(-1, 3) @ R.reshape(-1, 3).T
+    n = X.shape[0]
+    p, q = np.tril_indices(n)
+    for solver in ("scs", "clarabel"):
+        prob = build_conic(vg.n_cameras, vg.edges, C, cso3=True, solver=solver, form="primal")
+        x = np.zeros(prob.m_big)
+        x[svec_index(p, q, n, solver)] = np.where(p == q, 1.0, np.sqrt(2)) * X[p, q]
+        assert np.isclose(prob.c @ x, edge_cost(vg.edges, C, R))
+        # the point YYᵀ is feasible: equalities hold and every cone slack is PSD
+        s = prob.b - prob.A @ x
+        assert np.allclose(s[: prob.n_zero], 0)
+        Z = s[prob.n_zero + prob.m_big:].reshape(-1, 10)
+        pk, pl = np.tril_indices(4)
+        for k in range(3):  # a few edges: rebuild the 4×4 slack and check it is 𝒜(X_ji) + I
+            i, j = vg.edges[k]
+            Zk = unsvec(Z[k], 4, solver)
+            assert np.allclose(Zk, conv_so3_lmi(R[j] @ R[i].T), atol=1e-9)
+
+
+# ------------------------------------------------------------ solutions
+@pytest.mark.parametrize("solver", ["scs", "clarabel"])
+@pytest.mark.parametrize("variant", ["cso3", "cso3-iso", "o3-iso"])
+def test_noise_free_input_gives_exact_rotations_rank3_and_zero_gap(clean_graph, variant, solver):
+    vg, R = clean_graph
+    res = solve_sdp(vg, variant, solver)
+    st = res.stats
+    assert st["rank"] == 3
+    assert st["certified"] is True
+    assert 0 <= st["gap"] < 1e-5 or abs(st["gap"]) < 1e-6
+    assert aligned_errors_deg(res.R, R).max() < 0.05
+    # at the truth every term is −tr(M_ij) (aniso) or −3 (iso): the optimum is known exactly
+    expected = -np.sum(np.trace(weight_matrices(vg.H), axis1=1, axis2=2)) if variant == "cso3" else -3.0 * vg.n_edges
+    assert np.isclose(st["primal_cost"], expected, rtol=1e-6)
+    assert st["lower_bound"] <= st["primal_cost"] + 1e-9 * abs(expected)
+    assert res.method == f"sdp-{variant}" and res.R.shape == (vg.n_cameras, 3, 3)
+    assert res.residuals_rad.shape == (vg.n_edges,)
+    for key in ("build_s", "solve_s", "rank", "lower_bound", "primal_cost", "gap", "certified",
+                "status", "solver_iterations", "eigenvalues"):
+        assert key in st
+
+
+def test_o3_aniso_is_not_tight_and_says_so(caplog):
+    """Paper 2, Theorem 1 / Fig. 2: without conv(SO(3)) the anisotropic relaxation is not tight.
+
+    Fig. 2's setting: inverse-Hessian eigenvalues in [0.1, 1].
+    """
+    vg, R = noisy_graph(12, 0.5, seed=0, eig=(0.1, 1.0), cov_eig=True)
+    with caplog.at_level(logging.WARNING, logger="pipeline.averaging.sdp"):
+        res = solve_sdp(vg, "o3-aniso", "scs")
+    assert res.stats["rank"] > 3
+    assert res.stats["certified"] is False
+    assert "NOT certified" in caplog.text
+
+
+def test_lower_bound_is_below_the_cost_of_any_rotations(noisy):
+    vg, R = noisy
+    res = solve_sdp(vg, "cso3", "scs")
+    C, s = edge_weights(vg, anisotropic=True)
+    st = res.stats
+    truth_cost = edge_cost(vg.edges, C, R) * s
+    assert st["lower_bound"] <= truth_cost
+    assert st["lower_bound"] <= st["primal_cost"]
+    assert st["certified"] and st["rank"] == 3 and st["gap"] < 1e-5
+    # the noisy optimum fits the data better than the truth does
+    assert st["primal_cost"] <= truth_cost
+    assert relative_gap(st["primal_cost"], st["lower_bound"]) == pytest.approx(st["gap"])
+
+
+@pytest.mark.parametrize("form", ["primal", "dual"])
+@pytest.mark.parametrize("solver", ["scs", "clarabel"])
+def test_primal_and_dual_forms_reach_the_same_optimum(noisy, form, solver):
+    vg, _ = noisy
+    ref = solve_sdp(vg, "cso3", "clarabel", form="dual", eps_abs=1e-8, eps_rel=1e-8)
+    res = solve_sdp(vg, "cso3", solver, form=form)
+    assert res.stats["form"] == form
+    assert res.stats["lower_bound"] == pytest.approx(ref.stats["lower_bound"], rel=1e-5)
+    assert aligned_errors_deg(res.R, ref.R).max() < 0.05
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("solver", ["scs", "clarabel"])
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_direct_build_matches_the_cvxpy_reference(noisy, variant, solver):
+    from pipeline.averaging.sdp_cvxpy import solve_sdp_cvxpy
+
+    vg, _ = noisy
+    ref = solve_sdp_cvxpy(vg, variant, solver)
+    res = solve_sdp(vg, variant, solver)
+    assert ref.stats["status"] == "optimal"
+    assert res.stats["sdp_value"] == pytest.approx(ref.stats["sdp_value"], rel=2e-5)
+    assert res.stats["lower_bound"] == pytest.approx(ref.stats["sdp_value"], rel=2e-5)
+    assert res.stats["rank"] == ref.stats["rank"]
+    if res.stats["rank"] == 3:
+        assert aligned_errors_deg(res.R, ref.R).max() < 0.05
+
+
+# ---------------------------------------------- paper 2, supplement C.1
+def c1_instance(sigma: float, seed: int, eps: float = 1e-3):
+    """Three cameras, two 'certain' edges (covariance εI) and one with covariance diag(σ, ε, ε)."""
+    rng = np.random.default_rng(seed)
+    R = so3.random_rotations(3, rng)
+    E = np.array([[0, 1], [0, 2], [1, 2]])
+    cov = np.array([np.eye(3) * eps, np.eye(3) * eps, np.diag([sigma, eps, eps])])
+    dw = (np.linalg.cholesky(cov) @ rng.standard_normal((3, 3, 1)))[..., 0]
+    R_rel = so3.exp(dw) @ R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2)
+    return ViewGraph(["a", "b", "c"], E, R_rel, H=np.linalg.inv(cov)), R
+
+
+def test_c1_anisotropic_error_stays_flat_and_would_catch_a_transposed_block():
+    """Paper 2, supplement C.1: noise along one axis of one edge.
+
+    The anisotropic solution must ignore that axis (error as with σ = ε); the isotropic
+    one must not. Feeding the precision in the wrong frame (what a transposed block or a
+    right-instead-of-left perturbation does, ``R̃ H R̃ᵀ``) must break it.
+    """
+    sigma = 0.3
+    aniso, iso, wrong = [], [], []
+    for seed in range(12):
+        vg, R = c1_instance(sigma, seed)
+        aniso.append(frob_error(solve_sdp(vg, "cso3").R, R))
+        iso.append(frob_error(solve_sdp(vg, "o3-iso").R, R))
+        Rt = vg.R_rel
+        H_wrong = vg.H.copy()
+        H_wrong[2] = Rt[2] @ vg.H[2] @ Rt[2].T
+        wrong.append(frob_error(solve_sdp(vg.with_H(H_wrong), "cso3").R, R))
+    aniso, iso, wrong = map(np.median, (aniso, iso, wrong))
+    # baseline: the error of the two certain edges alone is ~√ε ≈ 0.03 per rotation
+    assert aniso < 0.1
+    assert iso > 3 * aniso
+    assert wrong > 3 * aniso
+
+
+# ------------------------------------------------------------ bad input
+def test_anisotropic_variants_without_H_are_rejected(clean_graph):
+    vg, _ = clean_graph
+    no_H = vg.with_H(None)
+    for variant in ("cso3", "o3-aniso"):
+        with pytest.raises(ViewGraphError, match="needs a precision H_ij on every edge"):
+            solve_sdp(no_H, variant)
+    # the isotropic ones do not need H
+    assert solve_sdp(no_H, "cso3-iso").stats["certified"]
+
+
+def test_H_not_positive_definite_is_rejected(clean_graph):
+    vg, _ = clean_graph
+    H = vg.H.copy()
+    H[0] = np.diag([1.0, 1.0, -0.5])
+    with pytest.raises(ViewGraphError, match="not positive definite"):
+        solve_sdp(vg.with_H(H), "cso3")
+
+
+def test_disconnected_graph_is_rejected():
+    rng = np.random.default_rng(7)
+    R = so3.random_rotations(6, rng)
+    vg = ViewGraph.from_absolute([str(k) for k in range(6)], R, [[0, 1], [1, 2], [3, 4], [4, 5]])
+    with pytest.raises(ViewGraphError, match="not connected.*largest_component"):
+        solve_sdp(vg, "cso3-iso")
+
+
+def test_unknown_variant_solver_and_form_are_rejected(clean_graph):
+    vg, _ = clean_graph
+    with pytest.raises(ValueError, match="unknown SDP variant 'so3'"):
+        solve_sdp(vg, "so3")
+    with pytest.raises(ValueError, match="unknown SDP solver 'mosek'"):
+        solve_sdp(vg, "cso3", solver="mosek")
+    with pytest.raises(ValueError, match="unknown conic form"):
+        solve_sdp(vg, "cso3", form="both")
+    with pytest.raises(ValueError, match="unknown Clarabel setting 'nonsense'"):
+        solve_sdp(vg, "cso3", solver="clarabel", nonsense=1)
