@@ -49,7 +49,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import hashlib  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
@@ -146,14 +145,6 @@ def parse_method(token: str, solver: str = "scs") -> MethodSpec:
     return MethodSpec(f"irls-{loss}", {"method": "irls", "loss": loss})
 
 
-def _file_digest(path: Path) -> str:
-    h = hashlib.sha1()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()[:16]
-
-
 def _mtimes(paths: list[Path]) -> list[int | None]:
     return [p.stat().st_mtime_ns if p.exists() else None for p in paths]
 
@@ -167,18 +158,20 @@ class StageRunner:
         self.quiet = quiet
         self.k = 0
 
-    def __call__(self, name: str, title: str, fn: Callable[[], Any], outputs: list[Path] | None = None) -> Any:
+    def __call__(self, name: str, title: str, fn: Callable[[], Any],
+                 outputs: Callable[[], list[Path]] | None = None) -> Any:
+        """Run stage ``name``; ``outputs`` lists its result files (unchanged mtimes = reused)."""
         self.k += 1
         if not self.quiet:
             print(f"[{self.k}/{len(STAGES)}] {title} ...", file=sys.stderr, flush=True)
-        before = _mtimes(outputs) if outputs else None
+        before = (outputs(), _mtimes(outputs())) if outputs else None
         t0 = time.perf_counter()
         res = fn()
         dt = time.perf_counter() - t0
         self.times[name] = dt
-        if outputs:
-            after = _mtimes([Path(p) for p in outputs])
-            self.reused[name] = before == after and all(a is not None for a in after)
+        if outputs and before is not None:
+            paths = outputs()
+            self.reused[name] = bool(paths) and paths == before[0] and _mtimes(paths) == before[1]
         if not self.quiet:
             tag = " (reused)" if self.reused.get(name) else ""
             print(f"[{self.k}/{len(STAGES)}] {title}: {dt:.2f} s{tag}", file=sys.stderr, flush=True)
@@ -197,57 +190,68 @@ def _cfg(module: Any, cls_names: tuple[str, ...], yaml_data: dict, section: str)
     return None
 
 
-def stage_viewgraph(work: Path, out: Path) -> tuple[ViewGraph, list[str], Path]:
+def _left_out_reasons(vg_all: ViewGraph, labels: np.ndarray, rejected: list[dict]) -> dict[str, str]:
+    """Why each camera outside the largest component is left out."""
+    deg = vg_all.degrees()
+    sizes = np.bincount(labels)
+    reasons: dict[str, str] = {}
+    for k, nm in enumerate(vg_all.names):
+        if labels[k] == 0:
+            continue
+        if deg[k] == 0:
+            mine = [r for r in rejected if nm in r.get("names", [])]
+            why = [str(r.get("reason", "?")) for r in mine]
+            common = max(set(why), key=why.count) if why else "no match with any image"
+            reasons[nm] = (f"no accepted image pair ({len(mine)} pair(s) rejected, most often: {common})"
+                           if mine else f"no accepted image pair ({common})")
+        else:
+            others = [n for j, n in enumerate(vg_all.names) if labels[j] == labels[k] and j != k]
+            reasons[nm] = (f"in another connected component of {sizes[labels[k]]} images "
+                           f"(with {', '.join(others[:5])}{'...' if len(others) > 5 else ''}), not linked to the largest")
+    return reasons
+
+
+def stage_viewgraph(work: Path, out: Path, rejected: list[dict] | None = None) -> tuple[ViewGraph, dict[str, str], Path]:
     """Stage 5: the largest connected component of the BA view graph, saved as OUT/viewgraph.npz.
 
+    Args:
+        work: WORK folder holding ``viewgraph.npz`` (two-view BA's output).
+        out: OUT folder.
+        rejected: the two-view stage's rejected pairs (to say why an image has no edge).
+
     Returns:
-        the component, the names of the cameras left out, and the saved path.
+        the component, ``{name: why}`` of the cameras left out, and the saved path.
     """
     vg_all = ViewGraph.load(work / "viewgraph.npz", allow_isolated=True)
     if vg_all.n_edges == 0:
         raise PipelineError(f"no pair of the {vg_all.n_cameras} images has enough geometrically consistent matches; "
                             "the images must overlap (see the warnings above for each pair's reason)")
     sub, info = vg_all.largest_component()
-    dropped = list(info.dropped_names)
-    if dropped:
-        labels = vg_all.components()
-        groups: dict[int, list[str]] = {}
-        for nm, lab in zip(vg_all.names, labels):
-            if lab != 0:
-                groups.setdefault(int(lab), []).append(nm)
-        desc = "; ".join(", ".join(g) for g in groups.values())
-        logger.warning("the view graph is not connected: using the largest component (%d of %d images); "
-                       "left out (other components): %s", sub.n_cameras, vg_all.n_cameras, desc)
+    left_out: dict[str, str] = {}
+    if info.dropped_names:
+        left_out = _left_out_reasons(vg_all, vg_all.components(), rejected or [])
+        logger.warning("the view graph is not connected: using the largest component (%d of %d images); left out: %s",
+                       sub.n_cameras, vg_all.n_cameras, "; ".join(f"{n}: {w}" for n, w in left_out.items()))
     path = out / "viewgraph.npz"
     if path.exists():
         try:
             old = ViewGraph.load(path)
             if (old.names == sub.names and np.array_equal(old.edges, sub.edges) and np.array_equal(old.R_rel, sub.R_rel)
                     and (old.H is None) == (sub.H is None) and (sub.H is None or np.array_equal(old.H, sub.H))):
-                return old, dropped, path
+                return old, left_out, path
         except PipelineError:
             pass
     sub.save(path)
-    return sub, dropped, path
+    return sub, left_out, path
 
 
 def run_averaging(vg_path: Path, out_dir: Path, spec: MethodSpec, extra: dict[str, Any], overwrite: bool) -> dict:
-    """Stage 6 for one method, through ``pipeline.average.main``; cached by input digest and options."""
+    """Stage 6 for one method: ``pipeline.average.main`` (which skips a result it already has)."""
     from pipeline import average  # noqa: PLC0415
 
-    out_dir.mkdir(parents=True, exist_ok=True)
     rot = out_dir / f"{spec.label}.txt"
     js = out_dir / f"{spec.label}.json"
-    stamp = out_dir / f".{spec.label}.key"
-    options = {**extra, **spec.options}
-    key = json.dumps({"input": _file_digest(vg_path), "options": options}, sort_keys=True, default=str)
-    if not overwrite and rot.exists() and js.exists() and stamp.exists() and stamp.read_text() == key:
-        return json.loads(js.read_text())
-    average.main(vg_path, rot, json_path=js, **options)
-    from pipeline.atomic import atomic_open  # noqa: PLC0415
-
-    with atomic_open(stamp) as f:
-        f.write(key)
+    average.main(vg_path, rot, json_path=js, overwrite=overwrite, **{**extra, **spec.options})
     return json.loads(js.read_text())
 
 
@@ -264,6 +268,48 @@ def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, 
     if missing:
         s["not_in_reference"] = missing
     return s, errs
+
+
+def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any], ref: "RefSet", align: str,
+                  max_n: int = 300) -> list[dict[str, float]]:
+    """Median error against ``ref`` after each iteration budget of an IRLS run (paper 1, Fig. 5c).
+
+    The solver keeps no per-iteration rotations, so the run is repeated with
+    budgets 1..L of ℓ1 steps, then L ℓ1 steps + 1..K IRLS steps (L, K: what the
+    full run took); each point is (that run's time, its median error). Cheap for
+    the small graphs where it is used (N ≤ ``max_n``).
+    """
+    if options.get("method") != "irls" or vg.n_cameras > max_n:
+        return []
+    from pipeline import evaluate  # noqa: PLC0415
+    from pipeline.averaging.irls import irls  # noqa: PLC0415
+
+    kw = {k: v for k, v in options.items() if k in ("loss", "alpha_deg", "init", "tol_rad", "eps_rad", "seed",
+                                                   "admm_max_iterations")}
+    L = int(stats.get("l1_iterations", 0) or 0)
+    K = int(stats.get("irls_iterations", stats.get("iterations", 0)) or 0)
+    budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
+    R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
+    if mask.sum() < 2:
+        return []
+    curve = []
+    irls_log = logging.getLogger(irls.__module__)
+    level = irls_log.level
+    irls_log.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
+    try:
+        runs = []
+        for l, k in budgets:
+            try:
+                runs.append((l, k, irls(vg, l1_iterations=l, max_iterations=k, **kw)))
+            except (PipelineError, ValueError, IndexError):
+                continue
+    finally:
+        irls_log.setLevel(level)
+    for l, k, r in runs:
+        e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
+        curve.append({"time_s": float(r.time_s), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
+                      "irls_iterations": k})
+    return curve
 
 
 @dataclass
@@ -286,6 +332,9 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
     for label, res in results.items():
         names, R = read_rotations(res["rotations"])
         entry: dict[str, Any] = {k: v for k, v in res["stats"].items() if k not in ("history",)}
+        if "certified" in entry:
+            entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "lower_bound", "primal_cost",
+                                                               "status") if k in entry}
         entry["references"] = {}
         for r in refs:
             s, e = _summ(evaluate, list(names), np.asarray(R), r, align, vg)
@@ -397,24 +446,34 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     runner("features", "features", lambda: st_features.main(
         images, work, _cfg(st_features, ("FeatureConfig",), yaml_data, "features"), K_path=K, overwrite=overwrite,
-        progress=progress), [work / "features.json"])
+        progress=progress), lambda: sorted((work / "features").rglob("*.npz")))
     fs = st_features.load_features(work)
     n_default = sum(1 for s in fs.K_source if s == "default")
     if n_default:
         notes.append(f"{n_default} image(s) had no K file and no EXIF focal: default focal 1.2·max(w, h) used")
     runner("matching", "matching", lambda: st_matching.main(
-        work, _cfg(st_matching, ("MatchingConfig",), yaml_data, "matching"), overwrite=overwrite, progress=progress))
+        work, _cfg(st_matching, ("MatchingConfig",), yaml_data, "matching"), overwrite=overwrite, progress=progress),
+        lambda: sorted(work.glob("matches-*.npz")))
     runner("two_view", "two-view geometry", lambda: st_two_view.main(
-        work, _cfg(st_two_view, ("TwoViewConfig",), yaml_data, "two_view"), overwrite=overwrite, progress=progress))
+        work, _cfg(st_two_view, ("TwoViewConfig",), yaml_data, "two_view"), overwrite=overwrite, progress=progress),
+        lambda: sorted(work.glob("two_view-*.npz")))
     runner("two_view_ba", "two-view BA", lambda: st_ba.main(
         work, _cfg(st_ba, ("BAConfig",), yaml_data, "two_view_ba"), overwrite=overwrite, progress=progress),
-        [work / "viewgraph.npz"])
-    vg, dropped, vg_path = runner("viewgraph", "view graph", lambda: stage_viewgraph(work, out))
+        lambda: [work / "viewgraph.npz"])
+    try:
+        tv = st_two_view.load_two_view(work)
+        rejected, ransac_vg = list(tv.rejected), tv.vg
+    except (PipelineError, OSError, AttributeError):
+        rejected, ransac_vg = [], None
+    vg, left_out, vg_path = runner("viewgraph", "view graph", lambda: stage_viewgraph(work, out, rejected))
+    dropped = list(left_out)
     if dropped:
         notes.append(f"view graph not connected: the largest component ({vg.n_cameras} images) is used; "
                      f"left out: {', '.join(dropped)}")
+        notes += [f"left out of the view graph: {n}: {w}" for n, w in left_out.items()]
 
-    specs = [parse_method(m, rcfg.sdp_solver) for m in (methods or rcfg.methods)]
+    tokens = [t for m in (methods or rcfg.methods) for t in str(m).split(",") if t.strip()]
+    specs = [parse_method(m, rcfg.sdp_solver) for m in tokens]
     if not specs:
         specs = [parse_method("irls")]
         if vg.H is not None and vg.n_cameras <= rcfg.sdp_max_n:
@@ -441,7 +500,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         rc = _cfg(st_reference, ("ReferenceConfig",), yaml_data, "reference")
         ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
             images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names)),
-            [out / "reference" / "reference.json"])
+            lambda: [out / "reference" / "reference.json"])
         rr = st_reference.load_reference_result(ref_json)
         pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)
         for nm, why in rr.summary.get("unregistered", {}).items():
@@ -456,18 +515,21 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                            None if truth.centers is None else np.asarray(truth.centers)))
     if pyc is not None:
         refs.append(pyc)
-    try:
-        ransac_vg = st_two_view.load_two_view(work).vg
-    except (PipelineError, OSError, AttributeError):
-        ransac_vg = None
     metrics, cam_err, edge_err = runner("evaluation", "evaluation", lambda: evaluate_all(
         vg, ransac_vg, results, refs, pyc, rcfg.align))
     if not refs:
         notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
 
     def do_report() -> Path:
-        histories = {k: v["stats"].get("history", []) for k, v in results.items()}
-        histories = {k: h for k, h in histories.items() if h}
+        histories = {}
+        if refs:
+            for spec in specs:
+                if spec.options["method"] == "irls":
+                    c = error_vs_time(vg, {**avg_extra, **spec.options}, results[spec.label]["stats"], refs[0],
+                                      rcfg.align)
+                    if c:
+                        histories[spec.label] = c
+                        metrics["methods"][spec.label]["error_vs_time"] = c
         table = {r.name: {k: m["references"][r.name] | {kk: m.get(kk) for kk in ("time_s", "certified", "rank", "gap")
                                                             if kk in m}
                           for k, m in metrics["methods"].items()} for r in refs}
@@ -475,7 +537,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             table["truth"]["pycolmap (incremental)"] = metrics["pycolmap"]
         edge_vals: dict[str, np.ndarray] = {}
         if refs and refs[0].name in edge_err and "ba" in edge_err[refs[0].name]:
-            edge_vals[f"edge error vs {refs[0].name} (°)"] = edge_err[refs[0].name]["ba"]
+            edge_vals[f"error_vs_{refs[0].name}"] = edge_err[refs[0].name]["ba"]
         if vg.inliers is not None:
             edge_vals["inliers"] = np.asarray(vg.inliers, float)
         pos = None
@@ -496,7 +558,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     metrics["our_path_s"] = sum(runner.times.get(k, 0.0) for k in
                                 ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging"))
     metrics["input"] = {"images": str(images), "n_images": len(fs.names), "n_cameras_graph": vg.n_cameras,
-                        "n_edges": vg.n_edges, "left_out": dropped, "gt": None if gt is None else str(gt),
+                        "n_edges": vg.n_edges, "left_out": dropped,
+                        "left_out_why": left_out, "gt": None if gt is None else str(gt),
                         "K": None if K is None else str(K), "config": dataclasses.asdict(rcfg)}
     metrics["notes"] = notes
     path = write_json(out / "metrics.json", metrics)

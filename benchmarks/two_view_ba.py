@@ -249,8 +249,6 @@ def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
             "cond_H_min_max": [float(cond.min()), float(cond.max())],
         }
         # Calibration on real pairs: NEES of the BA rotations against the reference.
-        from pipeline.evaluate import edge_errors_deg  # noqa: F401  (same convention as edge_stats)
-
         i, j = vg.edges.T
         ok = mask[i] & mask[j]
         R_true = R_ref[j] @ np.swapaxes(R_ref[i], 1, 2)

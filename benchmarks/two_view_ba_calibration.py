@@ -127,7 +127,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:30s} {r['mean_nees']:9.3f} {r['median_nees']:7.3f} "
               f"{np.array2string(np.array(r['ratios_along_eig_H']), precision=3):>24s} {r['rms_rot_err_deg']:9.4f} {r['mean_sigma2']:7.3f}")
     clean = out["clean"]
+    all_ratios = np.array([r["ratios_along_eig_H"] for r in clean])
+    # Under perfect calibration a ratio is ≈ χ²_{D−1}/(D−1): the share expected inside ±10%.
+    from scipy.stats import chi2
+
+    nu = draws - 1
+    p_in = float(chi2.cdf(1.1 * nu, nu) - chi2.cdf(0.9 * nu, nu))
     out["summary"] = {
+        "mean_nees_sigma_known": float(np.mean([r["mean_nees"] for r in clean if r["sigma"] == "known"])),
+        "mean_nees_sigma_estimated": float(np.mean([r["mean_nees"] for r in clean if r["sigma"] == "estimated"])),
+        "pooled_mean_ratio": float(all_ratios.mean()),
+        "share_of_ratios_within_10pct": float(np.mean(np.abs(all_ratios - 1) <= 0.1)),
+        "share_expected_within_10pct_if_perfect": p_in,
         "nees_all_in_2.8_3.2": all(r["nees_ok_2.8_3.2"] for r in clean),
         "ratios_all_within_10pct": all(r["ratios_ok_10pct"] for r in clean),
         "n_cases": len(clean),

@@ -32,7 +32,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -45,7 +44,7 @@ from tqdm import tqdm
 
 from .atomic import save_npz, write_json
 from .config import config_hash
-from .errors import InputFileError, PipelineError
+from .errors import InputFileError
 from .images import list_images, read_gray, resolve_intrinsics
 
 logger = logging.getLogger(__name__)
@@ -295,6 +294,8 @@ def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: 
         "K_source": sources,
         "skipped": skipped,
         "ignored_files": other,
+        "n_extracted": len(n_kp),
+        "n_cached": len(usable) - len(n_kp),
         "config": dataclasses.asdict(config),
         "config_hash": config_hash(config),
         "cache_key": key,

@@ -53,7 +53,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from .atomic import atomic_path, write_json
-from .config import config_from_dict, config_hash
+from .config import config_hash
 from .errors import InputFileError, PipelineError
 from .io.rotations import read_rotations, write_rotations
 
@@ -558,10 +558,6 @@ def main_cli(argv: list[str] | None = None) -> int:
         return 0
 
     return run_cli(body, parser, argv)
-
-
-def _config_from(data: dict[str, Any] | None) -> ReferenceConfig:
-    return config_from_dict(ReferenceConfig, data, where="[reference]")
 
 
 if __name__ == "__main__":

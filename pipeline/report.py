@@ -149,8 +149,6 @@ def plot_convergence(histories: dict[str, list[dict[str, float]]], path: Path) -
     ylabel = "median camera error (°)"
     for k, h in usable.items():
         t = np.array([r.get("time_s", np.nan) for r in h], float)
-        if np.all(np.isfinite(t)) and np.any(np.diff(t) < 0):
-            t = np.cumsum(t)  # per-iteration times: make them cumulative
         key = "median_deg" if all("median_deg" in r for r in h) else "cost"
         if key == "cost":
             ylabel = "median error (°) or cost (where no per-iteration error)"
@@ -217,7 +215,7 @@ def plot_viewgraph(n: int, edges: np.ndarray, values: np.ndarray | None, path: P
     if names is not None and n <= 40:
         for k, nm in enumerate(names):
             ax.annotate(Path(nm).stem, P[k], fontsize=6, xytext=(3, 3), textcoords="offset points")
-    fig.colorbar(lc, ax=ax, label=label)
+    fig.colorbar(lc, ax=ax, label=label.replace("_", " ") + (" (°)" if "error" in label else ""))
     ax.autoscale()
     ax.set_aspect("equal", adjustable="datalim")
     ax.set(title=f"view graph: {n} cameras, {len(edges)} edges", xticks=[], yticks=[])

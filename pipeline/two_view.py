@@ -7,17 +7,22 @@ Stage 3 of the image front end. For each matched pair ``(i, j)``, ``i < j``:
    ``threshold_px / f`` with f the mean focal length of the two cameras.
 2. ``cv2.findEssentialMat`` (5-point solver inside USAC-MAGSAC++ or RANSAC)
    estimates E with the configured confidence.
-3. ``cv2.recoverPose`` picks the (R, t) of E that puts the most inliers in front
-   of both cameras (cheirality) and returns ``x_j = R_ij x_i + t_ij``, i.e.
-   ``R_ij = R_j R_iᵀ``, the view graph's convention.
+3. The cheirality check picks, of E's four decompositions, the (R, t) that puts
+   the most inliers in front of both cameras (as ``cv2.recoverPose`` does, but
+   without its 50-baseline depth cut, which rejects every match of a
+   small-baseline pair). ``x_j = R_ij x_i + t_ij``, i.e. ``R_ij = R_j R_iᵀ``, the
+   view graph's convention. (R, t) is then polished on the inliers by minimizing
+   the robust Sampson error (``refine``).
 4. Pairs are rejected, with the reason and counts recorded, when they have too
    few matches, when E cannot be estimated, or when fewer than ``min_inliers``
    inliers survive the cheirality check.
 5. Near-degenerate pairs are kept but flagged:
 
    - *small baseline*: the median triangulation angle of the inliers is below
-     ``min_triangulation_deg`` (the rotation is still well defined, the translation
-     direction is not, and a rotation-only homography explains the matches);
+     ``min_triangulation_deg``, or a rotation-only homography ``K_j R K_i⁻¹``
+     explains the matches as well as E does. The rotation is still well defined,
+     the translation direction is not: for a rotation-only pair R comes from the
+     rotation-only fit (Kabsch on the bearing vectors) and ``t`` is stored as zeros;
    - *dominant plane*: a homography (RANSAC, same threshold) explains at least
      ``planar_ratio`` of the E inliers; E from a plane has a two-fold ambiguity.
 
@@ -87,6 +92,10 @@ class TwoViewConfig:
         min_inliers: pairs with fewer inliers after the cheirality check are rejected.
         min_triangulation_deg: median triangulation angle below this flags a small baseline.
         planar_ratio: homography inliers / E inliers at or above this flags a dominant plane.
+        rotation_only_ratio: when a pure rotation ``x_j ~ K_j R K_i⁻¹ x_i`` explains at
+            least this fraction of the E inliers (within the threshold), the pair is
+            a zero-baseline pair: R comes from the rotation-only fit, ``t`` is stored
+            as zeros and the pair is flagged ``small_baseline``.
         refine: polish (R, t) on the RANSAC inliers by minimizing the robust (soft-ℓ1)
             Sampson error; OpenCV's RANSAC returns the best minimal-sample model, whose
             rotation is off by tenths of a degree even with 0.1 px matches.
@@ -99,9 +108,10 @@ class TwoViewConfig:
     confidence: float = 0.9999
     max_iters: int = 10000
     min_matches: int = 20
-    min_inliers: int = 15
+    min_inliers: int = 20
     min_triangulation_deg: float = 1.0
     planar_ratio: float = 0.9
+    rotation_only_ratio: float = 0.9
     refine: bool = True
     seed: int = 0
     workers: int = 2
@@ -209,6 +219,69 @@ def refine_pose(R0: np.ndarray, t0: np.ndarray, y_i: np.ndarray, y_j: np.ndarray
     return unpack(res.x)
 
 
+def rotation_from_bearings(y_i: np.ndarray, y_j: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares rotation with ``b_j ≈ R b_i`` for unit bearings of normalized points (Kabsch).
+
+    Args:
+        y_i, y_j: (n, 2) normalized coordinates; w: (n,) weights or None.
+    Returns:
+        (3, 3) rotation.
+    """
+    bi = np.column_stack([y_i, np.ones(len(y_i))])
+    bj = np.column_stack([y_j, np.ones(len(y_j))])
+    bi /= np.linalg.norm(bi, axis=1, keepdims=True)
+    bj /= np.linalg.norm(bj, axis=1, keepdims=True)
+    w = np.ones(len(bi)) if w is None else w
+    U, _, Vt = np.linalg.svd((bj * w[:, None]).T @ bi)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def rotation_only_residual_px(R: np.ndarray, x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray) -> np.ndarray:
+    """(n,) distances in image j between x_j and x_i mapped by ``K_j R K_i⁻¹`` (pixels)."""
+    Hinf = K_j @ R @ np.linalg.inv(K_i)
+    p = np.column_stack([x_i, np.ones(len(x_i))]) @ Hinf.T
+    return np.linalg.norm(p[:, :2] / p[:, 2:3] - x_j, axis=1)
+
+
+def triangulation_depths(R: np.ndarray, t: np.ndarray, y_i: np.ndarray, y_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Depths ``(z_i, z_j)`` (n,) of the midpoint triangulation of each match under ``x_j = R x_i + t``.
+
+    Solves ``z_i R b_i + t ≈ z_j b_j`` in the least-squares sense, point by point in
+    closed form (a 2×2 system), with ``b = (y, 1)`` so that z is the depth.
+    """
+    bi = np.column_stack([y_i, np.ones(len(y_i))]) @ R.T
+    bj = np.column_stack([y_j, np.ones(len(y_j))])
+    a11 = np.sum(bi * bi, 1)
+    a12 = -np.sum(bi * bj, 1)
+    a22 = np.sum(bj * bj, 1)
+    r1 = -bi @ t
+    r2 = bj @ t
+    det = a11 * a22 - a12 * a12
+    det = np.where(np.abs(det) < 1e-15, 1e-15, det)  # parallel rays: depth at "infinity", sign kept
+    return (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
+
+
+def pose_from_essential(E: np.ndarray, y_i: np.ndarray, y_j: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The decomposition of E that puts the most masked matches in front of both cameras.
+
+    Unlike ``cv2.recoverPose``, distant points are not discarded (OpenCV drops points
+    farther than 50 baselines, which rejects every match of a small-baseline pair).
+
+    Returns:
+        R (3, 3), unit t (3,), and (n,) bool: masked matches with positive depths.
+    """
+    R1, R2, t = cv2.decomposeEssentialMat(E)
+    t = t.ravel()
+    best = None
+    for R, tt in ((R1, t), (R1, -t), (R2, t), (R2, -t)):
+        zi, zj = triangulation_depths(R, tt, y_i, y_j)
+        front = mask & (zi > 0) & (zj > 0)
+        if best is None or front.sum() > best[2].sum():
+            best = (R, tt / np.linalg.norm(tt), front)
+    return best
+
+
 def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray,
                   config: TwoViewConfig | None = None, pixel_scale: float = 1.0) -> PairGeometry:
     """Relative pose of one pair from matched pixels (pure function).
@@ -242,18 +315,33 @@ def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.nda
     if n_E < config.min_inliers:
         return PairGeometry(False, f"too few RANSAC inliers ({n_E} < min_inliers={config.min_inliers})", n_matches=n,
                             n_inliers_E=n_E)
-    _, R, t, pose_mask = cv2.recoverPose(E, y_i, y_j, np.eye(3), mask=mask.astype(np.uint8).copy())
-    inl = pose_mask.ravel() > 0
-    t = t.ravel() / max(np.linalg.norm(t), 1e-12)
+    # rotation-only model (zero baseline): if it explains the E inliers as well, the
+    # translation is undefined and E's decomposition is unstable, but R is not
+    R_rot = rotation_from_bearings(y_i[mask], y_j[mask])
+    for _ in range(3):  # re-fit on the matches it explains
+        ok_rot = mask & (rotation_only_residual_px(R_rot, x_i, x_j, K_i, K_j) < thr_px)
+        if ok_rot.sum() < 3:
+            break
+        R_rot = rotation_from_bearings(y_i[ok_rot], y_j[ok_rot])
+    ok_rot = mask & (rotation_only_residual_px(R_rot, x_i, x_j, K_i, K_j) < thr_px)
+    if ok_rot.sum() >= config.rotation_only_ratio * n_E:
+        par = rotation_only_residual_px(R_rot, x_i[ok_rot], x_j[ok_rot], K_i, K_j) / pixel_scale
+        geom = PairGeometry(True, "", R_rot, np.zeros(3), ok_rot, n, n_E, int(ok_rot.sum()), 0, 0.0,
+                            float(np.median(par)), small_baseline=True, planar=False)
+        if geom.n_inliers < config.min_inliers:
+            geom.ok = False
+            geom.reason = f"too few inliers of the rotation-only model ({geom.n_inliers} < min_inliers={config.min_inliers})"
+        return geom
+    R, t, inl = pose_from_essential(E, y_i, y_j, mask)
     if config.refine and inl.sum() >= 5:
         R_r, t_r = refine_pose(R, t, y_i[inl], y_j[inl], thr_px / f)
         # re-select the inliers under the refined model, then re-check cheirality
         in_r = mask & (np.abs(sampson_distance(R_r, t_r, y_i, y_j)) * f < thr_px)
-        E_r = np.cross(t_r[None, :], R_r.T).T
-        _, R2, t2, pose2 = cv2.recoverPose(E_r, y_i, y_j, np.eye(3), mask=in_r.astype(np.uint8).copy())
+        zi, zj = triangulation_depths(R_r, t_r, y_i, y_j)
+        front = in_r & (zi > 0) & (zj > 0)
         # keep the refinement unless it lost the cheirality consensus (a flipped solution)
-        if (pose2.ravel() > 0).sum() >= 0.9 * inl.sum():
-            R, t, inl = R2, t2.ravel() / max(np.linalg.norm(t2), 1e-12), pose2.ravel() > 0
+        if front.sum() >= 0.9 * inl.sum():
+            R, t, inl = R_r, t_r, front
     n_in = int(inl.sum())
     # ray angles of the inliers: rays b_i = R_ij ŷ_i and b_j = ŷ_j in camera j's frame
     bi = np.column_stack([y_i[inl], np.ones(n_in)]) @ R.T
@@ -267,8 +355,10 @@ def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.nda
     parallax = float(np.median(par)) if n_in else float("nan")
     n_H = 0
     if n_E >= 4:
-        Hm, hmask = cv2.findHomography(x_i[mask].astype(np.float64), x_j[mask].astype(np.float64), cv2.RANSAC, thr_px,
-                                       maxIters=2000, confidence=0.999)
+        # the transfer error |x_j − H x_i| carries the noise of both images in 2-D,
+        # about twice the Sampson distance E is judged by: threshold 2·thr
+        Hm, hmask = cv2.findHomography(x_i[mask].astype(np.float64), x_j[mask].astype(np.float64), cv2.RANSAC,
+                                       2.0 * thr_px, maxIters=2000, confidence=0.999)
         n_H = int(hmask.sum()) if hmask is not None else 0
     geom = PairGeometry(True, "", R, t, inl, n, n_E, n_in, n_H, tri, parallax,
                         small_baseline=bool(tri < config.min_triangulation_deg),

@@ -57,6 +57,7 @@ import argparse
 import dataclasses
 import hashlib
 import logging
+import math
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -75,6 +76,10 @@ from .viewgraph import ViewGraph
 __all__ = [
     "BAConfig",
     "PairBAResult",
+    "TwoViewBAError",
+    "marginalize_translation",
+    "normal_equation_blocks",
+    "residuals_and_jacobian",
     "SyntheticPair",
     "refine_pair",
     "refine_pairs",
@@ -221,13 +226,18 @@ def tangent_basis(t: np.ndarray) -> np.ndarray:
         (3, 2) matrix B with ``Bᵀ B = I`` and ``Bᵀ t = 0``.
     """
     # Cross with the axis least aligned with t: never degenerate.
-    k = int(np.argmin(np.abs(t)))
-    e = np.zeros(3)
-    e[k] = 1.0
-    b1 = np.array([t[1] * e[2] - t[2] * e[1], t[2] * e[0] - t[0] * e[2], t[0] * e[1] - t[1] * e[0]])
-    b1 /= np.sqrt(b1 @ b1)
-    b2 = np.array([t[1] * b1[2] - t[2] * b1[1], t[2] * b1[0] - t[0] * b1[2], t[0] * b1[1] - t[1] * b1[0]])
-    return np.column_stack([b1, b2])
+    x, y, z = (float(v) for v in t)
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if ax <= ay and ax <= az:  # t × e_x
+        b1 = (0.0, z, -y)
+    elif ay <= az:  # t × e_y
+        b1 = (-z, 0.0, x)
+    else:  # t × e_z
+        b1 = (y, -x, 0.0)
+    s = 1.0 / math.sqrt(b1[0] ** 2 + b1[1] ** 2 + b1[2] ** 2)
+    b1 = (b1[0] * s, b1[1] * s, b1[2] * s)
+    b2 = (y * b1[2] - z * b1[1], z * b1[0] - x * b1[2], x * b1[1] - y * b1[0])
+    return np.array([[b1[0], b2[0]], [b1[1], b2[1]], [b1[2], b2[2]]])
 
 
 def _exp3(w: np.ndarray) -> np.ndarray:
@@ -517,7 +527,8 @@ def _lm(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose,
             else:
                 dc = np.linalg.solve(S + np.diag(lam * dS + floor), -g)
                 s_ = r.copy()
-                s_[2:4] += np.tensordot(dc, Jc, axes=(0, 1))
+                s_[2] += dc @ Jc[0]
+                s_[3] += dc @ Jc[1]
             dp = _point_step(s_, nv, J, Ki)
             dp[:, frozen] = 0.0
             if trial >= 4:
@@ -623,9 +634,27 @@ def _check_inputs(xi, xj, Ki, Kj, R0, t0):
     if np.abs(R0 @ R0.T - np.eye(3)).max() > 1e-12:
         R0 = so3.project_to_so3(R0)
     t0 = np.asarray(t0, dtype=np.float64).reshape(-1)
-    if t0.shape != (3,) or not np.all(np.isfinite(t0)) or np.linalg.norm(t0) < 1e-12:
-        raise ValueError(f"t0 must be a finite nonzero (3,) translation; got {t0.tolist()}")
+    if t0.shape != (3,) or not np.all(np.isfinite(t0)):
+        raise ValueError(f"t0 must be a finite (3,) translation; got {t0.tolist()}")
+    if np.linalg.norm(t0) < 1e-12:
+        # A front end may report t = 0 for a (near) pure rotation: start from the
+        # translation that best satisfies the epipolar constraint given R0.
+        t0 = _translation_from_rotation(xi, xj, Ks[0], Ks[1], R0)
     return xi, xj, Ks[0], Ks[1], R0, t0 / np.linalg.norm(t0)
+
+
+def _translation_from_rotation(xi, xj, Ki, Kj, R) -> np.ndarray:
+    """Unit t minimizing Σ (t · (m_j × R m_i))², signed to put most points in front.
+
+    ``xi``, ``xj`` are (n, 2) pixels.
+    """
+    mi = np.column_stack([xi, np.ones(len(xi))]) @ np.linalg.inv(Ki).T
+    mj = np.column_stack([xj, np.ones(len(xj))]) @ np.linalg.inv(Kj).T
+    A = np.cross(mj, mi @ R.T)
+    t = np.linalg.svd(A, full_matrices=False)[2][-1]
+    rho = _triangulate(R, t, np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T), Ki, Kj)[2]
+    rho_neg = _triangulate(R, -t, np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T), Ki, Kj)[2]
+    return t if (rho > 0).sum() >= (rho_neg > 0).sum() else -t
 
 
 def refine_pair(
@@ -724,8 +753,14 @@ def refine_pair(
         dof = wsum - 5.0  # 2·n_obs − n_params = 4n − (3n + 5) for unit weights
         if dof <= 0:
             raise TwoViewBAError(f"{wsum:.1f} effective points leave no degrees of freedom to estimate σ²; pass sigma_px")
+        sigma2 = float((w * s2).sum() / dof)
+        if cfg.refit_inliers:
+            # The inlier test cut the tail of each point's σ²·χ²₁: divide by the
+            # mean of a χ²₁ truncated at inlier_chi2 (0.988 at 10.83) to stay unbiased.
+            q = np.sqrt(cfg.inlier_chi2)
+            sigma2 /= 1.0 - 2.0 * q * np.exp(-0.5 * cfg.inlier_chi2) / np.sqrt(2.0 * np.pi) / math.erf(q / np.sqrt(2.0))
         # A noise-free pair would give H = ∞; floor σ at 1e-6 px.
-        sigma2, estimated = max(float((w * s2).sum() / dof), 1e-12), True
+        sigma2, estimated = max(sigma2, 1e-12), True
     # 3. H_full = JᵀWJ/σ² at the optimum; points, then translation, marginalized.
     B = tangent_basis(t)
     J = _jacobians(R, t, B, P, Kj, state[2])
@@ -879,7 +914,7 @@ def _refine_chunk(args: tuple[list[tuple[np.ndarray, ...]], dict[str, Any]]) -> 
     cfg = BAConfig(**cfg_dict)
     out = []
     for xi, xj, Ki, Kj, R0, t0 in tasks:
-        t_start = time.perf_counter()
+        t_start, c_start = time.perf_counter(), time.thread_time()
         try:
             res = refine_pair(xi, xj, Ki, Kj, R0, t0, cfg)
         except (TwoViewBAError, ValueError, np.linalg.LinAlgError) as exc:
@@ -889,7 +924,7 @@ def _refine_chunk(args: tuple[list[tuple[np.ndarray, ...]], dict[str, Any]]) -> 
             "ok": True,
             "R": res.R, "t": res.t, "H": res.H, "sigma2": res.sigma2, "iterations": res.iterations,
             "n_points": int(len(xi)), "n_inliers": res.n_inliers, "converged": res.converged,
-            "rms_px": res.rms_px, "time_s": time.perf_counter() - t_start,
+            "rms_px": res.rms_px, "time_s": time.perf_counter() - t_start, "cpu_s": time.thread_time() - c_start,
         })
     return out
 
@@ -908,7 +943,7 @@ def refine_pairs(
 
     Returns:
         One dict per pair, in order: ``ok`` and either ``R, t, H, sigma2,
-        iterations, n_points, n_inliers, converged, rms_px, time_s`` or ``reason``.
+        iterations, n_points, n_inliers, converged, rms_px, time_s, cpu_s`` or ``reason``.
     """
     cfg = config or BAConfig()
     cfg_dict = dataclasses.asdict(cfg)
@@ -1032,6 +1067,7 @@ def main(work: Path, config: BAConfig | None = None, overwrite: bool = False, pr
         "dropped": dropped,
         "time_s": elapsed,
         "median_pair_time_ms": float(np.median(times) * 1e3) if times.size else None,
+        "median_pair_cpu_ms": float(np.median([r["cpu_s"] for r in good]) * 1e3) if good else None,
         "median_iterations": float(np.median(stats["ba_iterations"])) if len(kept) else None,
         "median_rotation_change_deg": float(np.median(stats["ba_rotation_change_deg"])) if len(kept) else None,
         "median_cond_H": float(np.median(stats["ba_cond_H"])) if len(kept) else None,

@@ -9,7 +9,7 @@ import scipy.io as sio
 from pipeline import so3
 from pipeline.errors import InputFileError
 from pipeline.io.mat import MatData, read_input_graph, read_l1_mat, read_lu_sphinx, read_mat, write_l1_mat
-from pipeline.io.references import Reference, read_cameras_file, read_reference, write_cameras_file
+from pipeline.io.references import read_cameras_file, read_reference, write_cameras_file
 from pipeline.io.rotations import read_rotations, write_rotations
 from pipeline.viewgraph import ViewGraph
 
@@ -302,15 +302,18 @@ def test_colmap_model_reference(tmp_path) -> None:
     for k in range(3):
         image = pycolmap.Image(name=f"img{k}.jpg", camera_id=1, image_id=k + 1)
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R[k]), np.array([0.0, 0.0, k + 1.0])))
-    rec.write(str(tmp_path))
-    ref = read_reference(tmp_path)
+    model = tmp_path / "sparse" / "0"
+    model.mkdir(parents=True)
+    rec.write(str(model))
+    assert read_reference(tmp_path / "sparse").names == ["img0.jpg", "img1.jpg", "img2.jpg"]  # COLMAP's sparse/0 layout
+    ref = read_reference(model)
     assert ref.kind == "colmap" and ref.names == ["img0.jpg", "img1.jpg", "img2.jpg"]
     np.testing.assert_allclose(ref.R, R, atol=1e-12)
     np.testing.assert_allclose(ref.K[0], [[500, 0, 320], [0, 500, 240], [0, 0, 1]])
     np.testing.assert_allclose(np.einsum("nab,nb->na", R, ref.centers)[:, 2], -np.arange(1.0, 4.0), atol=1e-12)
-    (tmp_path / "images.bin").write_bytes(b"broken")
+    (model / "images.bin").write_bytes(b"broken")
     with pytest.raises(InputFileError, match="pycolmap cannot read"):
-        read_reference(tmp_path)
+        read_reference(model)
 
 
 @pytest.mark.data

@@ -16,7 +16,6 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.errors import PipelineError  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -26,6 +25,7 @@ SMALL = SceneConfig(width=320, height=240, focal=280.0, supersample=1)
 def load_run():
     spec = importlib.util.spec_from_file_location("run_module_user", REPO / "run.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
     spec.loader.exec_module(mod)
     return mod
 

@@ -133,3 +133,20 @@ def test_is_rotation_and_bad_shapes() -> None:
         so3.exp(np.zeros(4))
     with pytest.raises(TypeError, match="not supported"):
         so3.exp(np.array(["a", "b", "c"]))
+
+
+def test_benchmark_script_runs(tmp_path, repo_root) -> None:
+    import json
+    import subprocess
+    import sys
+
+    script = repo_root / "benchmarks" / "so3.py"
+    out = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "--quick" in out.stdout
+    js = tmp_path / "so3.json"
+    out = subprocess.run([sys.executable, str(script), "--n", "2000", "--repeats", "1", "--out", str(js)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    data = json.loads(js.read_text())
+    assert {r["op"] for r in data["results"]} == {"exp", "log"}
+    assert data["max_abs_diff"]["exp"] < 1e-12 and data["max_abs_diff"]["log"] < 1e-12

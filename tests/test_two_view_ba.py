@@ -236,10 +236,34 @@ def test_refine_pair_rejects_bad_inputs(pair200: tb.SyntheticPair) -> None:
         tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, 2.0 * sp.R0, sp.t0)
     with pytest.raises(ValueError, match="R0 must be a"):
         tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, -sp.R0, sp.t0)
-    with pytest.raises(ValueError, match="t0 must be a finite nonzero"):
-        tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, np.zeros(3))
+    with pytest.raises(ValueError, match="t0 must be a finite"):
+        tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, np.array([np.nan, 0.0, 1.0]))
     with pytest.raises(tb.TwoViewBAError, match="pair has 8 correspondences but min_points=12"):
         tb.refine_pair(sp.x_i[:8], sp.x_j[:8], sp.K_i, sp.K_j, sp.R0, sp.t0)
+
+
+def test_zero_translation_start_is_recovered(pair200: tb.SyntheticPair) -> None:
+    """A front end may report t = 0 (pure rotation); the BA then starts from the epipolar t."""
+    sp = pair200
+    res = tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, np.zeros(3))
+    assert np.rad2deg(np.arccos(min(1.0, res.t @ sp.t))) < 2.0
+    assert np.rad2deg(so3.angle_between(res.R, sp.R)) < 0.5
+
+
+def test_pure_rotation_pair_gives_finite_H() -> None:
+    """Zero baseline: t is unobservable, the rotation is not; H must stay finite and PD."""
+    rng = np.random.default_rng(4)
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    R = so3.exp(np.array([0.02, -0.05, 0.01]))
+    x_i = rng.uniform([0, 0], [640, 480], (150, 2))
+    m = np.column_stack([x_i, np.ones(150)]) @ np.linalg.inv(K).T
+    q = m @ R.T @ K.T
+    x_j = q[:, :2] / q[:, 2:] + 0.3 * rng.standard_normal((150, 2))
+    x_i = x_i + 0.3 * rng.standard_normal((150, 2))
+    res = tb.refine_pair(x_i, x_j, K, K, so3.exp(np.array([0.0, 0.003, 0.0])) @ R, np.zeros(3))
+    assert np.rad2deg(so3.angle_between(res.R, R)) < 0.05
+    lam = np.linalg.eigvalsh(res.H)
+    assert np.all(np.isfinite(lam)) and lam[0] > 0
 
 
 def test_mostly_outliers_is_rejected_with_reason() -> None:
@@ -346,3 +370,31 @@ def test_cli_missing_work_is_one_line_error(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2
     assert out.stderr.strip().startswith("error:") and len(out.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_stage_on_rendered_front_end(tmp_path: Path) -> None:
+    """End to end on the real front end: 3 rendered views → WORK → BA graph with H, better than RANSAC."""
+    from pipeline import features, matching, two_view
+    from pipeline.evaluate import edge_stats, match_reference
+    from pipeline.io.references import read_reference
+    from pipeline.synthetic.render import render_scene
+
+    images, work = tmp_path / "images", tmp_path / "work"
+    render_scene(3, seed=3, out=images)
+    features.main(images, work, progress=False)
+    matching.main(work, progress=False)
+    two_view.main(work, progress=False)
+    out = tb.main(work, tb.BAConfig(workers=2, chunk_size=2), progress=False)
+    vg = ViewGraph.load(out, allow_isolated=True)
+    data = two_view.load_two_view(work)
+    assert vg.n_edges == data.vg.n_edges >= 2 and vg.H is not None
+    ref = read_reference(images / "cameras.txt")
+    R_ref, mask = match_reference(vg.names, ref.names, ref.R)
+    ba = edge_stats(vg, R_ref, mask)["median_deg"]
+    ransac = edge_stats(ViewGraph(vg.names, vg.edges, vg.stats["R_ransac"], allow_isolated=True), R_ref, mask)["median_deg"]
+    # Both are a few hundredths of a degree here; on 3 edges their order is noise (the
+    # benchmark compares them on 66 edges), so only a gross regression is a failure.
+    assert ba < 0.1 and ba < 1.5 * ransac + 0.01
+    assert np.all(np.linalg.eigvalsh(vg.H)[:, 0] > 0)
+    assert np.all(vg.stats["ba_n_inliers"] > 0.8 * vg.stats["ba_n_points"])

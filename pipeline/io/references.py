@@ -250,11 +250,14 @@ def read_reference(path: str | os.PathLike) -> Reference:
     if path.is_dir():
         if any((path / f"images{ext}").is_file() for ext in (".bin", ".txt")):
             return read_colmap_model(path)
+        if any((path / "0" / f"images{ext}").is_file() for ext in (".bin", ".txt")):
+            logger.info("%s holds COLMAP model 0; reading %s", path, path / "0")
+            return read_colmap_model(path / "0")
         if (path / "gt_dense_cameras").is_dir() or any(path.glob("*.camera")):
             return read_strecha(path)
         raise InputFileError(
-            f"{path}: folder is neither a COLMAP model (images.bin/.txt) nor a Strecha "
-            "gt_dense_cameras folder (*.camera files)"
+            f"{path}: folder is neither a COLMAP model (images.bin/.txt; pass the model folder, "
+            "e.g. sparse/0) nor a Strecha gt_dense_cameras folder (*.camera files)"
         )
     if not path.is_file():
         raise InputFileError(f"reference {path} does not exist")

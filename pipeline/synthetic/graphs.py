@@ -20,7 +20,9 @@ noise acts on the left, ``R̃_ij = exp([Δω]×) R_j R_iᵀ``.
 Camera names are the 0-based indices as strings, as for ``.mat`` inputs.
 Every generator redraws its edge set (same generator stream, so still
 deterministic) until the graph is connected, because rotation averaging is
-defined only up to one rotation per connected component.
+defined only up to one rotation per connected component (``paper2_graph`` can
+also follow paper 2 literally, "every camera has an edge", with
+``connected=False``).
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .. import so3
@@ -237,7 +239,7 @@ def paper2_graph(
     H = random_precisions(edges.shape[0], eig_range, rng)
     dw = sample_left_noise(H, rng)
     R_rel = so3.exp(dw) @ _true_relative(R, edges)
-    vg = ViewGraph([str(i) for i in range(n)], edges, R_rel, H=H, allow_isolated=not connected)
+    vg = ViewGraph([str(i) for i in range(n)], edges, R_rel, H=H)
     return SyntheticGraph(vg, R, np.zeros(edges.shape[0], dtype=bool))
 
 

@@ -1,7 +1,7 @@
 """Rendered synthetic scenes with known cameras, for the image front end's tests.
 
 The scene is a set of textured rectangles that are not coplanar: a ground plane,
-a back wall and two boxes standing on the ground (5 visible faces each). Every
+a back wall and seven boxes of different sizes standing on the ground (5 faces each). Every
 rectangle carries its own procedural texture, rich in blob and corner structure
 at several scales so that SIFT finds features at every octave.
 
@@ -256,7 +256,7 @@ def _box(center_xy, size, yaw: float, px_per_unit: float, rng: np.random.Generat
 
 
 def make_planes(seed: int = 0, px_per_unit: float = 220.0) -> list[Plane]:
-    """The scene's textured rectangles: ground, back wall and two boxes (12 planes).
+    """The scene's textured rectangles: ground, back wall and seven boxes (37 planes).
 
     Args:
         seed: texture seed; the geometry is fixed.
@@ -273,6 +273,13 @@ def make_planes(seed: int = 0, px_per_unit: float = 220.0) -> list[Plane]:
     ]
     planes += _box((0.0, 0.2), (1.6, 1.3, 1.2), np.deg2rad(25), px_per_unit, rng, "box1")
     planes += _box((1.9, 1.6), (0.9, 0.9, 1.8), np.deg2rad(-15), px_per_unit, rng, "box2")
+    # smaller boxes spread over the ground put features at many depths and on many
+    # planes, so that no single plane dominates a view (a dominant plane makes E ill-conditioned)
+    planes += _box((-2.0, 1.8), (0.8, 0.8, 2.4), np.deg2rad(10), px_per_unit, rng, "box3")
+    planes += _box((-2.3, -1.0), (0.7, 0.9, 0.7), np.deg2rad(40), px_per_unit, rng, "box4")
+    planes += _box((2.4, -0.9), (1.0, 0.6, 0.9), np.deg2rad(-30), px_per_unit, rng, "box5")
+    planes += _box((0.4, -2.3), (0.6, 0.6, 0.5), np.deg2rad(5), px_per_unit, rng, "box6")
+    planes += _box((-0.9, 2.4), (0.9, 0.5, 1.4), np.deg2rad(0), px_per_unit, rng, "box7")
     return planes
 
 
@@ -347,20 +354,33 @@ def render_view(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np.ndarray
         # pixel-centre convention (texel (u, v) covers [u, u+1) x [v, v+1))
         Hm = Ks @ np.column_stack([R @ pl.a, R @ pl.b, R @ pl.origin + t])
         Hc = Hm @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
-        # the alpha channel marks the rectangle's pixels
-        warped = cv2.warpPerspective(pl.rgba, Hc, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                     borderValue=(0, 0, 0, 0))
         n_c = R @ pl.normal
         d_c = float(n_c @ (R @ pl.origin + t))  # the plane is n_c·X = d_c in the camera frame
         if abs(d_c) < 1e-9:
             continue  # seen edge-on
+        # work in the bounding box of the projected rectangle when it is entirely in
+        # front of the camera (the usual case); otherwise in the whole image
+        Xc = pl.corners() @ R.T + t
+        x0, y0, x1, y1 = 0, 0, W, H
+        if np.all(Xc[:, 2] > 1e-6):
+            pc = Xc @ Ks.T
+            pc = pc[:, :2] / pc[:, 2:3]
+            x0, y0 = max(0, int(np.floor(pc[:, 0].min())) - 1), max(0, int(np.floor(pc[:, 1].min())) - 1)
+            x1, y1 = min(W, int(np.ceil(pc[:, 0].max())) + 2), min(H, int(np.ceil(pc[:, 1].max())) + 2)
+            if x1 <= x0 or y1 <= y0:
+                continue  # outside the view
+        T = np.array([[1.0, 0, -x0], [0, 1, -y0], [0, 0, 1]])
+        # the alpha channel marks the rectangle's pixels
+        warped = cv2.warpPerspective(pl.rgba, T @ Hc, (x1 - x0, y1 - y0), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0, 0))
         # inverse depth 1/z = n_c·(K⁻¹ x) / d_c is affine in the pixel; its sign also
         # removes the mirror image the homography gives of points behind the camera
         coef = ((n_c @ Kinv) / d_c).astype(np.float32)
-        invz = coef[0] * uu + (coef[1] * vv + coef[2])
-        closer = (warped[..., 3] >= 128) & (invz > best)
-        best[closer] = invz[closer]
-        image[closer] = warped[..., :3][closer]
+        invz = coef[0] * uu[:, x0:x1] + (coef[1] * vv[y0:y1] + coef[2])
+        zb = best[y0:y1, x0:x1]
+        closer = (warped[..., 3] >= 128) & (invz > zb)
+        zb[closer] = invz[closer]
+        image[y0:y1, x0:x1][closer] = warped[..., :3][closer]
     if s > 1:
         image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
         best = best[s // 2::s, s // 2::s][:height, :width]

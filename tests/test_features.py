@@ -1,0 +1,155 @@
+"""SIFT features: resizing and scaling back, cache and resume, intrinsics sources, CLI."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import features
+from pipeline.errors import InputFileError
+from pipeline.features import FeatureConfig, extract_sift, load_features
+from pipeline.images import parse_intrinsics_file
+from pipeline.matching import match_descriptors
+from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
+
+CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene")
+    return render_scene(n_views=3, seed=7, out=out, config=CFG)
+
+
+def _sampson_px(s, i, j, xi, xj):
+    R, t = s.relative_pose(i, j)
+    E = essential_from_Rt(R, t)
+    yi = np.column_stack([xi, np.ones(len(xi))]) @ np.linalg.inv(s.K[i]).T
+    yj = np.column_stack([xj, np.ones(len(xj))]) @ np.linalg.inv(s.K[j]).T
+    Ex, Etx = yi @ E.T, yj @ E
+    num = np.sum(yj * Ex, 1)
+    den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
+    return np.abs(num) / np.sqrt(den) * s.K[i][0, 0]
+
+
+def test_keypoints_are_scaled_back_to_full_resolution(scene):
+    gray = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in scene.images[:2]]
+    cfg = FeatureConfig(max_image_size=160)  # half size
+    k0, k1 = extract_sift(gray[0], cfg), extract_sift(gray[1], cfg)
+    assert k0.xy[:, 0].max() > 200  # full-resolution frame, not the 160-pixel copy
+    m = match_descriptors(k0.descriptors, k1.descriptors)
+    assert len(m) > 20
+    err = _sampson_px(scene, 0, 1, k0.xy[m[:, 0]], k1.xy[m[:, 1]])
+    # true epipolar geometry holds in full-resolution pixels (a wrong scale gives tens of px)
+    assert np.median(err) < 1.0
+
+
+def test_max_keypoints_is_respected(scene):
+    gray = cv2.cvtColor(scene.images[0], cv2.COLOR_RGB2GRAY)
+    k = extract_sift(gray, FeatureConfig(max_keypoints=100))
+    assert 50 < len(k.xy) <= 100
+    assert k.descriptors.shape == (len(k.xy), 128) and k.descriptors.dtype == np.uint8
+
+
+def test_rejects_bad_config_and_input():
+    with pytest.raises(ValueError, match="max_image_size"):
+        FeatureConfig(max_image_size=10)
+    with pytest.raises(ValueError, match="max_keypoints"):
+        FeatureConfig(max_keypoints=0)
+    with pytest.raises(ValueError, match="expected \\(h, w\\) uint8"):
+        extract_sift(np.zeros((10, 10, 3), np.uint8))
+
+
+def test_main_cache_and_resume(scene, tmp_path):
+    images = tmp_path / "img"
+    shutil.copytree(scene.out, images)
+    (images / "view_002.png").rename(tmp_path / "later.png")
+    work = tmp_path / "work"
+    m = json.loads(features.main(images, work, progress=False).read_text())
+    assert m["n_extracted"] == 2 and m["n_cached"] == 0
+    m = json.loads(features.main(images, work, progress=False).read_text())
+    assert m["n_extracted"] == 0 and m["n_cached"] == 2  # resumed: nothing recomputed
+    (tmp_path / "later.png").rename(images / "view_002.png")
+    m = json.loads(features.main(images, work, progress=False).read_text())
+    assert m["n_extracted"] == 1 and m["n_cached"] == 2  # only the new image
+    m = json.loads(features.main(images, work, FeatureConfig(max_keypoints=500), progress=False).read_text())
+    assert m["n_extracted"] == 3  # another config never reads a stale cache
+    m = json.loads(features.main(images, work, FeatureConfig(max_keypoints=500), overwrite=True, progress=False).read_text())
+    assert m["n_extracted"] == 3
+    fs = load_features(work)
+    assert fs.names == scene.names
+    # intrinsics from the rendered cameras.txt found in the image folder
+    np.testing.assert_allclose(fs.K, scene.K)
+    assert all(s.startswith("file:") for s in fs.K_source)
+    assert all(len(k) <= 500 for k in fs.keypoints)
+
+
+def test_intrinsics_K_txt_default_and_exif(scene, tmp_path, caplog):
+    images = tmp_path / "img"
+    images.mkdir()
+    for n in scene.names[:2]:
+        shutil.copy(scene.out / n, images / n)
+    work = tmp_path / "w"
+    with caplog.at_level(logging.WARNING):
+        features.main(images, work, progress=False)
+    assert "f = 1.2" in caplog.text
+    fs = load_features(work)
+    np.testing.assert_allclose(fs.K[0][0, 0], 1.2 * 320)
+    assert fs.K_source == ["default", "default"]
+    Kfile = tmp_path / "K.txt"
+    Kfile.write_text("300 0 160\n0 301 120\n0 0 1\n")
+    features.main(images, work, K_path=Kfile, progress=False)
+    fs = load_features(work)
+    assert fs.K[1][1, 1] == 301
+    # a JPEG with EXIF focal length
+    from PIL import Image
+
+    ex = Image.Exif()
+    ex[0x010F], ex[0x0110] = "Canon", "Canon EOS 5D"
+    ex.get_ifd(0x8769).update({0xA405: 50, 0x920A: (24, 1)})
+    Image.open(images / scene.names[0]).convert("RGB").save(images / "exif.jpg", exif=ex.tobytes(), quality=95)
+    features.main(images, work, progress=False)
+    fs = load_features(work)
+    k = fs.names.index("exif.jpg")
+    assert fs.K_source[k] == "exif"
+    assert 400 < fs.K[k][0, 0] < 520  # 24-50 mm equivalent focal on a 320-px-wide image, not 384 (default)
+
+
+def test_intrinsics_file_formats(tmp_path):
+    p = tmp_path / "cams.txt"
+    p.write_text("# comment\na.png 100 101 50 40\n")
+    assert parse_intrinsics_file(p)["a.png"][1, 1] == 101
+    p.write_text("1 2 3\n")
+    with pytest.raises(InputFileError, match="exactly 9"):
+        parse_intrinsics_file(p)
+    p.write_text("a.png 1 2 3\n")
+    with pytest.raises(InputFileError, match="expected 4 or 16"):
+        parse_intrinsics_file(p)
+    p.write_text("1 0 0\n0 1 0\n0 0 0\n")
+    with pytest.raises(InputFileError, match="not a pinhole K"):
+        parse_intrinsics_file(p)
+    with pytest.raises(InputFileError, match="does not exist"):
+        parse_intrinsics_file(tmp_path / "nope.txt")
+
+
+def test_cli_help():
+    r = subprocess.run([sys.executable, "-m", "pipeline.features", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--images" in r.stdout and "--K" in r.stdout
+
+
+def test_load_features_without_run(tmp_path):
+    with pytest.raises(InputFileError, match="run `python -m pipeline.features"):
+        load_features(tmp_path)
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(InputFileError, match="does not exist"):
+        features.main(tmp_path / "nope", tmp_path / "w", progress=False)
+

@@ -1,0 +1,130 @@
+"""The front end tried as a new user would, through the command lines.
+
+Each case gives a clear one-line message (exit code 2), or a warning and a correct result.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import so3
+from pipeline.synthetic.render import SceneConfig, render_scene
+from pipeline.two_view import load_two_view
+
+CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
+
+
+def _run(module: str, *args: str | Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def _one_line_error(r: subprocess.CompletedProcess, *needles: str) -> None:
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return render_scene(n_views=3, seed=21, out=tmp_path_factory.mktemp("scene"), config=CFG)
+
+
+def _copy_images(scene, dst: Path, names=None) -> Path:
+    dst.mkdir(parents=True, exist_ok=True)
+    for n in names or scene.names:
+        shutil.copy(scene.out / n, dst / n)
+    return dst
+
+
+def test_empty_folder(tmp_path):
+    (tmp_path / "img").mkdir()
+    _one_line_error(_run("pipeline.features", "--images", tmp_path / "img", "--work", tmp_path / "w"), "0 image file(s)", "at least 2")
+
+
+def test_missing_folder(tmp_path):
+    _one_line_error(_run("pipeline.features", "--images", tmp_path / "nope", "--work", tmp_path / "w"), "does not exist")
+
+
+def test_one_image(scene, tmp_path):
+    img = _copy_images(scene, tmp_path / "img", scene.names[:1])
+    _one_line_error(_run("pipeline.features", "--images", img, "--work", tmp_path / "w"), "1 image file(s)", "at least 2")
+
+
+def test_matching_before_features(tmp_path):
+    _one_line_error(_run("pipeline.matching", "--work", tmp_path / "w"), "pipeline.features")
+
+
+def test_non_image_and_truncated_jpeg_are_skipped_with_warning(scene, tmp_path):
+    img = _copy_images(scene, tmp_path / "img")
+    (img / "notes.txt").write_text("not an image")
+    (img / "fake.jpg").write_text("this is text, not a JPEG")
+    # a truncated JPEG: the first half of a real one
+    bgr = cv2.cvtColor(scene.images[0], cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    (img / "cut.jpg").write_bytes(buf.tobytes()[: len(buf) // 2])
+    w = tmp_path / "w"
+    r = _run("pipeline.features", "--images", img, "--work", w, "--K", scene.out / "cameras.txt")
+    assert r.returncode == 0, r.stderr
+    assert "fake.jpg" in r.stderr and "cut.jpg" in r.stderr and "truncated" in r.stderr
+    assert "WARNING" in r.stderr
+    for mod in ("pipeline.matching", "pipeline.two_view"):
+        r = _run(mod, "--work", w, "-q")
+        assert r.returncode == 0, r.stderr
+    d = load_two_view(w)
+    assert d.vg.names == scene.names and d.vg.n_edges == 3
+
+
+def test_only_unreadable_images(tmp_path):
+    img = tmp_path / "img"
+    img.mkdir()
+    (img / "a.jpg").write_text("x")
+    (img / "b.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 20)
+    _one_line_error(_run("pipeline.features", "--images", img, "--work", tmp_path / "w"), "only 0 of 2 images", "a.jpg")
+
+
+def test_images_of_different_sizes(scene, tmp_path):
+    """A half-size copy of one view: its own size and K, and the right rotations."""
+    img = _copy_images(scene, tmp_path / "img")
+    small = cv2.resize(cv2.cvtColor(scene.images[2], cv2.COLOR_RGB2BGR), (240, 180), interpolation=cv2.INTER_AREA)
+    (img / scene.names[2]).unlink()
+    cv2.imwrite(str(img / "view_002_small.png"), small)
+    # per-image intrinsics: the small image's K is the original scaled by 0.75
+    K = scene.K.copy()
+    K[2, :2, :2] *= 0.75
+    K[2, :2, 2] = 0.75 * (scene.K[2, :2, 2] + 0.5) - 0.5  # pixel centres at integers: c' = s(c + ½) − ½
+    names = [scene.names[0], scene.names[1], "view_002_small.png"]
+    lines = [f"{n} {k[0, 0]} {k[1, 1]} {k[0, 2]} {k[1, 2]}" for n, k in zip(names, K)]
+    (tmp_path / "cams.txt").write_text("\n".join(lines) + "\n")
+    w = tmp_path / "w"
+    for args in (("pipeline.features", "--images", img, "--work", w, "--K", tmp_path / "cams.txt", "-q"),
+                 ("pipeline.matching", "--work", w, "-q"), ("pipeline.two_view", "--work", w, "-q")):
+        r = _run(*args)
+        assert r.returncode == 0, r.stderr
+    d = load_two_view(w)
+    np.testing.assert_array_equal(d.sizes, [[320, 240], [320, 240], [240, 180]])
+    assert d.vg.n_edges == 3
+    R_true = np.einsum("mij,mkj->mik", scene.R[d.vg.edges[:, 1]], scene.R[d.vg.edges[:, 0]])
+    err = np.degrees(so3.angle_between(d.vg.R_rel, R_true))
+    assert err.max() < 1.0, err
+
+
+def test_resume_through_the_command_line(scene, tmp_path):
+    img = _copy_images(scene, tmp_path / "img")
+    w = tmp_path / "w"
+    assert _run("pipeline.features", "--images", img, "--work", w, "-q").returncode == 0
+    r = _run("pipeline.features", "--images", img, "--work", w)
+    assert "0 extracted, 3 from cache" in r.stderr
+    assert _run("pipeline.matching", "--work", w, "-q").returncode == 0
+    r = _run("pipeline.matching", "--work", w)
+    assert "skipping" in r.stderr
+    r = _run("pipeline.matching", "--work", w, "--overwrite")
+    assert "3 matched, 0 reused" in r.stderr

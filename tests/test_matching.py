@@ -1,0 +1,144 @@
+"""Matching: correctness on rendered pairs, mutual/ratio checks, FLANN vs brute force, pairs files, resume."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import features, matching
+from pipeline.errors import InputFileError
+from pipeline.features import extract_sift
+from pipeline.matching import MatchingConfig, exhaustive_pairs, load_matches, match_descriptors, read_pairs
+from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
+
+CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return render_scene(n_views=3, seed=11, out=tmp_path_factory.mktemp("scene"), config=CFG)
+
+
+@pytest.fixture(scope="module")
+def kps(scene):
+    return [extract_sift(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in scene.images]
+
+
+def _epipolar_px(s, i, j, xi, xj):
+    R, t = s.relative_pose(i, j)
+    E = essential_from_Rt(R, t)
+    yi = np.column_stack([xi, np.ones(len(xi))]) @ np.linalg.inv(s.K[i]).T
+    yj = np.column_stack([xj, np.ones(len(xj))]) @ np.linalg.inv(s.K[j]).T
+    Ex, Etx = yi @ E.T, yj @ E
+    den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
+    return np.abs(np.sum(yj * Ex, 1)) / np.sqrt(den) * s.K[i][0, 0]
+
+
+@pytest.mark.parametrize("method", ["bf", "flann"])
+def test_matches_follow_true_geometry_and_are_one_to_one(scene, kps, method):
+    m = match_descriptors(kps[0].descriptors, kps[1].descriptors, MatchingConfig(method=method))
+    assert len(m) > 100
+    assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)  # mutual check: one-to-one
+    err = _epipolar_px(scene, 0, 1, kps[0].xy[m[:, 0]], kps[1].xy[m[:, 1]])
+    assert np.mean(err < 2.0) > 0.9
+
+
+def test_flann_agrees_with_brute_force(kps):
+    bf = match_descriptors(kps[0].descriptors, kps[1].descriptors, MatchingConfig(method="bf"))
+    fl = match_descriptors(kps[0].descriptors, kps[1].descriptors, MatchingConfig(method="flann"))
+    common = len({tuple(r) for r in bf} & {tuple(r) for r in fl})
+    assert common > 0.9 * min(len(bf), len(fl))
+
+
+def test_ratio_and_mutual_filter(kps):
+    d0, d1 = kps[0].descriptors, kps[1].descriptors
+    loose = match_descriptors(d0, d1, MatchingConfig(method="bf", ratio=0.9, mutual=False))
+    strict = match_descriptors(d0, d1, MatchingConfig(method="bf", ratio=0.6, mutual=False))
+    mutual = match_descriptors(d0, d1, MatchingConfig(method="bf", ratio=0.9, mutual=True))
+    s_loose = {tuple(r) for r in loose}
+    assert len(strict) < len(loose) and {tuple(r) for r in strict} <= s_loose
+    assert len(mutual) < len(loose) and {tuple(r) for r in mutual} <= s_loose
+    # without the mutual check some images-b keypoints are matched twice
+    assert len(np.unique(loose[:, 1])) < len(loose)
+
+
+def test_brute_force_is_exact(kps):
+    """The BLAS brute force finds the same nearest neighbours as OpenCV's exhaustive matcher."""
+    from pipeline.matching import root_sift
+
+    qa, qb = root_sift(kps[0].descriptors), root_sift(kps[1].descriptors)
+    ref = cv2.BFMatcher(cv2.NORM_L2).knnMatch(qa, qb, k=2)
+    keep = [(r[0].queryIdx, r[0].trainIdx) for r in ref if r[0].distance < 0.8 * r[1].distance]
+    ours = match_descriptors(kps[0].descriptors, kps[1].descriptors, MatchingConfig(method="bf", mutual=False))
+    assert {tuple(r) for r in ours} == set(keep)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="ratio"):
+        MatchingConfig(ratio=1.5)
+    with pytest.raises(ValueError, match="method"):
+        MatchingConfig(method="kdtree")
+
+
+def test_exhaustive_pairs():
+    p = exhaustive_pairs(4)
+    assert p.shape == (6, 2) and np.all(p[:, 0] < p[:, 1])
+
+
+def test_pairs_file(tmp_path):
+    names = ["a.jpg", "b.jpg", "c.jpg"]
+    f = tmp_path / "pairs.txt"
+    f.write_text("b.jpg a.jpg\n# comment\nc a\na.jpg b.jpg\n")
+    np.testing.assert_array_equal(read_pairs(f, names), [[0, 1], [0, 2]])
+    f.write_text("a.jpg z.jpg\n")
+    with pytest.raises(InputFileError, match="'z.jpg' is not among"):
+        read_pairs(f, names)
+    f.write_text("a.jpg\n")
+    with pytest.raises(InputFileError, match="expected 'name_a name_b'"):
+        read_pairs(f, names)
+    f.write_text("a.jpg a.jpg\n")
+    with pytest.raises(InputFileError, match="no pair"):
+        read_pairs(f, names)
+    with pytest.raises(InputFileError, match="does not exist"):
+        read_pairs(tmp_path / "none.txt", names)
+
+
+def test_main_resume_and_incremental(scene, tmp_path):
+    images = tmp_path / "img"
+    shutil.copytree(scene.out, images)
+    (images / "view_002.png").rename(tmp_path / "later.png")
+    work = tmp_path / "w"
+    features.main(images, work, progress=False)
+    matching.main(work, progress=False)
+    man = json.loads((work / "matches.json").read_text())
+    assert man["n_computed"] == 1 and man["n_pairs"] == 1
+    matching.main(work, progress=False)
+    assert json.loads((work / "matches.json").read_text())["n_computed"] == 0  # resumed
+    (tmp_path / "later.png").rename(images / "view_002.png")
+    features.main(images, work, progress=False)
+    matching.main(work, progress=False)
+    man = json.loads((work / "matches.json").read_text())
+    assert man["n_pairs"] == 3 and man["n_computed"] == 2 and man["n_reused"] == 1  # only the new pairs
+    matching.main(work, overwrite=True, progress=False)
+    assert json.loads((work / "matches.json").read_text())["n_computed"] == 3
+    pf = tmp_path / "pairs.txt"
+    pf.write_text("view_000.png view_002.png\n")
+    out = matching.main(work, pairs_path=pf, progress=False)
+    ms = load_matches(work)
+    assert out.is_file() and ms.pairs.tolist() == [[0, 2]] and len(ms.matches[0]) > 50
+
+
+def test_matching_without_features(tmp_path):
+    with pytest.raises(InputFileError, match="pipeline.features"):
+        matching.main(tmp_path, progress=False)
+
+
+def test_cli_help():
+    r = subprocess.run([sys.executable, "-m", "pipeline.matching", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--pairs" in r.stdout
