@@ -85,9 +85,9 @@ class MatchingConfig:
     ratio: float = 0.8
     mutual: bool = True
     method: str = "auto"
-    bf_max_keypoints: int = 2500
+    bf_max_keypoints: int = 6000
     flann_trees: int = 4
-    flann_checks: int = 64
+    flann_checks: int = 32
     workers: int = 2
 
     def __post_init__(self) -> None:

@@ -105,8 +105,8 @@ class TwoViewConfig:
 
     method: str = "magsac"
     threshold_px: float = 1.0
-    confidence: float = 0.9999
-    max_iters: int = 10000
+    confidence: float = 0.999
+    max_iters: int = 5000
     min_matches: int = 20
     min_inliers: int = 20
     min_triangulation_deg: float = 1.0
@@ -539,7 +539,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--config", type=Path, default=None, help="YAML config; its 'two_view' section is used")
     p.add_argument("--method", choices=sorted(_METHODS), default=None, help="robust estimator (default magsac)")
     p.add_argument("--threshold", type=float, default=None, help="inlier threshold, pixels at extraction size (default 1.0)")
-    p.add_argument("--confidence", type=float, default=None, help="RANSAC confidence (default 0.9999)")
+    p.add_argument("--confidence", type=float, default=None, help="RANSAC confidence (default 0.999)")
     p.add_argument("--min-inliers", type=int, default=None)
     p.add_argument("--overwrite", action="store_true", help="estimate all pairs again")
 

@@ -330,5 +330,17 @@ def test_unknown_variant_solver_and_form_are_rejected(clean_graph):
         solve_sdp(vg, "cso3", solver="mosek")
     with pytest.raises(ValueError, match="unknown conic form"):
         solve_sdp(vg, "cso3", form="both")
+    with pytest.raises(ValueError, match=r"unknown SCS setting\(s\) \['nonsense'\]"):
+        solve_sdp(vg, "cso3", solver="scs", nonsense=1)
     with pytest.raises(ValueError, match="unknown Clarabel setting 'nonsense'"):
         solve_sdp(vg, "cso3", solver="clarabel", nonsense=1)
+
+
+def test_lmis_on_all_pairs_give_a_relaxation_at_least_as_strong():
+    vg, _ = noisy_graph(10, 0.4, seed=11, eig=(0.1, 1.0), cov_eig=True)
+    edges_only = solve_sdp(vg, "cso3", "clarabel", eps_abs=1e-9, eps_rel=1e-9)
+    all_pairs = solve_sdp(vg, "cso3", "clarabel", eps_abs=1e-9, eps_rel=1e-9, lmi_pairs="all")
+    assert all_pairs.stats["n_constraints"] > edges_only.stats["n_constraints"]
+    assert all_pairs.stats["lower_bound"] >= edges_only.stats["lower_bound"] - 1e-6 * abs(edges_only.stats["lower_bound"])
+    with pytest.raises(ValueError, match="lmi_pairs='some'"):
+        solve_sdp(vg, "cso3", lmi_pairs="some")

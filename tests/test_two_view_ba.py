@@ -360,6 +360,16 @@ def test_main_rejects_missing_work(tmp_path: Path, monkeypatch: pytest.MonkeyPat
         tb.main(tmp_path / "nope", progress=False)
 
 
+def test_main_rejects_graph_without_translations(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    data, _, _ = _fake_work(tmp_path, n_cams=3, with_bad_pair=False)
+    data.vg = ViewGraph(data.vg.names, data.vg.edges, data.vg.R_rel, allow_isolated=True)
+    fake = types.ModuleType("pipeline.two_view")
+    fake.load_two_view = lambda work: data
+    monkeypatch.setitem(sys.modules, "pipeline.two_view", fake)
+    with pytest.raises(Exception, match="no per-edge 't' statistic"):
+        tb.main(tmp_path, progress=False)
+
+
 def test_cli_help() -> None:
     out = subprocess.run([sys.executable, "-m", "pipeline.two_view_ba", "--help"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "--work" in out.stdout and "--sigma-px" in out.stdout

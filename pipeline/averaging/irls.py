@@ -98,6 +98,7 @@ def irls(
     init_weights: np.ndarray | None = None,
     refine: bool = False,
     refine_iterations: int = 20,
+    refine_min_deg: float = 1.0,
 ) -> AveragingResult:
     """Robust rotation averaging, paper 1 Algorithm 3 (ℓ1 steps, then IRLS).
 
@@ -118,10 +119,13 @@ def irls(
         refine: after convergence, run IRLS with the Talwar loss (ℓ2 on edges
             whose residual is below τ, weight 0 beyond) with τ set from the
             converged residuals: σ̂ = median(‖r‖)/1.538 (the median of a χ₃
-            variable) and τ = 3.76 σ̂ (the 99.7% quantile of σχ₃). Not in paper 1:
+            variable) and τ = max(3.76 σ̂, ``refine_min_deg``) (3.76 σ̂ is the
+            99.7% quantile of σχ₃; the minimum keeps near-exact data from
+            trimming its own inliers and cutting the graph). Not in paper 1:
             ℓ½'s slowly decaying influence leaves the outliers a small pull; this
             trimmed ℓ2 polish removes it. ``stats["refine_threshold_deg"]``.
         refine_iterations: IRLS cap of the refinement.
+        refine_min_deg: lower bound on τ, degrees.
 
     Returns:
         :class:`AveragingResult` with ``residuals_rad`` and ``weights`` per edge,
@@ -177,7 +181,7 @@ def irls(
     if refine:
         theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
         sigma = float(np.median(theta)) / 1.538
-        refine_tau = max(3.76 * sigma, 1e-9)
+        refine_tau = max(3.76 * sigma, float(np.deg2rad(refine_min_deg)))
         tal = get_loss("talwar", float(np.rad2deg(refine_tau)))
         for k in range(1, refine_iterations + 1):
             r = edge_residuals(vg.edges, vg.R_rel, R)
@@ -198,7 +202,7 @@ def irls(
     grad = solver.AT @ (phi[:, None] * r)
     elapsed = time.perf_counter() - t0
     n_l1 = sum(1 for h in history if h.get("stage") == "l1")
-    if not converged:
+    if not converged and max_iterations > 0:
         logger.warning(
             "IRLS-%s stopped at the iteration cap (%d) with mean step %.3g rad > %.3g rad",
             lossf.name, max_iterations, history[-1]["mean_step_rad"], tol_rad,

@@ -247,13 +247,21 @@ def l1_step(
     k = 0
     x = np.zeros((solver.n, 3))
     for k in range(1, max_iterations + 1):
-        x = solver.solve(AT @ (r + z - u))
+        q = r + z
+        q -= u
+        x = solver.solve(AT @ q)
         Ax = A @ x
-        Ax_hat = relax * Ax + (1.0 - relax) * (z + r)
+        # v = α(Ax − r) + (1 − α) z + u, built in place (these (M, 3) passes
+        # dominate an iteration once the factor is cached).
+        v = Ax - r
+        v *= relax
+        v += (1.0 - relax) * z
+        v += u
         z_old = z
-        v = Ax_hat - r + u
-        z = np.sign(v) * np.maximum(np.abs(v) - 1.0 / rho, 0.0)
-        u = v - z
+        # Soft threshold: z = S_{1/ρ}(v) and the new scaled dual u = v − z = clip(v).
+        u = np.clip(v, -1.0 / rho, 1.0 / rho)
+        z = v
+        z -= u
         if k % check_every and k < max_iterations:
             continue
         # Boyd et al. (2011) §3.3 stopping criteria, with the unrelaxed Ax;

@@ -85,6 +85,11 @@ VARIANTS: dict[str, tuple[bool, bool]] = {
 }
 SOLVERS = ("scs", "clarabel")
 SQRT2 = np.sqrt(2.0)
+_SCS_SETTINGS = {
+    "normalize", "scale", "adaptive_scale", "rho_x", "max_iters", "eps_abs", "eps_rel", "eps_infeas",
+    "alpha", "time_limit_secs", "verbose", "acceleration_lookback", "acceleration_interval",
+    "warm_start", "write_data_filename", "log_csv_filename", "use_indirect", "mkl",
+}
 
 # 𝒜(Y) of paper 2, eq. 27, as a (4, 4, 3, 3) tensor: 𝒜(Y)_kl = Σ_ab T[k,l,a,b] Y_ab.
 # Entries are (k, l, a, b, sign) with 0-based indices; Y11 of the paper is Y[0, 0].
@@ -207,6 +212,7 @@ def build_conic(
     cso3: bool,
     solver: str = "scs",
     form: str = "primal",
+    lmi_edges: np.ndarray | None = None,
 ) -> ConicProblem:
     """Assemble the SDP as sparse ``(A, b, c)`` in the solver's svec convention.
 
@@ -219,6 +225,9 @@ def build_conic(
         form: ``"primal"`` (variables ``svec X``; what a modelling layer such as
             JuMP hands SCS, as in paper 2) or ``"dual"`` (variables ``Υ, W``; see
             the module docstring). Same SDP, different solver behaviour.
+        lmi_edges: (K, 2) pairs ``i < j`` that get the conv(SO(3)) LMI when ``cso3``
+            (default: ``edges``, the observed ones, as specified; paper 2's derivation
+            has one for every pair, which is stronger and costlier).
 
     Returns:
         The :class:`ConicProblem`.
@@ -245,8 +254,10 @@ def build_conic(
     D = np.where((pk != pl)[:, None, None], SQRT2, 1.0) * _T[pk, pl]  # (10, 3, 3)
     t_nz, a_nz, b_nz = np.nonzero(D)
     d_nz = D[t_nz, a_nz, b_nz]
-    idx_lmi = svec_index(3 * j_e[:, None] + a_nz, 3 * i_e[:, None] + b_nz, n, solver)  # (M, nnz)
-    n_small = M if cso3 else 0
+    lmi = edges if lmi_edges is None else np.asarray(lmi_edges, dtype=np.int64).reshape(-1, 2)
+    K = lmi.shape[0]
+    idx_lmi = svec_index(3 * lmi[:, 1, None] + a_nz, 3 * lmi[:, 0, None] + b_nz, n, solver)  # (K, nnz)
+    n_small = K if cso3 else 0
 
     if form == "primal":
         # x = svec X (off-diagonal entries hold √2 X_pq).
@@ -259,11 +270,11 @@ def build_conic(
         b = np.zeros(6 * N + m_big + 10 * n_small)
         b[: 6 * N] = is_diag
         if cso3:
-            r0 = 6 * N + m_big + 10 * np.arange(M)[:, None] + t_nz
+            r0 = 6 * N + m_big + 10 * np.arange(K)[:, None] + t_nz
             rows.append(r0.ravel())
             cols.append(idx_lmi.ravel())
             vals.append(np.broadcast_to(-d_nz / SQRT2, r0.shape).ravel())
-            b[6 * N + m_big:] = np.tile((pk == pl).astype(float), M)
+            b[6 * N + m_big:] = np.tile((pk == pl).astype(float), K)
         A = sp.csc_matrix(
             (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
             shape=(b.size, m_big),
@@ -279,15 +290,15 @@ def build_conic(
     c_parts = [is_diag.astype(float)]
     if cso3:
         # S_{(j,a),(i,b)} −= ½ 𝒜*(W)_ab = ½ Σ_t ŵ_t D[t,a,b]  ⇒  A = +D/√2.
-        col_w = 6 * N + 10 * np.arange(M)[:, None] + t_nz
+        col_w = 6 * N + 10 * np.arange(K)[:, None] + t_nz
         rows.append(idx_lmi.ravel())
         cols.append(col_w.ravel())
         vals.append(np.broadcast_to(d_nz / SQRT2, idx_lmi.shape).ravel())
         # Small cones: s_e = svec(W_e) = ŵ_e  ⇒  A = −I, b = 0.
-        rows.append(m_big + np.arange(10 * M))
-        cols.append(6 * N + np.arange(10 * M))
-        vals.append(-np.ones(10 * M))
-        c_parts.append(np.tile((pk == pl).astype(float), M))
+        rows.append(m_big + np.arange(10 * K))
+        cols.append(6 * N + np.arange(10 * K))
+        vals.append(-np.ones(10 * K))
+        c_parts.append(np.tile((pk == pl).astype(float), K))
     A = sp.csc_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
         shape=(b.size, 6 * N + 10 * n_small),
@@ -327,6 +338,9 @@ def _solve_scs(prob: ConicProblem, eps_abs: float, eps_rel: float, max_iters: in
     cone = {"z": prob.n_zero, "s": [prob.n_big] + [4] * prob.n_small}
     settings = dict(eps_abs=eps_abs, eps_rel=eps_rel, eps_infeas=1e-8, verbose=verbose,
                     max_iters=500_000 if max_iters is None else int(max_iters))
+    unknown = sorted(set(kw) - _SCS_SETTINGS)
+    if unknown:
+        raise ValueError(f"unknown SCS setting(s) {unknown}; allowed: {sorted(_SCS_SETTINGS)}")
     settings.update(kw)
     solver = scs.SCS({"P": None, "A": prob.A, "b": prob.b, "c": prob.c}, cone, **settings)
     sol = solver.solve()
@@ -414,7 +428,10 @@ def solve_sdp(
         max_iters: iteration cap (default 500 000 for SCS as in paper 2, 200 for Clarabel).
         verbose: print the solver's log.
         **kw: ``cert_tol`` (relative gap below which a rank-3 solution is certified,
-            default 1e-4); any other key is passed to the solver as a setting
+            default 1e-4); ``form`` (``"primal"`` or ``"dual"`` conic statement, see
+            :func:`build_conic`; default primal for SCS, dual for Clarabel);
+            ``lmi_pairs`` (``"edges"``, default, or ``"all"`` camera pairs); any other
+            key is passed to the solver as a setting
             (e.g. ``chordal_decomposition_enable=True`` for Clarabel,
             ``time_limit_secs`` for SCS).
 
@@ -436,10 +453,14 @@ def solve_sdp(
     # paper 2); Clarabel on the dual form, whose slack carries the graph's sparsity
     # that its chordal decomposition exploits.
     form = kw.pop("form", None) or ("primal" if solver == "scs" else "dual")
+    lmi_pairs = kw.pop("lmi_pairs", "edges")
+    if lmi_pairs not in ("edges", "all"):
+        raise ValueError(f"lmi_pairs={lmi_pairs!r} but expected 'edges' (observed pairs) or 'all'")
     aniso, cso3 = _check_inputs(vg, variant, solver)
     t0 = time.perf_counter()
     C, scale = edge_weights(vg, aniso)
-    prob = build_conic(vg.n_cameras, vg.edges, C, cso3, solver, form)
+    lmi_edges = np.argwhere(np.triu(np.ones((vg.n_cameras,) * 2, bool), 1)) if lmi_pairs == "all" else None
+    prob = build_conic(vg.n_cameras, vg.edges, C, cso3, solver, form, lmi_edges)
     t1 = time.perf_counter()
     run = _solve_scs if solver == "scs" else _solve_clarabel
     x, y, s, status, iters = run(prob, eps_abs, eps_rel, max_iters, verbose, **kw)
@@ -490,6 +511,7 @@ def solve_sdp(
         "cost_scale": scale,
         "cost_units": "-sum_edges <M_ij R~_ij, R_j R_i^T>, unscaled (M_ij = I when isotropic)",
         "form": form,
+        "lmi_pairs": lmi_pairs,
         "n_variables": int(prob.A.shape[1]),
         "n_constraints": int(prob.A.shape[0]),
         "eps_abs": eps_abs,

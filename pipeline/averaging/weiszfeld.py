@@ -80,12 +80,13 @@ def weiszfeld(
     init: str | np.ndarray = "mst",
     max_sweeps: int = 1000,
     tol_rad: float = 1e-3,
-    inner_iterations: int = 10,
+    inner_iterations: int = 3,
     inner_tol_rad: float = 1e-6,
     order: np.ndarray | None = None,
     seed: int | None = 0,
     init_weights: np.ndarray | None = None,
     eps_rad: float = 1e-12,
+    loss: str = "l1",
 ) -> AveragingResult:
     """ℓ1 averaging one camera at a time (Hartley et al. 2011).
 
@@ -101,6 +102,10 @@ def weiszfeld(
         seed: seed of the random spanning tree and of the colouring.
         init_weights: (M,) weights for the ``"mst"`` tree.
         eps_rad: guard on ``‖v_k‖`` (an estimate exactly at the current point).
+        loss: ``"l1"`` (Weiszfeld, the default) or ``"l2"``: the same sweep with
+            each camera moved to the geodesic (Karcher) mean of its neighbours'
+            estimates, i.e. distributed ℓ2 averaging (Tron & Vidal), used to
+            illustrate paper 1, Fig. 3(a).
 
     Returns:
         :class:`AveragingResult`; ``iterations`` counts sweeps, ``history`` has one
@@ -108,6 +113,8 @@ def weiszfeld(
         ``max_step_rad``, ``time_s``).
     """
     check_graph(vg)
+    if loss not in ("l1", "l2"):
+        raise ValueError(f"weiszfeld loss must be 'l1' or 'l2', got {loss!r}")
     t0 = time.perf_counter()
     N, M = vg.n_cameras, vg.n_edges
     R = initial_rotations(vg, init, weights=init_weights, seed=seed)
@@ -134,8 +141,8 @@ def weiszfeld(
                 # Estimates at the current point (e.g. the tree parent after a
                 # spanning-tree init) would get infinite weight and freeze the
                 # camera: leave them out and use the Vardi–Zhang correction.
-                at = nv < eps_rad
-                w = np.where(at, 0.0, 1.0 / np.maximum(nv, eps_rad))
+                at = (nv < eps_rad) if loss == "l1" else np.zeros(nv.shape, bool)
+                w = np.where(at, 0.0, 1.0 / np.maximum(nv, eps_rad)) if loss == "l1" else np.ones(nv.shape)
                 num = np.zeros((cams.size, 3))
                 np.add.at(num, owner, v * w[:, None])
                 den = np.bincount(owner, weights=w, minlength=cams.size)
@@ -170,7 +177,7 @@ def weiszfeld(
     if not converged:
         logger.warning("Weiszfeld stopped at the sweep cap (%d); largest update %.3g rad", max_sweeps, history[-1]["max_step_rad"])
     return AveragingResult(
-        method="weiszfeld",
+        method="weiszfeld" if loss == "l1" else "distributed-l2",
         names=list(vg.names),
         R=R,
         time_s=elapsed,
