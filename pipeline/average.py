@@ -267,7 +267,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--init", default="mst", help="mst | random | a rotations file (default mst)")
     p.add_argument("--max-iterations", type=int, default=None, help="iteration cap (IRLS / Weiszfeld sweeps)")
     p.add_argument("--tol-rad", type=float, default=None, help="stopping tolerance on the update (default 1e-3 rad)")
-    p.add_argument("--l1-iterations", type=int, default=None, help="initial ℓ1 steps before IRLS (default 5)")
+    p.add_argument("--l1-iterations", type=int, default=None, help="initial ℓ1 steps (Algorithm 2) before IRLS (default 20 inexact steps)")
     p.add_argument("--seed", type=int, default=None, help="seed of the random spanning tree")
     p.add_argument("--variant", default="cso3", help="SDP variant: cso3, cso3-iso, o3-iso, o3-aniso")
     p.add_argument("--solver", default="scs", choices=("scs", "clarabel"), help="SDP solver")

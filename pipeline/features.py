@@ -175,7 +175,7 @@ def extract_sift(gray: np.ndarray, config: FeatureConfig | None = None) -> Keypo
     if n == 0:
         return Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
                          np.zeros(0, np.float32), np.zeros((0, 128), np.uint8))
-    xy = np.array([k.pt for k in kps], np.float32)
+    xy = cv2.KeyPoint_convert(kps).astype(np.float32).reshape(-1, 2)
     size = np.array([k.size for k in kps], np.float32)
     ori = np.array([k.angle for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)

@@ -106,7 +106,7 @@ class TwoViewConfig:
     method: str = "magsac"
     threshold_px: float = 1.0
     confidence: float = 0.999
-    max_iters: int = 5000
+    max_iters: int = 2000
     min_matches: int = 20
     min_inliers: int = 20
     min_triangulation_deg: float = 1.0

@@ -754,9 +754,9 @@ def refine_pair(
             P[:, out] = P_out
             state = _project(R, t, P, xi, xj, Ki, Kj)
             new = _classify(R, t, P, state, inliers.astype(np.float64), sigma_cls, cfg.inlier_chi2, Ki, Kj)
-            # A few borderline points flipping (≤ 0.5%) do not justify another fit:
-            # keep the set the current estimate was fitted to.
-            if int((new != inliers).sum()) <= max(1, int(0.005 * n)):
+            # Any point of the fit that now fails forces another fit (a hidden
+            # outlier biases H); a few (≤ 0.5%) dropped points coming back do not.
+            if not np.any(inliers & ~new) and int((new & ~inliers).sum()) <= max(1, int(0.005 * n)):
                 break
             inliers = new
         inliers &= valid

@@ -63,6 +63,7 @@ def test_matching_before_features(tmp_path):
     _one_line_error(_run("pipeline.matching", "--work", tmp_path / "w"), "pipeline.features")
 
 
+@pytest.mark.slow
 def test_non_image_and_truncated_jpeg_are_skipped_with_warning(scene, tmp_path):
     img = _copy_images(scene, tmp_path / "img")
     (img / "notes.txt").write_text("not an image")
@@ -91,6 +92,7 @@ def test_only_unreadable_images(tmp_path):
     _one_line_error(_run("pipeline.features", "--images", img, "--work", tmp_path / "w"), "only 0 of 2 images", "a.jpg")
 
 
+@pytest.mark.slow
 def test_images_of_different_sizes(scene, tmp_path):
     """A half-size copy of one view: its own size and K, and the right rotations."""
     img = _copy_images(scene, tmp_path / "img")
@@ -117,6 +119,7 @@ def test_images_of_different_sizes(scene, tmp_path):
     assert err.max() < 1.0, err
 
 
+@pytest.mark.slow
 def test_resume_through_the_command_line(scene, tmp_path):
     img = _copy_images(scene, tmp_path / "img")
     w = tmp_path / "w"

@@ -71,6 +71,23 @@ def test_rendered_pair_essential_matrix_agrees_with_truth(work):
     assert np.median(s * scene.K[0][0, 0]) < 0.5 and len(x_i) == d.vg.inliers[k]
 
 
+@pytest.mark.slow
+def test_rendered_12_view_ring_median_error(tmp_path):
+    """Acceptance (issue 5) at reduced size: RANSAC alone, median relative-rotation error ≤ 0.3°."""
+    cfg = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=120.0)
+    scene = render_scene(n_views=12, seed=0, out=tmp_path / "scene", config=cfg)
+    w = tmp_path / "w"
+    features.main(scene.out, w, progress=False)
+    matching.main(w, progress=False)
+    two_view.main(w, progress=False)
+    d = load_two_view(w)
+    vg = d.vg
+    assert vg.n_edges >= 60  # nearly all 66 pairs of the ring overlap and are accepted
+    R_true = np.einsum("mij,mkj->mik", scene.R[vg.edges[:, 1]], scene.R[vg.edges[:, 0]])
+    err = np.degrees(so3.angle_between(vg.R_rel, R_true))
+    assert np.median(err) < 0.3
+
+
 def test_viewgraph_convention_and_contents(work):
     scene, w = work
     d = load_two_view(w)

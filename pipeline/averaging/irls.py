@@ -48,7 +48,8 @@ class IRLSConfig:
         eps_rad: weight floor of ℓ1 / ℓ_p (p < 2) in radians (None: loss default).
         max_iterations: IRLS iteration cap.
         tol_rad: stop when the mean camera update is below this (radians).
-        l1_iterations: initial ℓ1 steps of Algorithm 2 (0 to skip).
+        l1_iterations: initial ℓ1 steps of Algorithm 2 (0 to skip; see :func:`irls`).
+        l1_tol_rad: early stop of the ℓ1 stage on its mean update (radians).
         admm_max_iterations: ADMM cap per ℓ1 step.
         init: ``"mst"``, ``"random"`` (spanning trees).
         seed: seed of the random spanning tree.
@@ -59,8 +60,9 @@ class IRLSConfig:
     eps_rad: float | None = None
     max_iterations: int = 100
     tol_rad: float = 1e-3
-    l1_iterations: int = 5
-    admm_max_iterations: int = 50
+    l1_iterations: int = 20
+    l1_tol_rad: float = 0.02
+    admm_max_iterations: int = 10
     init: str = "mst"
     seed: int = 0
     refine: bool = False
@@ -91,9 +93,10 @@ def irls(
     init: str | np.ndarray = "mst",
     max_iterations: int = 100,
     tol_rad: float = 1e-3,
-    l1_iterations: int = 5,
+    l1_iterations: int = 20,
+    l1_tol_rad: float = 0.02,
     eps_rad: float | None = None,
-    admm_max_iterations: int = 50,
+    admm_max_iterations: int = 10,
     seed: int | None = 0,
     init_weights: np.ndarray | None = None,
     refine: bool = False,
@@ -110,7 +113,17 @@ def irls(
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
         max_iterations: IRLS iteration cap.
         tol_rad: stop when the mean camera update falls below this (radians).
-        l1_iterations: iterations of Algorithm 2 first (paper 1: 5; 0 skips).
+        l1_iterations: iterations of Algorithm 2 first (0 skips). Paper 1 runs 5
+            exact ℓ1 steps; ours are inexact (``admm_max_iterations`` warm-started
+            ADMM iterations each), so the default is 20 steps of 10 ADMM
+            iterations: the same ADMM work as 5 × 40, but relinearized 4× as
+            often, which matters when a spanning tree through outliers leaves the
+            start far off (kNN, N = 10,000: median start error 74° after 5 × 50,
+            2.2° after 20 × 10, in 55% of the time). The stage stops early once
+            the mean update is below ``l1_tol_rad``.
+        l1_tol_rad: stop the ℓ1 stage when its mean update is below this
+            (radians). Inexact ℓ1 steps jitter at ~1e-2 rad once converged, and
+            IRLS refines from there, so this is looser than ``tol_rad``.
         eps_rad: residual floor inside φ for ℓ1 and ℓ_p with p < 2 (radians);
             None: the loss default (α for p < 1, 1e-6 otherwise).
         admm_max_iterations: ADMM iteration cap per ℓ1 step.
@@ -144,7 +157,8 @@ def irls(
     history: list[dict[str, float]] = []
     if l1_iterations > 0:
         R, h1 = l1_averaging(
-            vg, R, max_iterations=l1_iterations, tol_rad=tol_rad, admm_max_iterations=admm_max_iterations, solver=solver
+            vg, R, max_iterations=l1_iterations, tol_rad=l1_tol_rad, admm_max_iterations=admm_max_iterations,
+            solver=solver,
         )
         for h in h1:
             h["time_s"] += t_init
@@ -235,7 +249,8 @@ def irls(
             "refine_threshold_deg": None if refine_tau is None else float(np.rad2deg(refine_tau)),
             "config": asdict(IRLSConfig(loss=lossf.name, alpha_deg=alpha_deg, eps_rad=lossf.eps_rad,
                                         max_iterations=max_iterations, tol_rad=tol_rad,
-                                        l1_iterations=l1_iterations, admm_max_iterations=admm_max_iterations,
+                                        l1_iterations=l1_iterations, l1_tol_rad=l1_tol_rad,
+                                        admm_max_iterations=admm_max_iterations,
                                         init=init if isinstance(init, str) else "user", seed=seed or 0,
                                         refine=refine)),
         },
