@@ -499,7 +499,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     if rcfg.reference if reference is None else reference:
         rc = _cfg(st_reference, ("ReferenceConfig",), yaml_data, "reference")
         ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
-            images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names)),
+            images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
+            progress=progress),
             lambda: [out / "reference" / "reference.json"])
         rr = st_reference.load_reference_result(ref_json)
         pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)

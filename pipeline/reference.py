@@ -341,7 +341,8 @@ def _verified_degree(pc, db_path: Path) -> tuple[dict[str, int], dict[str, int]]
     return deg, n_kp
 
 
-def _run_mapping(pc, db_path: Path, images: Path, models_dir: Path, cfg: ReferenceConfig, known_K: bool) -> dict[int, Any]:
+def _run_mapping(pc, db_path: Path, images: Path, models_dir: Path, cfg: ReferenceConfig, known_K: bool,
+                 n_images: int = 0, progress: bool = False) -> dict[int, Any]:
     opts = pc.IncrementalPipelineOptions()
     opts.num_threads = cfg.num_threads
     opts.random_seed = cfg.seed
@@ -351,8 +352,14 @@ def _run_mapping(pc, db_path: Path, images: Path, models_dir: Path, cfg: Referen
         opts.ba_refine_focal_length = False
         opts.ba_refine_principal_point = False
         opts.ba_refine_extra_params = False
-    with _atomic_dir(models_dir) as tmp:
-        recs = pc.incremental_mapping(db_path, images, tmp, options=opts)
+    from tqdm import tqdm  # noqa: PLC0415
+
+    with _atomic_dir(models_dir) as tmp, tqdm(total=n_images, desc="pycolmap mapping", unit="img",
+                                               disable=not progress) as bar:
+        # the callback fires once per registered image (the first pair counts as two)
+        recs = pc.incremental_mapping(db_path, images, tmp, options=opts,
+                                      initial_image_pair_callback=lambda: bar.update(2),
+                                      next_image_callback=lambda: bar.update(1))
         for k, rec in recs.items():
             d = tmp / str(k)
             d.mkdir(exist_ok=True)
@@ -361,7 +368,7 @@ def _run_mapping(pc, db_path: Path, images: Path, models_dir: Path, cfg: Referen
 
 
 def reconstruct(images: Path, out: Path, names: list[str], Ks: np.ndarray | None, cfg: ReferenceConfig,
-                work: Path | None = None, overwrite: bool = False) -> dict[str, Any]:
+                work: Path | None = None, overwrite: bool = False, progress: bool = False) -> dict[str, Any]:
     """Run (or resume) the pycolmap reconstruction; returns the summary dict (also written to JSON)."""
     pc = _pycolmap()
     # glog INFO lines of every mapping step drown the pipeline's own log unless debugging
@@ -391,7 +398,7 @@ def reconstruct(images: Path, out: Path, names: list[str], Ks: np.ndarray | None
     t0 = time.perf_counter()
     if not models_dir.exists():
         logger.info("pycolmap: incremental mapping")
-        _run_mapping(pc, db_path, images, models_dir, cfg, Ks is not None)
+        _run_mapping(pc, db_path, images, models_dir, cfg, Ks is not None, len(names), progress)
         times["map_s"] = time.perf_counter() - t0
         write_json(timing_path, times)
     else:
@@ -469,7 +476,7 @@ def _summarize(pc, recs: dict[int, Any], db_path: Path, names: list[str], out: P
 
 def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike | np.ndarray | None = None,
          overwrite: bool = False, config: ReferenceConfig | None = None, work: str | os.PathLike | None = None,
-         names: list[str] | None = None) -> Path:
+         names: list[str] | None = None, progress: bool = True) -> Path:
     """Reconstruct ``images`` with pycolmap into ``out`` (resumable); returns ``out/reference.json``.
 
     Args:
@@ -480,6 +487,7 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
         config: options; defaults to ``ReferenceConfig()``.
         work: our front end's WORK folder (only for ``use_our_matches``).
         names: image file names to use (default: every image in the folder).
+        progress: show a progress bar during mapping.
 
     Returns:
         Path of ``reference.json``.
@@ -508,7 +516,8 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
                         len(names))
             return json_path
     fresh = overwrite or (json_path.exists() and json.loads(json_path.read_text()).get("cache_key") != key)
-    summary = reconstruct(images, out, names, Ks, cfg, work=Path(work) if work else None, overwrite=fresh)
+    summary = reconstruct(images, out, names, Ks, cfg, work=Path(work) if work else None, overwrite=fresh,
+                          progress=progress)
     summary["cache_key"] = key
     write_json(json_path, summary)
     logger.info("pycolmap reference: %d/%d images registered in %.1f s (%d model(s))", summary["n_registered"],
@@ -549,7 +558,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     def body(a: argparse.Namespace) -> int:
         cfg = stage_config(ReferenceConfig, load_yaml(a.config), "reference", max_image_size=a.max_image_size,
                            use_our_matches=True if a.our_matches else None)
-        p = main(a.images, a.out, K=a.K, overwrite=a.overwrite, config=cfg, work=a.our_matches)
+        p = main(a.images, a.out, K=a.K, overwrite=a.overwrite, config=cfg, work=a.our_matches, progress=not a.quiet)
         s = json.loads(p.read_text())
         print(f"registered {s['n_registered']}/{s['n_images']} images in {s['time_s']:.1f} s "
               f"({s['n_models']} model(s)); rotations: {a.out / 'rotations.txt'}")

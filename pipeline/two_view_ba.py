@@ -367,7 +367,7 @@ def _cost(r: np.ndarray, valid: np.ndarray, active: np.ndarray, loss: str, c: fl
     s2 = np.where(valid, _point_s2(r), _INVALID_RESIDUAL2)
     rho, w = _robust(s2, loss, c)
     w = np.where(valid & active, w, 0.0)
-    return 0.5 * float(rho[active].sum()), w
+    return 0.5 * float(rho @ active), w
 
 
 def _inv3(V: np.ndarray) -> np.ndarray:
@@ -528,6 +528,7 @@ def _lm(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose,
         J = _jacobians(R, t, B, P, Kj, aux)
         nv = _point_null_vectors(J, Ki)
         frozen = w <= 0.0
+        any_frozen = bool(frozen.any())
         if not fix_pose:
             S, g = _reduced_system(r, w, J, nv)
             dS = np.diag(S).copy()
@@ -544,11 +545,13 @@ def _lm(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose,
                 s_[2] += dc @ Jc[0]
                 s_[3] += dc @ Jc[1]
             dp = _point_step(s_, nv, J, Ki)
-            dp[:, frozen] = 0.0
+            if any_frozen:
+                dp[:, frozen] = 0.0
             if trial >= 4:
                 # The pose damping alone did not help: shorten the point steps too.
                 dp *= 0.5 ** (trial - 3)
-            if not (np.all(np.isfinite(dc)) and np.all(np.isfinite(dp))):
+            # NaN and inf propagate into a sum: one reduction checks every entry.
+            if not np.isfinite(float(dc.sum()) + float(dp.sum())):
                 lam *= 10.0
                 continue
             R_new = _exp3(dc[:3]) @ R
