@@ -19,7 +19,8 @@ pair, 1 vs 2 matching threads, and the renderer's time per 640×480 view.
     python benchmarks/frontend.py [--quick] [--repeats N]
 
 ``--quick``: temple and the rendered scene only, one repeat. Writes
-``benchmarks/results/frontend.json``. OMP_WAIT_POLICY=PASSIVE is set before
+``benchmarks/results/frontend.json``; data sets not measured in this run keep their
+earlier entry (each entry records when it was measured and with how many repeats). OMP_WAIT_POLICY=PASSIVE is set before
 pycolmap is imported (its OpenMP threads otherwise busy-wait on 2 cores).
 """
 
@@ -64,11 +65,25 @@ def datasets(quick: bool, tmp: Path) -> list[dict]:
     out.append(dict(name="templeSparseRing", images=d, K=d / "templeSR_par.txt", ref=d / "templeSR_par.txt"))
     from pipeline.synthetic.render import render_scene
 
+    from pipeline.synthetic.render import SceneConfig, make_planes, render_view
+
     t0 = time.perf_counter()
     scene = render_scene(n_views=12, seed=0, out=tmp / "scene")
     render_s = time.perf_counter() - t0
+    # the view itself (warps + z-buffer), without texture generation and PNG writing
+    cfg = SceneConfig()
+    t0 = time.perf_counter()
+    planes = make_planes(0, cfg.texture_px_per_unit)
+    texture_s = time.perf_counter() - t0
+    per_view = []
+    for i in range(12):
+        t0 = time.perf_counter()
+        render_view(planes, scene.K[i], scene.R[i], scene.t[i], cfg.width, cfg.height, cfg.supersample)
+        per_view.append(time.perf_counter() - t0)
     out.append(dict(name="rendered-12", images=tmp / "scene", K=tmp / "scene" / "cameras.txt",
-                    ref=tmp / "scene" / "cameras.txt", render_s_per_view=render_s / 12))
+                    ref=tmp / "scene" / "cameras.txt", render_s_per_view=render_s / 12,
+                    render_view_only_median_s=float(np.median(per_view)), render_view_only_max_s=float(np.max(per_view)),
+                    texture_generation_s=texture_s))
     return [d for d in out if Path(d["images"]).is_dir()]
 
 
@@ -174,10 +189,14 @@ def nn_search_timing(work: Path) -> dict:
     t0 = time.perf_counter()
     matching._match_prepared(qa, qb, ia, ib, matching.MatchingConfig(method="flann"))
     res["flann_prebuilt_index_s"] = time.perf_counter() - t0
-    for workers in (1, 2):
-        t0 = time.perf_counter()
-        matching.main(work, matching.MatchingConfig(workers=workers), overwrite=True, progress=False)
-        res[f"matching_all_pairs_workers{workers}_s"] = time.perf_counter() - t0
+    times: dict[int, list[float]] = {1: [], 2: []}
+    for _ in range(2):  # alternate, so that load changes hit both settings
+        for workers in (1, 2):
+            t0 = time.perf_counter()
+            matching.main(work, matching.MatchingConfig(workers=workers), overwrite=True, progress=False)
+            times[workers].append(time.perf_counter() - t0)
+    for workers, ts in times.items():
+        res[f"matching_all_pairs_workers{workers}_s"] = min(ts)
     return res
 
 
@@ -190,7 +209,15 @@ def main() -> int:
     logging.basicConfig(level=logging.WARNING)
     repeats = args.repeats or (1 if args.quick else 3)
     tmp = Path(tempfile.mkdtemp(prefix="bench-frontend-"))
-    results: dict = {"max_image_size": MAX_SIZE, "max_keypoints": MAX_KP, "repeats": repeats, "datasets": {},
+    previous: dict = {}
+    if args.out.is_file():  # keep the data sets this run does not measure (e.g. fountain after --quick)
+        try:
+            import json
+
+            previous = json.loads(args.out.read_text()).get("datasets", {})
+        except ValueError:
+            previous = {}
+    results: dict = {"max_image_size": MAX_SIZE, "max_keypoints": MAX_KP, "repeats": repeats, "datasets": previous,
                      "cpu_count": os.cpu_count(), "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
                      "pycolmap": pycolmap.__version__}
     try:
@@ -214,8 +241,11 @@ def main() -> int:
                      "ratio_features": med["ours"]["features_s"] / med["pycolmap"]["features_s"],
                      "ratio_matching_plus_ransac": (med["ours"]["matching_s"] + med["ours"]["two_view_s"]) / med["pycolmap"]["matching_s"],
                      "accuracy": acc}
-            if "render_s_per_view" in ds:
-                entry["render_s_per_view"] = ds["render_s_per_view"]
+            for key in ("render_s_per_view", "render_view_only_median_s", "render_view_only_max_s", "texture_generation_s"):
+                if key in ds:
+                    entry[key] = ds[key]
+            entry["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            entry["repeats"] = repeats
             if ds["name"] == "fountain-P11" or (args.quick and ds["name"] == "rendered-12"):
                 entry["nn_search"] = nn_search_timing(ds["_work"])
             results["datasets"][ds["name"]] = entry
@@ -240,7 +270,9 @@ def main() -> int:
                 if k.endswith("_s"):
                     print(f"  {k:40s} {v:8.3f} s")
         if "render_s_per_view" in e:
-            print(f"\nrenderer: {e['render_s_per_view']:.3f} s per 640x480 view (incl. textures and PNG writing)")
+            print(f"\nrenderer: {e['render_s_per_view']:.3f} s per 640x480 view incl. textures and PNG writing; "
+                  f"view only: median {e.get('render_view_only_median_s', float('nan')):.3f} s, "
+                  f"max {e.get('render_view_only_max_s', float('nan')):.3f} s")
     print(f"\nwrote {args.out}")
     return 0
 

@@ -48,13 +48,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="N ≤ 20 and 3 instances per cell")
     ap.add_argument("--instances", type=int, default=10)
+    ap.add_argument("--from-json", action="store_true",
+                    help="only summarize and plot the rows already in the results JSON (e.g. of an interrupted run)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
     ns = NS[:3] if args.quick else NS
     base = 3 if args.quick else args.instances
     rows = []
     t_start = time.perf_counter()
-    for n in ns:
+    if args.from_json:
+        import json
+
+        rows = json.loads(OUT.read_text())["rows"]
+        ns = sorted({r["N"] for r in rows})
+    for n in ([] if args.from_json else ns):
         for p in PS:
             for k in range(n_instances(n, base)):
                 g = paper2_graph(n, p, seed=1000 * n + int(100 * p) * 7 + k)
@@ -77,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     for n in ns:
         for p in PS:
             cell = [r for r in rows if r["N"] == n and r["p"] == p]
+            if not cell:
+                continue
             cells.append({
                 "N": n, "p": p, "instances": len(cell),
                 "median_err": {v: float(np.median([r[v]["err"] for r in cell])) for v in ORDER},
@@ -93,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                "rank3_rate": {v: float(np.mean([r[v]["rank"] == 3 for r in rows])) for v in ORDER},
                "median_time_s": {v: float(np.median([r[v]["time_s"] for r in rows])) for v in ORDER}}
     write_json(OUT, {"setup": {"Ns": ns, "ps": PS, "eig_range_H": [10, 100], "solver": "scs",
-                               "instances_base": base}, "overall": overall, "cells": cells, "rows": rows,
+                               "instances_base": base, "complete": not args.from_json}, "overall": overall, "cells": cells, "rows": rows,
                      "elapsed_s": time.perf_counter() - t_start})
     print(f"\n{'N':>4s} {'p':>4s} {'inst':>4s} {'err ISO':>8s} {'err cSO3':>8s} {'cSO3<ISO':>8s} "
           + " ".join(f"{'t ' + v:>12s}" for v in ORDER))
@@ -124,8 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     fig, axes = plt.subplots(1, len(PS), figsize=(4 * len(PS), 3.2), sharey=True)
     for ax, p in zip(axes, PS):
         for v in ORDER:
-            med = [np.median([r[v]["time_s"] for r in rows if r["p"] == p and r["N"] == n]) for n in ns]
-            ax.plot(ns, med, "-o", label=f"SDP-{v}")
+            have = [n for n in ns if any(r["p"] == p and r["N"] == n for r in rows)]
+            med = [np.median([r[v]["time_s"] for r in rows if r["p"] == p and r["N"] == n]) for n in have]
+            ax.plot(have, med, "-o", label=f"SDP-{v}")
             xs = [r["N"] for r in rows if r["p"] == p]
             ax.scatter(xs, [r[v]["time_s"] for r in rows if r["p"] == p], s=6, alpha=0.4)
         ax.set_yscale("log")

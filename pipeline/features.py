@@ -45,7 +45,7 @@ from tqdm import tqdm
 from .atomic import save_npz, write_json
 from .config import config_hash
 from .errors import InputFileError
-from .images import list_images, read_gray, resolve_intrinsics
+from .images import IMAGE_EXTENSIONS, list_images, read_gray, resolve_intrinsics
 
 logger = logging.getLogger(__name__)
 
@@ -128,6 +128,7 @@ class FeatureSet:
         K_source: N strings: ``file:<path>``, ``exif`` or ``default``.
         digest: hash of names, K and the feature config (downstream cache key).
         config: the extraction config.
+        signatures: (N, 2) int64 byte size and mtime (ns) of each image file.
     """
 
     names: list[str]
@@ -139,6 +140,7 @@ class FeatureSet:
     K_source: list[str] = field(default_factory=list)
     digest: str = ""
     config: FeatureConfig | None = None
+    signatures: np.ndarray | None = None
 
 
 def _sift(config: FeatureConfig) -> cv2.SIFT:
@@ -243,7 +245,7 @@ def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: 
     if len(names) < 2:
         raise InputFileError(
             f"{images} holds {len(names)} image file(s) ({', '.join(names) or 'none'}) but at least 2 are needed; "
-            f"supported extensions: {', '.join(sorted({e.lstrip('.') for e in ('.jpg', '.png', '.tif', '.bmp', '.ppm', '.pgm', '.webp')}))}"
+            f"supported extensions: {', '.join(e.lstrip('.') for e in IMAGE_EXTENSIONS)}"
         )
     key = config.cache_key()
     sigs = {n: _file_sig(images / n) for n in names}
@@ -294,6 +296,7 @@ def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: 
         "K_source": sources,
         "skipped": skipped,
         "ignored_files": other,
+        "signatures": [list(sigs[n]) for n in usable],
         "n_extracted": len(n_kp),
         "n_cached": len(usable) - len(n_kp),
         "config": dataclasses.asdict(config),
@@ -341,6 +344,7 @@ def load_features(work: Path) -> FeatureSet:
         K_source=list(m.get("K_source", [])),
         digest=m["digest"],
         config=FeatureConfig(**m["config"]),
+        signatures=np.array(m.get("signatures", [[0, 0]] * len(m["names"])), np.int64).reshape(-1, 2),
     )
 
 

@@ -31,7 +31,8 @@ WORK folder layout written by this stage::
                                            keypoint indices (in image a, in image b)
 
 Re-running with the same features and config skips the stage; with new images
-(or new pairs) only the missing pairs are matched, the others are reused.
+(or new pairs) only the missing pairs are matched, the others are reused (unless
+one of the two image files changed: size and mtime are compared).
 
 Command line::
 
@@ -290,7 +291,8 @@ def main(work: Path, config: MatchingConfig | None = None, pairs_path: Path | No
     fkey = fs.config.cache_key() if fs.config is not None else "x"
     out = work / f"matches-{fkey}-{config.key()}.npz"
     wanted = _pair_key(fs.names, pairs)
-    digest = hashlib.sha1(json.dumps([fkey, config.key(), wanted]).encode()).hexdigest()[:12]
+    sigs = fs.signatures.tolist() if fs.signatures is not None else []
+    digest = hashlib.sha1(json.dumps([fkey, config.key(), wanted, sigs]).encode()).hexdigest()[:12]
     man_path = work / MANIFEST
     if not overwrite and man_path.is_file() and out.is_file():
         try:
@@ -302,12 +304,17 @@ def main(work: Path, config: MatchingConfig | None = None, pairs_path: Path | No
             write_json(man_path, {**man, "n_computed": 0, "n_reused": int(len(pairs))})
             return out
     # reuse pairs matched earlier with the same features and config
+    # (an image whose file changed since has new features: its old pairs are redone)
     previous: dict[tuple[str, str], np.ndarray] = {}
+    sig_now = {n: tuple(sg) for n, sg in zip(fs.names, fs.signatures.tolist())} if fs.signatures is not None else {}
     if not overwrite and out.is_file():
         try:
             old = load_matches_file(out)
-            previous = {k: m for k, m in zip(_pair_key(old.names, old.pairs), old.matches)}
-        except InputFileError:
+            with np.load(out) as d:
+                old_sig = d["signatures"].tolist() if "signatures" in d.files else [None] * len(old.names)
+            same = {n for n, sg in zip(old.names, old_sig) if sg is not None and sig_now.get(n) == tuple(sg)}
+            previous = {k: m for k, m in zip(_pair_key(old.names, old.pairs), old.matches) if k[0] in same and k[1] in same}
+        except (InputFileError, KeyError, OSError, ValueError):
             previous = {}
     todo = [p for p, key in enumerate(wanted) if key not in previous]
     results: dict[int, np.ndarray] = {p: previous[key] for p, key in enumerate(wanted) if key in previous}
@@ -331,8 +338,9 @@ def main(work: Path, config: MatchingConfig | None = None, pairs_path: Path | No
     counts = np.array([len(m) for m in matches], np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)])
     flat = np.concatenate(matches).astype(np.int32) if len(matches) else np.zeros((0, 2), np.int32)
+    sig_arr = fs.signatures if fs.signatures is not None else np.zeros((len(fs.names), 2), np.int64)
     save_npz(out, names=np.array(fs.names), pairs=pairs, offsets=offsets, matches=flat.reshape(-1, 2),
-             features_digest=np.array(fs.digest))
+             features_digest=np.array(fs.digest), signatures=sig_arr)
     write_json(man_path, {
         "format": "rotavg-matches",
         "file": out.name,

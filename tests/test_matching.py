@@ -125,6 +125,15 @@ def test_main_resume_and_incremental(scene, tmp_path):
     matching.main(work, progress=False)
     man = json.loads((work / "matches.json").read_text())
     assert man["n_pairs"] == 3 and man["n_computed"] == 2 and man["n_reused"] == 1  # only the new pairs
+    # an image file that changes (same name) gets new features: its 2 pairs are matched again
+    import os
+
+    st = (images / "view_001.png").stat()
+    os.utime(images / "view_001.png", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    features.main(images, work, progress=False)
+    matching.main(work, progress=False)
+    man = json.loads((work / "matches.json").read_text())
+    assert man["n_computed"] == 2 and man["n_reused"] == 1
     matching.main(work, overwrite=True, progress=False)
     assert json.loads((work / "matches.json").read_text())["n_computed"] == 3
     pf = tmp_path / "pairs.txt"

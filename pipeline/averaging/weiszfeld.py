@@ -87,6 +87,7 @@ def weiszfeld(
     init_weights: np.ndarray | None = None,
     eps_rad: float = 1e-12,
     loss: str = "l1",
+    vardi_zhang: bool = True,
 ) -> AveragingResult:
     """ℓ1 averaging one camera at a time (Hartley et al. 2011).
 
@@ -106,6 +107,10 @@ def weiszfeld(
             each camera moved to the geodesic (Karcher) mean of its neighbours'
             estimates, i.e. distributed ℓ2 averaging (Tron & Vidal), used to
             illustrate paper 1, Fig. 3(a).
+        vardi_zhang: at a camera that coincides with some estimates, scale the
+            step by the Vardi–Zhang factor (stay if the coincident estimates
+            outweigh the pull of the others). False: plain Weiszfeld that skips
+            coincident estimates, which always moves off them.
 
     Returns:
         :class:`AveragingResult`; ``iterations`` counts sweeps, ``history`` has one
@@ -152,6 +157,8 @@ def weiszfeld(
                 # beats the η coincident ones.
                 pull = np.linalg.norm(num, axis=1)
                 scale = np.where(eta > 0, np.clip(1.0 - eta / np.maximum(pull, 1e-300), 0.0, 1.0), 1.0)
+                if not vardi_zhang:
+                    scale = np.ones_like(scale)
                 d = T * scale[:, None]
                 Rc = so3.exp(d) @ Rc
                 if np.linalg.norm(d, axis=1).max() < inner_tol_rad:
