@@ -270,45 +270,51 @@ def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, 
     return s, errs
 
 
-def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any], ref: "RefSet", align: str,
-                  max_n: int = 300) -> list[dict[str, float]]:
-    """Median error against ``ref`` after each iteration budget of an IRLS run (paper 1, Fig. 5c).
+def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any], R_final: np.ndarray,
+                  ref: "RefSet", align: str, max_n: int = 300) -> list[dict[str, float]]:
+    """Median error against ``ref`` after each iteration of an IRLS run (paper 1, Fig. 5c).
 
-    The solver keeps no per-iteration rotations, so the run is repeated with
-    budgets 1..L of ℓ1 steps, then L ℓ1 steps + 1..K IRLS steps (L, K: what the
-    full run took); each point is (that run's time, its median error). Cheap for
-    the small graphs where it is used (N ≤ ``max_n``).
+    The solver keeps no per-iteration rotations, so the run is repeated (same
+    options, no final polish) with budgets of 1..L ℓ1 steps, then L ℓ1 + 1..K
+    IRLS steps, where L and K are what the full run took; each point is placed
+    at the full run's cumulative time of that iteration (its ``history``), and
+    the last point is the full run's own result. Cheap for N ≤ ``max_n``.
     """
     if options.get("method") != "irls" or vg.n_cameras > max_n:
         return []
     from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.averaging.irls import irls  # noqa: PLC0415
+    from pipeline.average import average  # noqa: PLC0415
 
-    kw = {k: v for k, v in options.items() if k in ("loss", "alpha_deg", "init", "tol_rad", "eps_rad", "seed",
-                                                   "admm_max_iterations")}
-    L = int(stats.get("l1_iterations", 0) or 0)
-    K = int(stats.get("irls_iterations", stats.get("iterations", 0)) or 0)
-    budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
     R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
         return []
+    kw = {k: v for k, v in options.items() if k != "method"}
+    kw["refine"] = False
+    hist = list(stats.get("history") or [])
+    L = int(stats.get("l1_iterations", 0) or 0)
+    K = int(stats.get("irls_iterations", 0) or 0)
+    budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
+    quiet = [logging.getLogger(n) for n in ("pipeline.average", "pipeline.averaging.irls")]
+    levels = [lg.level for lg in quiet]
+    for lg in quiet:
+        lg.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
     curve = []
-    irls_log = logging.getLogger(irls.__module__)
-    level = irls_log.level
-    irls_log.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
     try:
-        runs = []
-        for l, k in budgets:
+        for n_done, (l, k) in enumerate(budgets):
             try:
-                runs.append((l, k, irls(vg, l1_iterations=l, max_iterations=k, **kw)))
-            except (PipelineError, ValueError, IndexError):
+                r = average(vg, l1_iterations=l, max_iterations=k, **kw)
+            except (PipelineError, ValueError, IndexError, TypeError):
                 continue
+            e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
+            t = hist[n_done]["time_s"] if n_done < len(hist) and "time_s" in hist[n_done] else r.time_s
+            curve.append({"time_s": float(t), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
+                          "irls_iterations": k})
     finally:
-        irls_log.setLevel(level)
-    for l, k, r in runs:
-        e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
-        curve.append({"time_s": float(r.time_s), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
-                      "irls_iterations": k})
+        for lg, lv in zip(quiet, levels):
+            lg.setLevel(lv)
+    e = evaluate.rotation_errors_deg(R_final, R_ref, mask, align=align)
+    curve.append({"time_s": float(stats.get("time_s", curve[-1]["time_s"] if curve else 0.0)),
+                  "median_deg": float(np.nanmedian(e)), "l1_iterations": L, "irls_iterations": K, "final": True})
     return curve
 
 
@@ -526,8 +532,13 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         if refs:
             for spec in specs:
                 if spec.options["method"] == "irls":
-                    c = error_vs_time(vg, {**avg_extra, **spec.options}, results[spec.label]["stats"], refs[0],
-                                      rcfg.align)
+                    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+
+                    names_m, R_m = read_rotations(results[spec.label]["rotations"])
+                    if list(names_m) != list(vg.names):
+                        continue
+                    c = error_vs_time(vg, {**avg_extra, **spec.options}, results[spec.label]["stats"],
+                                      np.asarray(R_m), refs[0], rcfg.align)
                     if c:
                         histories[spec.label] = c
                         metrics["methods"][spec.label]["error_vs_time"] = c

@@ -14,7 +14,7 @@ Nearest-neighbour search (``method``):
 - ``"flann"``: one FLANN kd-forest per image, built once and queried by every
   pair that image is in (approximate; ``flann_checks`` leaves per query);
 - ``"bf"``: exact brute force as a BLAS product ``D_a D_bᵀ`` (RootSIFT
-  descriptors have unit norm, so ``‖a − b‖² = 2 − 2 aᵀb``), in row blocks;
+  descriptors have unit norm, so ``‖a − b‖² = 2 − 2 aᵀb``), in row blocks of at most 32 MB;
 - ``"auto"`` (default): ``"flann"`` when both images have more than
   ``bf_max_keypoints`` keypoints, else ``"bf"``. Measured on this machine
   (``python benchmarks/frontend.py``, see ``notes/issue-5.md``).
@@ -130,14 +130,19 @@ def root_sift(desc: np.ndarray) -> np.ndarray:
     return np.sqrt(d)
 
 
-def _nn2_bf(qa: np.ndarray, db: np.ndarray, block: int = 1024) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _nn2_bf(qa: np.ndarray, db: np.ndarray, block: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Exact nearest and second-nearest neighbours of rows of ``qa`` in ``db`` (unit vectors).
+
+    The similarity matrix is formed in row blocks of at most 2²³ entries (32 MB):
+    one BLAS call per block, as few blocks as that memory bound allows.
 
     Returns:
         idx1 (n,), d1 (n,), d2 (n,) L2 distances of rows of ``qa``, and (n,) bool:
         row a is also the nearest neighbour of its match ``idx1[a]`` (mutual check).
     """
     n, m = len(qa), len(db)
+    if block is None:
+        block = max(256, (1 << 23) // max(m, 1))
     idx1 = np.empty(n, np.int64)
     s1 = np.empty(n, np.float32)
     s2 = np.full(n, -1.0, np.float32)

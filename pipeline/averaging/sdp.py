@@ -17,22 +17,28 @@ For the anisotropic variants it is divided by ``s`` = the mean over edges of the
 largest eigenvalue of ``H_ij`` before solving (paper 2, §5); every reported cost is
 multiplied back, i.e. in the units of the unscaled cost above.
 
-The solver receives the Lagrange dual of that SDP (paper 2, eq. 24 with the
-conv(SO(3)) conjugate written as 4×4 LMIs) in the conic standard form shared by SCS
-and Clarabel, ``min cᵀx  s.t.  A x + s = b,  s ∈ K``:
+Two equivalent conic statements are built, in the standard form shared by SCS and
+Clarabel, ``min cᵀx  s.t.  A x + s = b,  s ∈ K`` (:func:`build_conic`):
+
+``form="primal"`` (default for SCS, which converges in far fewer iterations on it; it
+is also what JuMP hands SCS for paper 2): ``x = svec X``, rows ``X_ii = I`` (zero
+cone), ``s = x`` (the 3N×3N PSD cone) and ``s_e = svec(𝒜(X_ji) + I)`` (4×4 PSD cones).
+
+``form="dual"`` (default for Clarabel): the Lagrange dual (paper 2, eq. 24 with the
+conv(SO(3)) conjugate written as 4×4 LMIs),
 
     variables  x = [υ (6 per camera: the symmetric Υ_ii),  ŵ (10 per edge: svec W_e)]
     minimize   Σ_i tr Υ_ii + Σ_e tr W_e
     subject to S = blkdiag(Υ) − Ñ − Σ_e E_e(𝒜*(W_e)) ⪰ 0     (one 3N×3N PSD cone)
                W_e ⪰ 0                                        (4×4 PSD cones, cSO(3) only)
 
-where ``Ñ`` is the symmetric cost matrix with blocks ``Ñ_ji = ½ C_e`` and
-``E_e`` places ``½ 𝒜*(W_e)`` at block ``(j, i)`` and its transpose at ``(i, j)``.
-The solver's dual variable of the big cone is ``svec(X)`` and that of each small
-cone ``svec(𝒜(X_ji) + I)``. Compared with stating the primal directly this has
-6N + 10M variables instead of ≈4.5N² and no equality rows, which keeps the SCS
-linear system tiny; both are the same SDP. The readable primal statement is
-:mod:`pipeline.averaging.sdp_cvxpy`, and the tests check both reach the same optimum.
+where ``Ñ`` is the symmetric cost matrix with blocks ``Ñ_ji = ½ C_e`` and ``E_e``
+places ``½ 𝒜*(W_e)`` at block ``(j, i)`` and its transpose at ``(i, j)``. The solver's
+dual variable of the big cone is then ``svec(X)``. It has 6N + 10M variables and no
+equality rows, and its PSD slack has the graph's sparsity, which Clarabel's chordal
+decomposition can exploit. Either way a dual-feasible point is recovered and turned
+into a rigorous lower bound (:func:`_extract`). The readable primal statement is
+:mod:`pipeline.averaging.sdp_cvxpy`; the tests check all reach the same optimum.
 
 Assembly is vectorized index arithmetic over edges (no Python loop over edges).
 Each solver's svec convention is handled by :func:`svec_index`:

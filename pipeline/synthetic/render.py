@@ -30,6 +30,7 @@ Command line::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import sys
 import time
@@ -452,11 +453,9 @@ def render_scene(n_views: int = 12, seed: int = 0, out: str | Path | None = None
     cfg = config or SceneConfig()
     if n_views < 2:
         raise PipelineError(f"n_views={n_views} but a scene needs at least 2 views")
-    kw = dict(cfg.__dict__)
-    kw["n_views"] = int(n_views)
+    cfg = dataclasses.replace(cfg, n_views=int(n_views))
     if noise_sigma is not None:
-        kw["noise_sigma"] = float(noise_sigma)
-    cfg = SceneConfig(**kw)
+        cfg = dataclasses.replace(cfg, noise_sigma=float(noise_sigma))
     rng = np.random.default_rng(seed)
     planes = make_planes(int(rng.integers(2**31)), cfg.texture_px_per_unit)
     K, R, t = ring_cameras(cfg, np.random.default_rng(int(rng.integers(2**31))))
