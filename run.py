@@ -283,7 +283,7 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     if options.get("method") != "irls" or vg.n_cameras > max_n:
         return []
     from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.average import average  # noqa: PLC0415
+    from pipeline.averaging.irls import irls  # noqa: PLC0415
 
     R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
@@ -294,7 +294,7 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     L = int(stats.get("l1_iterations", 0) or 0)
     K = int(stats.get("irls_iterations", 0) or 0)
     budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
-    quiet = [logging.getLogger(n) for n in ("pipeline.average", "pipeline.averaging.irls")]
+    quiet = [logging.getLogger(irls.__module__)]
     levels = [lg.level for lg in quiet]
     for lg in quiet:
         lg.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
@@ -302,7 +302,7 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     try:
         for n_done, (l, k) in enumerate(budgets):
             try:
-                r = average(vg, l1_iterations=l, max_iterations=k, **kw)
+                r = irls(vg, l1_iterations=l, max_iterations=k, **kw)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue
             e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
@@ -504,14 +504,24 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     pyc = None
     if rcfg.reference if reference is None else reference:
         rc = _cfg(st_reference, ("ReferenceConfig",), yaml_data, "reference")
-        ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
-            images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
-            progress=progress),
-            lambda: [out / "reference" / "reference.json"])
-        rr = st_reference.load_reference_result(ref_json)
-        pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)
-        for nm, why in rr.summary.get("unregistered", {}).items():
-            notes.append(f"pycolmap did not register {nm}: {why}")
+        try:
+            ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
+                images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
+                progress=progress),
+                lambda: [out / "reference" / "reference.json"])
+            rr = st_reference.load_reference_result(ref_json)
+        except (PipelineError, RuntimeError, ValueError, OSError) as exc:
+            # the reference only scores our result: its failure must not throw our rotations away
+            msg = " ".join(str(exc).split())
+            logger.warning("the pycolmap reference failed (%s); continuing without it", msg)
+            notes.append(f"pycolmap reference failed: {msg}")
+            rr = None
+        if rr is not None:
+            pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)
+            if not rr.names:
+                notes.append("pycolmap registered no image")
+            for nm, why in rr.summary.get("unregistered", {}).items():
+                notes.append(f"pycolmap did not register {nm}: {why}")
     else:
         runner.times["reference"] = 0.0
         runner.k += 1
@@ -520,7 +530,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     if truth is not None:
         refs.append(RefSet("truth", list(truth.names), np.asarray(truth.R),
                            None if truth.centers is None else np.asarray(truth.centers)))
-    if pyc is not None:
+    if pyc is not None and len(pyc.names) >= 2:
         refs.append(pyc)
     metrics, cam_err, edge_err = runner("evaluation", "evaluation", lambda: evaluate_all(
         vg, ransac_vg, results, refs, pyc, rcfg.align))
@@ -558,7 +568,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         data = st_report.ReportData(
             metrics=table, camera_errors=cam_err, edge_errors=edge_err, histories=histories,
             vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if rcfg.plots else {}, positions=pos,
-            notes=notes, stages=dict(runner.times), title=f"Rotations of {images}")
+            notes=notes, stages={k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
+            title=f"Rotations of {images}")
         if not rcfg.plots:
             data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
         return st_report.write_report(out, data)

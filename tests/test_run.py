@@ -165,6 +165,26 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
         np.testing.assert_allclose(R1, R2, atol=1e-6)
 
 
+@pytest.mark.slow
+def test_reference_failure_keeps_our_result(scene, full_run, tmp_path, monkeypatch):
+    import shutil
+
+    from pipeline import reference
+
+    out = tmp_path / "out"
+    shutil.copytree(full_run, out)
+    shutil.rmtree(out / "reference")
+
+    def broken(*a, **k):
+        raise RuntimeError("pycolmap crashed")
+
+    monkeypatch.setattr(reference, "main", broken)
+    m = json.loads(run.main(scene, out, gt=scene / "cameras.txt", quiet=True).read_text())
+    assert m["methods"]["irls-l0.5"]["median_deg"] < 0.3
+    assert set(m["methods"]["irls-l0.5"]["references"]) == {"truth"}
+    assert any("pycolmap reference failed: pycolmap crashed" in n for n in m["notes"])
+
+
 def test_parse_method():
     assert run.parse_method("irls").label == "irls-l0.5"
     assert run.parse_method("irls-geman-mcclure").options == {"method": "irls", "loss": "geman-mcclure"}
