@@ -55,7 +55,16 @@ def stage_config(cls: type[T], yaml_data: dict[str, Any], stage: str, **override
     return config_from_dict(cls, d, where=f"[{stage}]")
 
 
-def config_hash(cfg: Any, n: int = 8) -> str:
-    """A short stable hash of a dataclass config, for cache file names."""
-    blob = json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str)
+def config_hash(cfg: Any, n: int = 8, exclude: tuple[str, ...] = ()) -> str:
+    """A short stable hash of a dataclass config, for cache file names.
+
+    Args:
+        cfg: a dataclass instance.
+        n: hex digits kept.
+        exclude: fields that do not change the result (e.g. ``workers``).
+    """
+    d = dataclasses.asdict(cfg)
+    for k in exclude:
+        d.pop(k, None)
+    blob = json.dumps(d, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:n]

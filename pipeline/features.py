@@ -96,9 +96,7 @@ class FeatureConfig:
 
     def cache_key(self) -> str:
         """Hash of the options that change the features (not ``workers``)."""
-        d = dataclasses.asdict(self)
-        d.pop("workers")
-        return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
+        return config_hash(self, exclude=("workers",))
 
 
 @dataclass

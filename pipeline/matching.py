@@ -101,9 +101,7 @@ class MatchingConfig:
 
     def key(self) -> str:
         """Hash of the options that change the result (not ``workers``)."""
-        d = dataclasses.asdict(self)
-        d.pop("workers")
-        return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
+        return config_hash(self, exclude=("workers",))
 
 
 @dataclass

@@ -129,9 +129,7 @@ class TwoViewConfig:
             raise ValueError(f"workers={self.workers} but expected >= 1")
 
     def key(self) -> str:
-        d = dataclasses.asdict(self)
-        d.pop("workers")
-        return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:8]
+        return config_hash(self, exclude=("workers",))
 
 
 @dataclass
