@@ -344,3 +344,41 @@ def test_lmis_on_all_pairs_give_a_relaxation_at_least_as_strong():
     assert all_pairs.stats["lower_bound"] >= edges_only.stats["lower_bound"] - 1e-6 * abs(edges_only.stats["lower_bound"])
     with pytest.raises(ValueError, match="lmi_pairs='some'"):
         solve_sdp(vg, "cso3", lmi_pairs="some")
+
+
+# ------------------------------------------- heterogeneous H (issue 4, temple)
+@pytest.fixture(scope="module")
+def one_huge_edge():
+    """Edge 0's H is 1e4× the others' (like a zero-baseline pair): the constant −Σ tr M_e of
+    the cost is then ~1e4× the residual part that fixes the rotations."""
+    vg, R = noisy_graph(10, 0.4, seed=3, eig=(10.0, 100.0))
+    H = vg.H.copy()
+    H[0] *= 1e4
+    return vg.with_H(H), R
+
+
+def test_one_huge_H_defeats_a_default_tolerance_solve(one_huge_edge, caplog):
+    # Negative control for the fallback below: the same SDP at the default tolerance stops on
+    # the interior of the optimal face (high rank) and is not certified.
+    vg, _ = one_huge_edge
+    with caplog.at_level(logging.WARNING):
+        res = solve_sdp(vg, "cso3", "clarabel", fallback=False)
+    assert res.stats["rank"] > 3 and not res.stats["certified"] and not res.stats["fallback"]
+    assert "NOT certified" in caplog.text
+
+
+def test_one_huge_H_is_certified_by_the_tight_fallback(one_huge_edge):
+    vg, R_true = one_huge_edge
+    res = solve_sdp(vg, "cso3", "clarabel")
+    st = res.stats
+    assert st["fallback"] and st["first_attempt"]["rank"] > 3
+    assert st["rank"] == 3 and st["certified"]
+    # the gap is small against the residual part of the cost, not only against |d*| ≈ Σ tr M
+    assert st["gap_residual"] < 1e-2
+    assert st["cost_offset"] == pytest.approx(np.sum(np.trace(weight_matrices(vg.H), axis1=1, axis2=2)))
+    # a global optimum costs no more than the ground truth, and its bound is below both
+    M = weight_matrices(vg.H)
+    truth_cost = edge_cost(vg.edges, M @ vg.R_rel, R_true)
+    assert st["lower_bound"] <= st["primal_cost"] <= truth_cost
+    # rounding found the minimizer: a cSO(3) optimum with errors like the noise (a few degrees)
+    assert np.median(aligned_errors_deg(res.R, R_true)) < 6.0
