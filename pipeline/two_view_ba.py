@@ -696,37 +696,24 @@ def _lm(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose,
 def _triangulate(R: np.ndarray, t: np.ndarray, xi: np.ndarray, xj: np.ndarray, Ki: np.ndarray, Kj: np.ndarray) -> np.ndarray:
     """Initial (a, b, ρ), (3, n): ray of camera i and the linear least-squares inverse depth.
 
-    ``xi``, ``xj`` are (2, n).
+    ``xi``, ``xj`` are (2, n). Kept operation for operation as first written: the
+    scipy peer in ``benchmarks/two_view_ba.py`` starts from it, and its Cauchy
+    run is chaotic in the start point (1e-16 changes turn 44 evaluations into ~900).
     """
     Kii = np.linalg.inv(Ki)
     Kji = np.linalg.inv(Kj)
-    out = np.empty((3, xi.shape[1]))
-    mi = Kii[:, :2] @ xi
-    mi += Kii[:, 2:3]
+    mi = Kii[:, :2] @ xi + Kii[:, 2:3]
     mi /= mi[2]
-    mj = Kji[:, :2] @ xj
-    mj += Kji[:, 2:3]
+    mj = Kji[:, :2] @ xj + Kji[:, 2:3]
     # m_j ∥ R m_i + ρ t  ⇒  m_j × (R m_i) + ρ (m_j × t) = 0, least squares in ρ.
     q = R @ mi
-    c = np.empty_like(q)
-    np.subtract(mj[1] * q[2], mj[2] * q[1], out=c[0])
-    np.subtract(mj[2] * q[0], mj[0] * q[2], out=c[1])
-    np.subtract(mj[0] * q[1], mj[1] * q[0], out=c[2])
-    tx, ty, tz = t.tolist()
-    d = np.array([[0.0, tz, -ty], [-tz, 0.0, tx], [ty, -tx, 0.0]]) @ mj  # m_j × t = [t]×ᵀ m_j
-    c *= d
-    d *= d
+    c = np.stack([mj[1] * q[2] - mj[2] * q[1], mj[2] * q[0] - mj[0] * q[2], mj[0] * q[1] - mj[1] * q[0]])
+    d = np.stack([mj[1] * t[2] - mj[2] * t[1], mj[2] * t[0] - mj[0] * t[2], mj[0] * t[1] - mj[1] * t[0]])
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.divide(c.sum(axis=0), d.sum(axis=0))
+        rho = -(c * d).sum(axis=0) / (d * d).sum(axis=0)
     # Points triangulated behind camera i (or on the epipole) start at infinity.
-    # (ρ = −Σ c·d / Σ d², hence the sign in the clamp.)
-    np.negative(rho, out=rho)
-    bad = ~(rho > 0.0)  # behind, NaN (on the epipole) ...
-    bad |= np.isinf(rho)  # ... or an underflowed Σ d²
-    rho[bad] = 0.0
-    out[:2] = mi[:2]
-    out[2] = rho
-    return out
+    rho = np.where(np.isfinite(rho), np.maximum(rho, 0.0), 0.0)
+    return np.vstack([mi[:2], rho])
 
 
 def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None) -> np.ndarray:

@@ -91,9 +91,10 @@ VARIANTS: dict[str, tuple[bool, bool]] = {
 }
 SOLVERS = ("scs", "clarabel")
 SQRT2 = np.sqrt(2.0)
-#: Largest N for which an uncertified solve is retried with Clarabel at FALLBACK_EPS (its
-#: memory grows like N⁴ without chordal structure; N = 30 takes seconds).
-FALLBACK_MAX_CAMERAS = 50
+#: Largest N for which an uncertified solve is retried with Clarabel at FALLBACK_EPS. Its cost
+#: grows fast: with one huge H, N = 30 (M = 160) took 17 s CPU and 0.43 GB, N = 50 (M ≈ 370)
+#: over 47 s CPU and 3.5 GB without finishing (notes/issue-4.md, "Temple: heterogeneous H").
+FALLBACK_MAX_CAMERAS = 30
 FALLBACK_EPS = 1e-12
 FALLBACK_MAX_ITERS = 400
 #: A solve whose gap exceeds this share of the residual cost (plus the requested relative
@@ -444,7 +445,16 @@ def solve_sdp(
         **kw: ``cert_tol`` (relative gap below which a rank-3 solution is certified,
             default 1e-4); ``form`` (``"primal"`` or ``"dual"`` conic statement, see
             :func:`build_conic`; default primal for SCS, dual for Clarabel);
-            ``lmi_pairs`` (``"edges"``, default, or ``"all"`` camera pairs); any other
+            ``lmi_pairs`` (``"edges"``, default, or ``"all"`` camera pairs);
+            ``fallback`` (default True) and ``fallback_max_cameras`` (default
+            :data:`FALLBACK_MAX_CAMERAS`): when ``N`` is at most that and the solve is
+            not certified, or its gap exceeds :data:`FALLBACK_RESIDUAL_GAP` of the
+            residual cost ``f + Σ tr M_e`` (beyond ``eps_rel·|d*|``), the same SDP is
+            solved again by Clarabel (dual form) at tolerance :data:`FALLBACK_EPS` and the
+            better certificate is kept. This matters when one edge's ``H`` is orders of
+            magnitude above the others (the cost's constant ``−Σ tr M_e`` then hides the
+            residual part below a first-order solver's accuracy; see notes/issue-4.md,
+            "Temple: heterogeneous H"). The problem itself is never changed. Any other
             key is passed to the solver as a setting
             (e.g. ``chordal_decomposition_enable=True`` for Clarabel,
             ``time_limit_secs`` for SCS).
@@ -454,7 +464,12 @@ def solve_sdp(
         ``build_s``, ``solve_s``, ``rank``, ``eigenvalues`` (top 6), ``lower_bound``,
         ``sdp_value``, ``primal_cost``, ``gap`` (relative: ``(primal_cost −
         lower_bound)/|lower_bound|``), ``gap_abs``, ``certified``, ``status``,
-        ``solver_iterations``, ``cost_scale``, ``variant``, ``solver``. Costs are in
+        ``solver_iterations``, ``cost_scale``, ``variant``, ``solver``, ``gap_residual``
+        (``gap_abs / (primal_cost + cost_offset)``, the gap as a share of the part of
+        the cost the rotations change; ``cost_offset = Σ tr M_e``, or ``3M`` when
+        isotropic), ``fallback`` (the reported solve is the Clarabel re-solve) and
+        ``first_attempt`` (summary of the replaced solve, or None). ``solver``,
+        ``form``, ``status``, ``eps_*`` describe the reported solve. Costs are in
         the unscaled units of ``−Σ_edges ⟨M_ij R̃_ij, R_j R_iᵀ⟩``.
 
     Raises:
@@ -496,17 +511,23 @@ def solve_sdp(
         # magnitude above the others (e.g. a zero-baseline pair), the residual part that fixes
         # the rotations sits below a first-order solver's 1e-6 relative accuracy, and an
         # interior-point method at its default tolerance stops on the interior of the optimal
-        # face (high rank). The same SDP solved by Clarabel to 1e-10 is cheap at small N.
+        # face (high rank). The same SDP solved by Clarabel to FALLBACK_EPS is cheap at small N.
         logger.info(
-            "sdp-%s: %s (%s form) not certified (rank %d, gap %.3g, status %s); re-solving the same SDP "
-            "with Clarabel at tolerance %.0e", variant, solver, form, att["rank"], att["gap"],
+            "sdp-%s: %s (%s form) gave rank %d, relative gap %.3g, gap %.3g of the residual cost "
+            "(certified: %s, status %s); re-solving the same SDP with Clarabel at tolerance %.0e",
+            variant, solver, form, att["rank"], att["gap"], att["gap_residual"], att["certified"],
             att["status"], FALLBACK_EPS,
         )
-        att2 = _attempt(solver="clarabel", form="dual", eps_abs=FALLBACK_EPS, eps_rel=FALLBACK_EPS,
-                        max_iters=FALLBACK_MAX_ITERS, verbose=verbose, kw={}, **common)
-        better = att2["gap_abs"] < att["gap_abs"] if att2["certified"] == att["certified"] else att2["certified"]
-        if better:
-            att, used_fallback = att2, True
+        try:
+            att2 = _attempt(solver="clarabel", form="dual", eps_abs=FALLBACK_EPS, eps_rel=FALLBACK_EPS,
+                            max_iters=FALLBACK_MAX_ITERS, verbose=verbose, kw={}, **common)
+        except PipelineError as err:  # keep the first solve; the warning below still reports it
+            logger.warning("sdp-%s: the Clarabel re-solve failed (%s); keeping the %s result", variant, err, solver)
+            att2 = None
+        if att2 is not None:
+            same = att2["certified"] == att["certified"]
+            if (att2["gap_abs"] < att["gap_abs"]) if same else att2["certified"]:
+                att, used_fallback = att2, True
     t3 = time.perf_counter()
 
     method = f"sdp-{variant}"
