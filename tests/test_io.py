@@ -295,7 +295,8 @@ def test_read_reference_dispatch_and_errors(tmp_path) -> None:
 
 
 def test_colmap_model_reference(tmp_path) -> None:
-    pycolmap = pytest.importorskip("pycolmap")
+    import pycolmap
+
     R = so3.random_rotations(3, np.random.default_rng(8))
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.SIMPLE_PINHOLE, 500.0, 640, 480))

@@ -420,18 +420,9 @@ def _sample_points(planes: list[Plane], scene_K, scene_R, scene_t, depths, rng, 
 
 def write_cameras_txt(path: Path, names: list[str], K: np.ndarray, R: np.ndarray, t: np.ndarray) -> Path:
     """Write ``name fx fy cx cy r11 .. r33 t1 t2 t3`` per line (cam_from_world), atomically."""
-    try:  # helper A's writer, when present, keeps one implementation of the format
-        from ..io.references import write_cameras_file  # type: ignore
+    from ..io.references import write_cameras_file
 
-        return Path(write_cameras_file(path, names, K, R, t))
-    except ImportError:
-        pass
-    with atomic_open(path) as f:
-        f.write("# name fx fy cx cy r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3 (cam_from_world)\n")
-        for n, k, r, tt in zip(names, K, R, t):
-            vals = [k[0, 0], k[1, 1], k[0, 2], k[1, 2], *r.ravel(), *tt]
-            f.write(n + " " + " ".join(f"{v:.12g}" for v in vals) + "\n")
-    return Path(path)
+    return Path(write_cameras_file(path, names, K, R, t))
 
 
 def render_scene(n_views: int = 12, seed: int = 0, out: str | Path | None = None, *,
