@@ -339,8 +339,9 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
         names, R = read_rotations(res["rotations"])
         entry: dict[str, Any] = {k: v for k, v in res["stats"].items() if k not in ("history",)}
         if "certified" in entry:
-            entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "lower_bound", "primal_cost",
-                                                               "status") if k in entry}
+            entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "gap_residual", "lower_bound",
+                                                               "primal_cost", "cost_offset", "status", "solver",
+                                                               "fallback") if k in entry}
         entry["references"] = {}
         for r in refs:
             s, e = _summ(evaluate, list(names), np.asarray(R), r, align, vg)
