@@ -30,7 +30,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
-import importlib.util  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -47,12 +46,6 @@ sys.path.insert(0, str(REPO))
 from pipeline.atomic import write_json  # noqa: E402
 
 
-def load_run():
-    spec = importlib.util.spec_from_file_location("run_module_bench", REPO / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def case_row(name: str, m: dict, wall_s: float) -> dict:
@@ -165,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     only = set(filter(None, a.only.split(","))) or {"default", "fountain", "temple", "rendered"}
     if a.quick:
         only &= {"default", "rendered"}
-    run = load_run()
+    from pipeline import run  # noqa: PLC0415
+
     work_root = a.keep or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
     prev = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     rows: dict[str, dict] = {r["case"]: r for r in prev.get("cases", [])} if a.only else {}

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import os
@@ -22,15 +21,9 @@ REPO = Path(__file__).resolve().parents[1]
 SMALL = SceneConfig(width=320, height=240, focal=280.0, supersample=1)
 
 
-def load_run():
-    spec = importlib.util.spec_from_file_location("run_module_user", REPO / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
 
 
-run = load_run()
+from pipeline import run  # noqa: E402
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
