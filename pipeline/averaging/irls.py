@@ -163,53 +163,14 @@ def irls(
         for h in h1:
             h["time_s"] += t_init
         history.extend(h1)
-    converged = False
-    it = 0
-    for it in range(1, max_iterations + 1):
-        r = edge_residuals(vg.edges, vg.R_rel, R)
-        theta = np.linalg.norm(r, axis=1)
-        phi = lossf.phi(theta)
-        solver.factor(phi)
-        # Paper 1, eq. 21 in our sign convention: (AᵀΦA) ΔΩ = AᵀΦ r.
-        dw = solver.solve(solver.AT @ (phi[:, None] * r))
-        R = apply_update(R, dw)
-        step = float(np.linalg.norm(dw, axis=1).mean())
-        history.append(
-            {
-                "stage": "irls",
-                "cost": float(lossf.rho(theta).sum()),
-                "mean_step_rad": step,
-                "max_step_rad": float(np.linalg.norm(dw, axis=1).max()),
-                "time_s": time.perf_counter() - t0,
-            }
-        )
-        if not np.all(np.isfinite(dw)):
-            raise ViewGraphError(
-                f"IRLS step {it} is not finite (loss {lossf.name}); the weighted Laplacian is singular. "
-                "Check for NaN rotations or try another loss"
-            )
-        if step < tol_rad:
-            converged = True
-            break
+    R, it, converged = _reweighted_steps(vg, R, solver, lossf, max_iterations, tol_rad, "irls", t0, history)
     refine_tau = None
     if refine:
         theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
         sigma = float(np.median(theta)) / 1.538
         refine_tau = max(3.76 * sigma, float(np.deg2rad(refine_min_deg)))
         tal = get_loss("talwar", float(np.rad2deg(refine_tau)))
-        for k in range(1, refine_iterations + 1):
-            r = edge_residuals(vg.edges, vg.R_rel, R)
-            th = np.linalg.norm(r, axis=1)
-            w = tal.phi(th)
-            solver.factor(w)
-            dw = solver.solve(solver.AT @ (w[:, None] * r))
-            R = apply_update(R, dw)
-            step = float(np.linalg.norm(dw, axis=1).mean())
-            history.append({"stage": "refine", "cost": float(tal.rho(th).sum()), "mean_step_rad": step,
-                            "max_step_rad": float(np.linalg.norm(dw, axis=1).max()),
-                            "time_s": time.perf_counter() - t0})
-            if step < tol_rad:
-                break
+        R, _, _ = _reweighted_steps(vg, R, solver, tal, refine_iterations, tol_rad, "refine", t0, history)
     r = edge_residuals(vg.edges, vg.R_rel, R)
     theta = np.linalg.norm(r, axis=1)
     phi = lossf.phi(theta)
@@ -255,3 +216,51 @@ def irls(
                                         refine=refine)),
         },
     )
+
+
+def _reweighted_steps(
+    vg: ViewGraph,
+    R: np.ndarray,
+    solver: LaplacianSolver,
+    lossf,
+    max_iterations: int,
+    tol_rad: float,
+    stage: str,
+    t0: float,
+    history: list[dict[str, float]],
+) -> tuple[np.ndarray, int, bool]:
+    """Paper 1, Algorithm 1: reweighted Laplacian steps until the mean update is below ``tol_rad``.
+
+    Appends one record per iteration to ``history``.
+
+    Returns:
+        the rotations (N, 3, 3), the iterations taken, and whether the tolerance was met.
+    """
+    it = 0
+    for it in range(1, max_iterations + 1):
+        r = edge_residuals(vg.edges, vg.R_rel, R)
+        theta = np.linalg.norm(r, axis=1)
+        phi = lossf.phi(theta)
+        solver.factor(phi)
+        # Paper 1, eq. 21 in our sign convention: (AᵀΦA) ΔΩ = AᵀΦ r.
+        dw = solver.solve(solver.AT @ (phi[:, None] * r))
+        if not np.all(np.isfinite(dw)):
+            raise ViewGraphError(
+                f"IRLS step {it} is not finite (loss {lossf.name}); the weighted Laplacian is singular. "
+                "Check for NaN rotations or try another loss"
+            )
+        R = apply_update(R, dw)
+        norms = np.linalg.norm(dw, axis=1)
+        step = float(norms.mean())
+        history.append(
+            {
+                "stage": stage,
+                "cost": float(lossf.rho(theta).sum()),
+                "mean_step_rad": step,
+                "max_step_rad": float(norms.max()),
+                "time_s": time.perf_counter() - t0,
+            }
+        )
+        if step < tol_rad:
+            return R, it, True
+    return R, it, False
