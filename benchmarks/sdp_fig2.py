@@ -42,10 +42,11 @@ from pipeline.viewgraph import ViewGraph  # noqa: E402
 OUT = Path(__file__).resolve().parent / "results" / "sdp_fig2.json"
 
 
-def instance(k: int, scheme: str, seed0: int) -> tuple[ViewGraph, int]:
+def instance(k: int, scheme: str, seed0: int, n_range: tuple[int, int] = (10, 20), p: float = 0.5
+             ) -> tuple[ViewGraph, int]:
     rng = np.random.default_rng([seed0, k])
-    n = int(rng.integers(10, 21))
-    g = paper2_graph(n, 0.5, (1.0, 10.0), seed=int(rng.integers(2**31)))
+    n = int(rng.integers(n_range[0], n_range[1] + 1))
+    g = paper2_graph(n, p, (1.0, 10.0), seed=int(rng.integers(2**31)))
     if scheme == "h":
         return g.vg, n
     # literal reading: covariance eigenvalues uniform in [0.1, 1]
@@ -56,18 +57,20 @@ def instance(k: int, scheme: str, seed0: int) -> tuple[ViewGraph, int]:
     return ViewGraph(g.vg.names, g.vg.edges, R_rel, H=H), n
 
 
-def run(n_instances: int, schemes: list[str], seed0: int) -> dict:
-    out: dict = {"setup": {"n_instances": n_instances, "N_range": [10, 20], "p": 0.5, "solver": "scs",
+def run(n_instances: int, schemes: list[str], seed0: int, n_range: tuple[int, int] = (10, 20), p: float = 0.5,
+        out_path: Path = OUT, variants: tuple[str, ...] = ("o3-aniso", "cso3")) -> dict:
+    out: dict = {"setup": {"n_instances": n_instances, "N_range": list(n_range), "p": p, "solver": "scs",
                            "eps_abs": 1e-5, "eps_rel": 1e-6, "seed": seed0}, "schemes": {}}
     t_start = time.perf_counter()
     for scheme in schemes:
         rows = []
         for k in range(n_instances):
-            vg, n = instance(k, scheme, seed0)
+            vg, n = instance(k, scheme, seed0, n_range, p)
             row = {"k": k, "N": n, "M": vg.n_edges}
-            for variant in ("o3-aniso", "cso3"):
+            for variant in variants:
                 st = solve_sdp(vg, variant, "scs").stats
-                row[variant] = {key: st[key] for key in ("rank", "gap", "certified", "solver_iterations", "status")}
+                row[variant] = {key: st.get(key) for key in ("rank", "gap", "certified", "solver_iterations", "status",
+                                                              "fallback")}
                 row[variant]["time_s"] = st["build_s"] + st["solve_s"]
             if row["cso3"]["rank"] != 3:
                 st = solve_sdp(vg, "cso3", "clarabel", eps_abs=1e-9, eps_rel=1e-9).stats
@@ -76,19 +79,19 @@ def run(n_instances: int, schemes: list[str], seed0: int) -> dict:
                 row["cause"] = "solver accuracy" if st["rank"] == 3 else "instance (not tight)"
             rows.append(row)
             if (k + 1) % 50 == 0 or k + 1 == n_instances:
-                out["schemes"][scheme] = summarize(rows)
+                out["schemes"][scheme] = summarize(rows, variants)
                 out["elapsed_s"] = time.perf_counter() - t_start
-                write_json(OUT, out)
+                write_json(out_path, out)
                 s = out["schemes"][scheme]
-                print(f"[{scheme}] {k + 1}/{n_instances}: rank-3 o3-aniso {s['rank3_rate']['o3-aniso']:.3f} "
-                      f"cso3 {s['rank3_rate']['cso3']:.3f}  ({out['elapsed_s']:.0f} s)", flush=True)
+                rates = " ".join(f"{v} {s['rank3_rate'][v]:.3f}" for v in variants)
+                print(f"[{scheme}] {k + 1}/{n_instances}: rank-3 {rates}  ({out['elapsed_s']:.0f} s)", flush=True)
     return out
 
 
-def summarize(rows: list[dict]) -> dict:
+def summarize(rows: list[dict], variants: tuple[str, ...] = ("o3-aniso", "cso3")) -> dict:
     res: dict = {"n_done": len(rows), "rank3_rate": {}, "certified_rate": {}, "median_time_s": {},
                  "median_iterations": {}, "rank_histogram": {}}
-    for v in ("o3-aniso", "cso3"):
+    for v in variants:
         ranks = np.array([r[v]["rank"] for r in rows])
         res["rank3_rate"][v] = float(np.mean(ranks == 3))
         res["certified_rate"][v] = float(np.mean([r[v]["certified"] for r in rows]))
@@ -111,18 +114,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-instances", type=int, default=1000)
     ap.add_argument("--scheme", choices=["h", "cov", "both"], default="both")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--n-min", type=int, default=10, help="fewest cameras (N uniform in [n-min, n-max])")
+    ap.add_argument("--n-max", type=int, default=20)
+    ap.add_argument("--p", type=float, default=0.5, help="fraction of camera pairs observed")
+    ap.add_argument("--out", type=Path, default=OUT, help="results JSON")
+    ap.add_argument("--variants", default="o3-aniso,cso3", help="comma-separated subset of o3-aniso,cso3")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)  # the per-instance "not certified" warnings are the data here
     n = 40 if args.quick else args.n_instances
     schemes = ["h", "cov"] if args.scheme == "both" else [args.scheme]
-    out = run(n, schemes, args.seed)
+    variants = tuple(v for v in args.variants.split(",") if v)
+    out = run(n, schemes, args.seed, (args.n_min, args.n_max), args.p, args.out, variants)
     print(f"\n{'scheme':8s} {'variant':10s} {'rank-3':>8s} {'certified':>10s} {'med t (s)':>10s} {'med iters':>10s}")
     for scheme, s in out["schemes"].items():
-        for v in ("o3-aniso", "cso3"):
+        for v in variants:
             print(f"{scheme:8s} {v:10s} {s['rank3_rate'][v]:8.3f} {s['certified_rate'][v]:10.3f} "
                   f"{s['median_time_s'][v]:10.3f} {s['median_iterations'][v]:10.0f}")
         print(f"{scheme:8s} cso3 failures by cause: {s['cso3_failure_causes']}")
-    print(f"wrote {OUT}")
+    print(f"wrote {args.out}")
     return 0
 
 
