@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import atomic_path, write_json
+from pipeline.atomic import save_figure, write_json
 from pipeline.averaging.irls import irls
 from pipeline.averaging.weiszfeld import weiszfeld
 from pipeline.evaluate import rotation_errors_deg
@@ -97,8 +97,7 @@ def plot(res: dict, png: Path) -> None:
                      + (" (ℓ2 omitted: ≈ 8°)" if "20" in key else ""))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
-    with atomic_path(png) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    save_figure(fig, png)
     print(f"wrote {png}")
 
 

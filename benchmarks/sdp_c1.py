@@ -23,7 +23,7 @@ import sdp_common  # noqa: E402,F401
 import numpy as np  # noqa: E402
 
 from pipeline import so3  # noqa: E402
-from pipeline.atomic import atomic_path, write_json  # noqa: E402
+from pipeline.atomic import save_figure, write_json  # noqa: E402
 from pipeline.averaging.sdp import solve_sdp  # noqa: E402
 from pipeline.evaluate import frobenius_error  # noqa: E402
 from pipeline.viewgraph import ViewGraph  # noqa: E402
@@ -92,8 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     axes[0].legend()
     fig.suptitle("Paper 2, supplement C.1: three cameras, one edge noisy along one axis")
     fig.tight_layout()
-    with atomic_path(PNG) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
+    save_figure(fig, PNG)
     print(f"wrote {OUT} and {PNG}")
     return 0
 

@@ -27,8 +27,8 @@ import sdp_common  # noqa: E402,F401
 
 import numpy as np  # noqa: E402
 
-from pipeline.atomic import atomic_path, write_json  # noqa: E402
-from pipeline.averaging.sdp import VARIANTS, solve_sdp  # noqa: E402
+from pipeline.atomic import save_figure, write_json  # noqa: E402
+from pipeline.averaging.sdp import solve_sdp  # noqa: E402
 from pipeline.evaluate import frobenius_error  # noqa: E402
 from pipeline.synthetic.graphs import paper2_graph  # noqa: E402
 
@@ -128,8 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_xlabel("√Σ‖R_i − R_i*‖²_F")
     axes[0].legend()
     fig.tight_layout()
-    with atomic_path(PNG_ERR) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
+    save_figure(fig, PNG_ERR, dpi=100)
     fig, axes = plt.subplots(1, len(PS), figsize=(4 * len(PS), 3.2), sharey=True)
     for ax, p in zip(axes, PS):
         for v in ORDER:
@@ -144,8 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     axes[0].set_ylabel("wall time (s), build + solve")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(PNG_TIME) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
+    save_figure(fig, PNG_TIME, dpi=100)
     print(f"wrote {OUT}, {PNG_ERR}, {PNG_TIME}")
     return 0
 

@@ -71,3 +71,14 @@ def save_npz(path: str | os.PathLike, **arrays: Any) -> Path:
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
     return Path(path)
+
+
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110, close: bool = True) -> Path:
+    """Write a matplotlib figure as PNG atomically; close it unless ``close=False``."""
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
+    if close:
+        import matplotlib.pyplot as plt  # noqa: PLC0415 - only callers that plot pay for the import
+
+        plt.close(fig)
+    return Path(path)

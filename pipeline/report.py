@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_open, atomic_path
+from .atomic import atomic_open, save_figure
 
 logger = logging.getLogger(__name__)
 
@@ -85,13 +85,6 @@ def _slug(s: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in s)
 
 
-def _savefig(fig, path: Path) -> Path:
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    _plt().close(fig)
-    return path
-
-
 def _fmt(v: Any, f: str) -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
@@ -136,7 +129,7 @@ def plot_error_distribution(errors: dict[str, np.ndarray], path: Path, ref: str)
             ylim=(0, 1.02))
     ax1.legend(fontsize=8)
     ax2.legend(fontsize=8)
-    return _savefig(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_convergence(histories: dict[str, list[dict[str, float]]], path: Path) -> Path | None:
@@ -157,7 +150,7 @@ def plot_convergence(histories: dict[str, list[dict[str, float]]], path: Path) -
     ax.set_yscale("log")
     ax.set(xlabel="time (s)", ylabel=ylabel, title="convergence of the iterative methods")
     ax.legend(fontsize=8)
-    return _savefig(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_edge_errors(edge_errors: dict[str, np.ndarray], path: Path, ref: str) -> Path | None:
@@ -178,7 +171,7 @@ def plot_edge_errors(edge_errors: dict[str, np.ndarray], path: Path, ref: str) -
         ax.loglog(centers[keep], counts[keep] / v.size, marker="o", ms=3, label=f"{k} (M={v.size})")
     ax.set(xlabel="relative rotation error (°)", ylabel="fraction of edges", title=f"edge errors vs {ref}")
     ax.legend(fontsize=8)
-    return _savefig(fig, path)
+    return save_figure(fig, path)
 
 
 def spectral_layout(n: int, edges: np.ndarray) -> np.ndarray:
@@ -219,7 +212,7 @@ def plot_viewgraph(n: int, edges: np.ndarray, values: np.ndarray | None, path: P
     ax.autoscale()
     ax.set_aspect("equal", adjustable="datalim")
     ax.set(title=f"view graph: {n} cameras, {len(edges)} edges", xticks=[], yticks=[])
-    return _savefig(fig, path)
+    return save_figure(fig, path)
 
 
 def write_report(out: str | os.PathLike, data: ReportData) -> Path:

@@ -19,3 +19,11 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def fast_config(tmp_path_factory) -> Path:
+    """A run.py config without plots, for the whole-chain tests."""
+    p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
+    p.write_text("run:\n  plots: false\n")
+    return p

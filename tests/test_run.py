@@ -34,13 +34,6 @@ def scene(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def fast_config(tmp_path_factory) -> Path:
-    p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
-    p.write_text("run:\n  plots: false\n")
-    return p
-
-
-@pytest.fixture(scope="session")
 def full_run(scene, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("full")
     run.main(scene, out, gt=scene / "cameras.txt", quiet=True)

@@ -38,13 +38,6 @@ def assert_one_line_error(r: subprocess.CompletedProcess, pattern: str) -> None:
 
 
 @pytest.fixture(scope="session")
-def fast_config(tmp_path_factory) -> Path:
-    p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
-    p.write_text("run:\n  plots: false\n")
-    return p
-
-
-@pytest.fixture(scope="session")
 def messy(tmp_path_factory) -> Path:
     """5 rendered views, no K file (PNGs carry no EXIF), plus a text file named .jpg and a truncated JPEG."""
     src = tmp_path_factory.mktemp("src")

@@ -253,7 +253,6 @@ def build_conic(
     n = 3 * N
     m_big = n * (n + 1) // 2
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-    M = edges.shape[0]
     i_e, j_e = edges[:, 0], edges[:, 1]
     a3, b3 = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")  # (3, 3) block entry (a, b)
     # svec position of every entry of every edge block X_ji (strictly below the diagonal: j > i)
