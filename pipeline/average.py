@@ -4,6 +4,8 @@ Methods:
 
 * ``irls`` (default): paper 1, Algorithm 3: spanning tree, ℓ1 steps, then IRLS
   with one of the 13 losses of Table 1 (ℓ½ by default);
+* ``irls-h``: the same IRLS with each edge's residual in the metric of its two-view
+  Hessian H (``pipeline.averaging.irls_h``; needs H; not in either paper);
 * ``l1``: paper 1, Algorithm 2 alone (ℓ1 steps until the mean update is small);
 * ``weiszfeld``: Hartley et al. (2011), one camera at a time (a baseline);
 * ``sdp``: paper 2's certifiable SDP (``pipeline.averaging.sdp.solve_sdp``).
@@ -14,8 +16,8 @@ a warning is logged. They are never silently dropped.
 
 Command line::
 
-    python -m pipeline.average INPUT --method irls|l1|weiszfeld|sdp [--loss NAME]
-        [--alpha-deg A] [--init mst|random|FILE] [--variant V] [--solver scs|clarabel]
+    python -m pipeline.average INPUT --method irls|irls-h|l1|weiszfeld|sdp [--loss NAME]
+        [--alpha-deg A] [--alpha A_H] [--init mst|random|FILE] [--variant V] [--solver scs|clarabel]
         --out ROTATIONS [--json STATS]
 
 INPUT is a view-graph ``.npz`` or a supported ``.mat``; ROTATIONS a rotations text
@@ -51,7 +53,7 @@ __all__ = ["average", "main", "main_cli", "METHODS"]
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("irls", "l1", "weiszfeld", "sdp")
+METHODS = ("irls", "irls-h", "l1", "weiszfeld", "sdp")
 
 
 def _l1_only(vg: ViewGraph, init: str | np.ndarray, max_iterations: int = 100, tol_rad: float = 1e-3,
@@ -83,7 +85,8 @@ def average(
 
     Args:
         vg: the view graph; if disconnected, its largest component is solved.
-        method: ``"irls"``, ``"l1"``, ``"weiszfeld"`` or ``"sdp"``.
+        method: ``"irls"``, ``"irls-h"`` (IRLS in the H metric,
+            :func:`pipeline.averaging.irls_h.irls_h`), ``"l1"``, ``"weiszfeld"`` or ``"sdp"``.
         loss: IRLS loss (see :func:`pipeline.averaging.losses.get_loss`).
         alpha_deg: IRLS loss scale α in degrees.
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations for the
@@ -105,8 +108,11 @@ def average(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; valid methods: {', '.join(METHODS)}")
-    if method == "irls":
+    if method in ("irls", "irls-h"):
         get_loss(loss, alpha_deg, kw.get("eps_rad"))  # fail fast on a bad name
+    if method == "irls-h" and vg.H is None:
+        raise ViewGraphError("method 'irls-h' needs a view graph with H (two-view BA precisions); "
+                             "run the two-view BA stage or use method 'irls'")
     if vg.n_cameras == 0:
         raise ViewGraphError("the view graph is empty (no cameras); nothing to average")
     if vg.n_edges == 0:
@@ -133,6 +139,10 @@ def average(
     if method == "irls":
         kw.setdefault("refine", True)
         out = irls(sub, loss=loss, alpha_deg=alpha_deg, init=init, **kw)
+    elif method == "irls-h":
+        from .averaging.irls_h import irls_h
+
+        out = irls_h(sub, loss=loss, init=init, **kw)
     elif method == "l1":
         out = _l1_only(sub, init, **kw)
     elif method == "weiszfeld":
@@ -262,6 +272,8 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--alpha-deg", type=float, default=5.0, help="loss scale α in degrees (default 5)")
     p.add_argument("--floor-deg", type=float, default=None,
                    help="residual floor of ℓ1/ℓp weights in degrees (default: α for p<1, 5.7e-5 otherwise)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help="irls-h: loss scale α in units of the robust residual scale (default 2)")
     p.add_argument("--no-refine", action="store_true",
                    help="IRLS: skip the final trimmed-ℓ2 polish (paper 1's Algorithm 3 alone)")
     p.add_argument("--init", default="mst", help="mst | random | a rotations file (default mst)")
@@ -282,7 +294,10 @@ def main_cli(argv: list[str] | None = None) -> int:
             opts.update(loss=a.loss, alpha_deg=a.alpha_deg,
                         eps_rad=None if a.floor_deg is None else float(np.deg2rad(a.floor_deg)),
                         l1_iterations=a.l1_iterations, refine=not a.no_refine)
-        if a.method in ("irls", "l1", "weiszfeld"):
+        if a.method == "irls-h":
+            get_loss(a.loss)
+            opts.update(loss=a.loss, alpha=a.alpha, l1_iterations=a.l1_iterations, refine=not a.no_refine)
+        if a.method in ("irls", "irls-h", "l1", "weiszfeld"):
             opts.update(tol_rad=a.tol_rad, seed=a.seed)
             opts["max_sweeps" if a.method == "weiszfeld" else "max_iterations"] = a.max_iterations
         if a.method == "sdp":

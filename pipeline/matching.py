@@ -178,6 +178,10 @@ class _FlannIndex:
     def knn(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         if self._index is None:
             ip, _ = _flann_params(self.config)
+            # FLANN's randomized kd-trees draw from OpenCV's RNG, which is per thread: seed it here,
+            # in the thread that builds the index, so the same images give the same matches
+            # whatever the thread scheduling or what ran before in the process.
+            cv2.setRNGSeed(0)
             self._index = cv2.flann_Index(self.desc, ip)
         k = min(k, len(self.desc))
         idx, dist = self._index.knnSearch(q, k, params=_flann_params(self.config)[1])

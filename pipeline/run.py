@@ -20,11 +20,14 @@ same files):
 8. evaluation        ``pipeline.evaluate``      → OUT/metrics.json
 9. report            ``pipeline.report``        → OUT/report.md + PNGs
 
-Averaging methods (``--methods``; default IRLS-ℓ½, plus SDP-cSO(3) when the view
-graph has at most ``run.sdp_max_n`` cameras):
+Averaging methods (``--methods``; default IRLS-ℓ½, plus, when the view graph has
+H, IRLS-H-ℓ½ and SDP-cSO(3), the latter when it has at most ``run.sdp_max_n``
+cameras):
 
 - ``irls`` (= ``irls-l0.5``), ``irls-<loss>`` for any loss of ``pipeline.average``
-  (``l2``, ``l1``, ``l<p>``, ``geman-mcclure``, ``huber``, ...);
+  (``l2``, ``l1``, ``l<p>``, ``geman-mcclure``, ``huber``, ...): paper 1;
+- ``irls-h`` (= ``irls-h-l0.5``), ``irls-h-<loss>``: the same IRLS with each
+  residual in its H metric (``pipeline.averaging.irls_h``; not in either paper);
 - ``l1`` (the initial ℓ1 step alone), ``weiszfeld``;
 - ``sdp`` (= ``sdp-cso3``), ``sdp-cso3-iso``, ``sdp-o3-iso``, ``sdp-o3-aniso``.
 
@@ -116,10 +119,20 @@ class MethodSpec:
 
 
 def parse_method(token: str, solver: str = "scs") -> MethodSpec:
-    """``irls``, ``irls-<loss>``, ``<loss>``, ``l1``, ``weiszfeld``, ``sdp``, ``sdp-<variant>`` → a spec."""
+    """``irls``, ``irls-<loss>``, ``<loss>``, ``irls-h``, ``irls-h-<loss>``, ``l1``, ``weiszfeld``, ``sdp``,
+    ``sdp-<variant>`` → a spec."""
     t = token.strip().lower()
     if t in ("irls", ""):
         return MethodSpec("irls-l0.5", {"method": "irls", "loss": "l0.5"})
+    if t == "irls-h" or t.startswith("irls-h-"):
+        loss = t[7:] or "l0.5"
+        try:
+            from pipeline.averaging.losses import get_loss  # noqa: PLC0415
+
+            get_loss(loss)
+        except (KeyError, ValueError) as exc:
+            raise PipelineError(f"unknown method {token!r}: {' '.join(str(exc).split())}") from None
+        return MethodSpec(f"irls-h-{loss}", {"method": "irls-h", "loss": loss})
     if t == "l1":
         return MethodSpec("l1", {"method": "l1"})
     if t == "weiszfeld":
@@ -141,7 +154,7 @@ def parse_method(token: str, solver: str = "scs") -> MethodSpec:
         pass
     except (KeyError, ValueError) as exc:
         raise PipelineError(f"unknown method {token!r}: {' '.join(str(exc).split())}; methods are irls, "
-                            "irls-<loss>, l1, weiszfeld, sdp, sdp-<variant>") from None
+                            "irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, sdp-<variant>") from None
     return MethodSpec(f"irls-{loss}", {"method": "irls", "loss": loss})
 
 
@@ -280,21 +293,22 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     at the full run's cumulative time of that iteration (its ``history``), and
     the last point is the full run's own result. Cheap for N ≤ ``max_n``.
     """
-    if options.get("method") != "irls" or vg.n_cameras > max_n:
+    if options.get("method") not in ("irls", "irls-h") or vg.n_cameras > max_n:
         return []
     from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.averaging.irls import irls  # noqa: PLC0415
+    from pipeline.averaging import irls, irls_h  # noqa: PLC0415
 
     R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
         return []
     kw = {k: v for k, v in options.items() if k != "method"}
     kw["refine"] = False
+    solve = irls.irls if options["method"] == "irls" else irls_h.irls_h
     hist = list(stats.get("history") or [])
     L = int(stats.get("l1_iterations", 0) or 0)
     K = int(stats.get("irls_iterations", 0) or 0)
     budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
-    quiet = [logging.getLogger(irls.__module__)]
+    quiet = [logging.getLogger(irls.__name__), logging.getLogger(irls_h.__name__)]
     levels = [lg.level for lg in quiet]
     for lg in quiet:
         lg.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
@@ -302,7 +316,7 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     try:
         for n_done, (l, k) in enumerate(budgets):
             try:
-                r = irls(vg, l1_iterations=l, max_iterations=k, **kw)
+                r = solve(vg, l1_iterations=l, max_iterations=k, **kw)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue
             e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
@@ -483,6 +497,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     specs = [parse_method(m, rcfg.sdp_solver) for m in tokens]
     if not specs:
         specs = [parse_method("irls")]
+        if vg.H is not None:
+            specs.append(parse_method("irls-h"))
         if vg.H is not None and vg.n_cameras <= rcfg.sdp_max_n:
             specs.append(parse_method("sdp", rcfg.sdp_solver))
         elif vg.n_cameras > rcfg.sdp_max_n:
@@ -542,7 +558,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         histories = {}
         if refs:
             for spec in specs:
-                if spec.options["method"] == "irls":
+                if spec.options["method"] in ("irls", "irls-h"):
                     from pipeline.io.rotations import read_rotations  # noqa: PLC0415
 
                     names_m, R_m = read_rotations(results[spec.label]["rotations"])
@@ -639,7 +655,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="output folder (default: out/<folder name>)")
     p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
     p.add_argument("--methods", nargs="+", default=None, metavar="M",
-                   help="averaging methods: irls, irls-<loss>, l1, weiszfeld, sdp, sdp-<cso3|cso3-iso|o3-iso|o3-aniso>")
+                   help="averaging methods: irls, irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, "
+                        "sdp-<cso3|cso3-iso|o3-iso|o3-aniso>")
     p.add_argument("--gt", type=Path, default=None, help="true cameras (cameras file, gt_dense_cameras/, *_par.txt, "
                    "COLMAP model, rotations file)")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3×3) or a per-image cameras file")

@@ -204,5 +204,5 @@ def test_unknown_loss_and_method_rejected():
     vg, _, _ = _graph(5, 1.0, seed=18)
     with pytest.raises(ValueError, match="unknown loss 'nope'; valid names"):
         average(vg, loss="nope")
-    with pytest.raises(ValueError, match="unknown method 'foo'; valid methods: irls, l1, weiszfeld, sdp"):
+    with pytest.raises(ValueError, match="unknown method 'foo'; valid methods: irls, irls-h, l1, weiszfeld, sdp"):
         average(vg, method="foo")

@@ -151,3 +151,24 @@ def test_matching_without_features(tmp_path):
 def test_cli_help():
     r = subprocess.run([sys.executable, "-m", "pipeline.matching", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "--pairs" in r.stdout
+
+
+def test_flann_matches_do_not_depend_on_rng_state_or_threads():
+    """FLANN's random kd-trees draw from OpenCV's per-thread RNG; the index is seeded where it is built."""
+    import threading
+
+    import cv2
+
+    rng = np.random.default_rng(5)
+    da = rng.integers(0, 255, (3000, 128)).astype(np.uint8)
+    db = np.clip(da.astype(np.int16) + rng.integers(-20, 20, da.shape), 0, 255).astype(np.uint8)[rng.permutation(3000)]
+    cfg = MatchingConfig(method="flann", flann_checks=8)
+    ref = match_descriptors(da, db, cfg)
+    assert len(ref) > 1000
+    cv2.setRNGSeed(12345)  # another RNG state in this thread
+    np.testing.assert_array_equal(match_descriptors(da, db, cfg), ref)
+    out = []
+    t = threading.Thread(target=lambda: out.append(match_descriptors(da, db, cfg)))
+    t.start()
+    t.join()
+    np.testing.assert_array_equal(out[0], ref)

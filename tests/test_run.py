@@ -44,13 +44,15 @@ def full_run(scene, tmp_path_factory) -> Path:
 def test_full_run_metrics_and_report(full_run):
     m = json.loads((full_run / "metrics.json").read_text())
     assert set(m) >= {"methods", "edges", "pycolmap", "stages"}
-    assert set(m["methods"]) == {"irls-l0.5", "sdp-cso3"}  # N=6 <= sdp_max_n
+    assert set(m["methods"]) == {"irls-l0.5", "irls-h-l0.5", "sdp-cso3"}  # H present, N=6 <= sdp_max_n
     irls = m["methods"]["irls-l0.5"]
     assert irls["reference"] == "truth" and irls["n_evaluated"] == 6
     assert irls["median_deg"] < 0.3, irls
     assert set(irls["references"]) == {"truth", "pycolmap"}
     for k in ("mean_deg", "rms_deg", "max_deg", "frobenius", "pct_below", "time_s"):
         assert k in irls
+    assert m["methods"]["irls-h-l0.5"]["median_deg"] < 0.3
+    assert m["methods"]["irls-h-l0.5"]["error_vs_time"][-1]["final"]
     sdp = m["methods"]["sdp-cso3"]
     assert "certified" in sdp and "rank" in sdp and sdp["median_deg"] < 0.5
     for tag in ("ransac", "ba"):
@@ -144,7 +146,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
         run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
     monkeypatch.undo()
     run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
-    for label in ("irls-l0.5", "sdp-cso3"):
+    for label in ("irls-l0.5", "irls-h-l0.5", "sdp-cso3"):
         n1, R1 = read_rotations(out / "rotations" / f"{label}.txt")
         n2, R2 = read_rotations(full_run / "rotations" / f"{label}.txt")
         assert list(n1) == list(n2)
@@ -178,6 +180,8 @@ def test_parse_method():
     assert run.parse_method("sdp-o3-iso").options["variant"] == "o3-iso"
     assert run.parse_method("l1").options == {"method": "l1"}
     assert run.parse_method("weiszfeld").label == "weiszfeld"
+    assert run.parse_method("irls-h").options == {"method": "irls-h", "loss": "l0.5"}
+    assert run.parse_method("irls-h-cauchy").label == "irls-h-cauchy"
 
 
 def test_parse_method_rejects_unknown():
@@ -185,6 +189,8 @@ def test_parse_method_rejects_unknown():
         run.parse_method("sdp-so4")
     with pytest.raises(PipelineError, match="unknown method"):
         run.parse_method("irls-nosuchloss")
+    with pytest.raises(PipelineError, match="unknown method"):
+        run.parse_method("irls-h-nosuchloss")
 
 
 def test_bad_config_key(tmp_path, scene):
