@@ -42,7 +42,7 @@ from ..viewgraph import ViewGraph
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SyntheticGraph", "paper1_graph", "paper2_graph", "knn_graph"]
+__all__ = ["SyntheticGraph", "paper1_graph", "paper2_graph", "knn_graph", "with_outliers"]
 
 MAX_TRIES = 1000
 
@@ -285,3 +285,18 @@ def knn_graph(n: int, k: int = 12, sigma_deg: float = 2.0, outlier_frac: float =
     R_rel, mask = _isotropic_measurements(R, edges, sigma_deg, outlier_frac, rng)
     vg = ViewGraph([str(i) for i in range(n)], edges, R_rel)
     return SyntheticGraph(vg, R, mask)
+
+
+def with_outliers(vg: ViewGraph, frac: float, seed: int = 0) -> tuple[ViewGraph, np.ndarray]:
+    """Replace ``round(frac·M)`` edges' ``R_rel`` by Haar-random rotations, keeping their H.
+
+    Returns:
+        the new view graph and the (M,) outlier mask.
+    """
+    _check(2, outlier_frac=frac)
+    rng = np.random.default_rng(seed)
+    out = np.zeros(vg.n_edges, dtype=bool)
+    out[rng.choice(vg.n_edges, int(round(frac * vg.n_edges)), replace=False)] = True
+    R_rel = vg.R_rel.copy()
+    R_rel[out] = so3.random_rotations(int(out.sum()), rng)
+    return ViewGraph(vg.names, vg.edges, R_rel, H=vg.H, inliers=vg.inliers), out
