@@ -404,3 +404,41 @@ def test_cli_irls_h_forwards_its_options(graph_file, tmp_path):
     assert rc == 0
     stats = json.loads(js.read_text())
     assert stats["method"] == "irls-h-cauchy+refine" and stats["alpha"] == 3.0 and stats["l1_iterations"] == 0
+
+
+# ------------------------------------------------------------- factor reuse (speed)
+def test_solve_reusing_matches_a_fresh_factorization():
+    """The previous factor preconditions CG on the next matrix; the answer is the new matrix's."""
+    rng = np.random.default_rng(7)
+    g = paper2_graph(40, 0.3, eig_range=(1.0, 1000.0), seed=3)
+    S = BlockLaplacianSolver(g.vg.edges, g.vg.n_cameras, ref=0)
+    B0 = g.vg.H * rng.uniform(0.5, 2.0, g.vg.n_edges)[:, None, None]
+    b = rng.standard_normal((g.vg.n_cameras, 3))
+    S.factor(B0)
+    B1 = B0 * rng.uniform(0.7, 1.3, g.vg.n_edges)[:, None, None]  # an IRLS-like reweighting
+    x = S.solve_reusing(B1, b)
+    assert S.n_factorizations == 1 and S.n_cg_iterations > 0  # reused, not refactored
+    ref = S.matrix(B1).toarray()
+    bb = b.copy()
+    bb[S.pinned] = 0.0
+    np.testing.assert_allclose(x.reshape(-1), np.linalg.solve(ref, bb.reshape(-1)), rtol=1e-5, atol=1e-9)
+    # a weight of 0 that cuts the graph changes the gauge: the solver must refactor
+    B2 = B1.copy()
+    cut = np.flatnonzero((g.vg.edges == 5).any(axis=1))
+    B2[cut] = 0.0
+    x2 = S.solve_reusing(B2, b)
+    assert S.n_factorizations == 2 and S.pinned[5]
+    assert np.all(x2[5] == 0.0)
+
+
+def test_reusing_factors_gives_the_same_rotations(monkeypatch):
+    import pipeline.averaging.irls_h as mod
+
+    g = paper2_graph(60, 0.2, eig_range=(1.0, 1000.0), seed=4)
+    vg, _ = with_outliers(g.vg, 0.1, seed=9)
+    fast = irls_h(vg)
+    orig = mod._steps
+    monkeypatch.setattr(mod, "_steps", lambda *a, **k: orig(*a, **{**k, "reuse": False}))
+    slow = irls_h(vg)
+    assert fast.stats["n_factorizations"] < slow.stats["n_factorizations"]
+    assert rotation_errors_deg(fast.R, slow.R, align="none").max() < 1e-6

@@ -17,8 +17,11 @@ for the left perturbation ``R_j R_iᵀ = exp([Δω]×) R̃_ij`` (DESIGN.md),
 2. weights ``φ_ij = φ(t_ij)`` of the chosen loss, with α in units of ``s``;
 3. the block step ``(Σ A_kᵀ φ_k G_kᵀ H_k G_k A_k) ΔΩ = −Σ A_kᵀ φ_k G_kᵀ H_k Δω_k``
    (paper 1, eq. 21, with 3×3 blocks in place of scalars; same sign convention as
-   :mod:`pipeline.averaging.l1`): one sparse factorization of the gauge-fixed
-   (3N, 3N) block Laplacian per iteration;
+   :mod:`pipeline.averaging.l1`) on the gauge-fixed (3N, 3N) block Laplacian, by
+   conjugate gradients preconditioned with the SuperLU factor of an earlier
+   iteration's matrix, refactoring only when CG needs more than 15 iterations or
+   the gauge changes (:meth:`BlockLaplacianSolver.solve_reusing`; N = 10,000: 2
+   factorizations instead of 13, 2× faster, same rotations);
 4. ``R_i ← R_i exp([Δω_i]×)``.
 
 **The step's Jacobian.** After ``R_i ← R_i exp([δ_i]×)``, ``R_j ← R_j exp([δ_j]×)``,
@@ -120,7 +123,9 @@ class BlockLaplacianSolver:
         self._indices = self._row.astype(np.int32)
         self._lu: sla.SuperLU | None = None
         self.pinned = np.zeros(n, dtype=bool)
+        self._lu_pinned = self.pinned
         self.n_factorizations = 0
+        self.n_cg_iterations = 0
 
     def matrix(self, B: np.ndarray) -> sp.csc_matrix:
         """The gauge-fixed (3N, 3N) block Laplacian for edge blocks ``B`` (M, 3, 3)."""
@@ -137,7 +142,41 @@ class BlockLaplacianSolver:
         """Factor the gauge-fixed block Laplacian for edge blocks ``B`` (M, 3, 3)."""
         self._lu = sla.splu(self.matrix(B), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                             options=dict(SymmetricMode=True))
+        self._lu_pinned = self.pinned.copy()
         self.n_factorizations += 1
+
+    def solve_reusing(self, B: np.ndarray, b: np.ndarray, rtol: float = 1e-7, max_cg: int = 15) -> np.ndarray:
+        """Solve the system of blocks ``B`` for ``b`` (N, 3), reusing the last factor when it serves.
+
+        IRLS weights change little from one iteration to the next, so the factor of the
+        previous matrix is a near-exact preconditioner for the current one: conjugate
+        gradients on the current matrix, preconditioned by it, reach ``rtol`` in a few
+        matrix-vector products. When they do not within ``max_cg`` iterations, or when the
+        gauge (the pinned cameras) changed, the current matrix is factored instead. The
+        solution is that of the current matrix either way (to ``rtol``).
+        """
+        A = self.matrix(B)
+        pinned = self.pinned.copy()
+        if self._lu is not None and np.array_equal(pinned, self._lu_pinned):
+            bb = np.array(b, dtype=np.float64, copy=True)
+            bb[pinned] = 0.0
+            lu = self._lu
+            prec = sla.LinearOperator(A.shape, matvec=lambda v: lu.solve(np.asarray(v, dtype=np.float64)))
+            n_it = [0]
+
+            def count(_):
+                n_it[0] += 1
+
+            x, info = sla.cg(A, bb.reshape(-1), M=prec, rtol=rtol, atol=0.0, maxiter=max_cg, callback=count)
+            self.n_cg_iterations += n_it[0]
+            if info == 0 and np.all(np.isfinite(x)):
+                x = x.reshape(self.n, 3)
+                x[pinned] = 0.0
+                return x
+        self._lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+        self._lu_pinned = pinned
+        self.n_factorizations += 1
+        return self.solve(b)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve with the current factor; ``b`` (N, 3) → (N, 3), 0 at pinned cameras."""
@@ -191,7 +230,7 @@ def _scale(q: np.ndarray) -> float:
     return s2
 
 
-def _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, stage, t0, history):
+def _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, stage, t0, history, reuse=True):
     it = 0
     for it in range(1, max_iterations + 1):
         r, W, q = _squared_norms(vg, R)
@@ -203,8 +242,13 @@ def _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, stage, t0, history
         G = _jl_inv(dom) @ Rj
         HG = vg.H @ G
         w = (phi / s2)[:, None, None]
-        solver.factor(w * (np.swapaxes(G, 1, 2) @ HG))
-        dw = solver.solve(solver.rhs(-np.einsum("mba,mb->ma", w * HG, dom)))
+        B = w * (np.swapaxes(G, 1, 2) @ HG)
+        g = solver.rhs(-np.einsum("mba,mb->ma", w * HG, dom))
+        if reuse:
+            dw = solver.solve_reusing(B, g)
+        else:
+            solver.factor(B)
+            dw = solver.solve(g)
         if not np.all(np.isfinite(dw)):
             raise ViewGraphError(f"anisotropic IRLS step {it} is not finite (loss {lossf.name}); "
                                  "the weighted block Laplacian is singular. Check H for NaN or try another loss")
@@ -243,8 +287,8 @@ def irls_h(
             median of an inlier) are in ℓ½'s quadratic core.
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
         max_iterations, tol_rad: IRLS cap and stop on the mean camera update
-            (radians; 1e-5 by default, 0.0006°: each step costs one sparse factorization; at
-            N = 500, 1e-6 took 13 iterations instead of 9 for the same median error).
+            (radians; 1e-5 by default, 0.0006°; at N = 500, 1e-6 took 13 iterations
+            instead of 9 for the same median error).
         l1_iterations, l1_tol_rad, admm_max_iterations: the isotropic ℓ1 start (see
             :func:`pipeline.averaging.irls.irls`); 0 skips it.
         seed: seed for ``init="random"``.
@@ -323,6 +367,7 @@ def irls_h(
             "l1_iterations": n_l1,
             "irls_iterations": it,
             "n_factorizations": solver.n_factorizations,
+            "n_cg_iterations": solver.n_cg_iterations,
             "refine": refine,
         },
     )
