@@ -11,7 +11,7 @@ process right after ours (same machine load). Reported per case:
 - IRLS-ℓ½, IRLS-H-ℓ½, SDP-cSO(3), SDP-O(3)-ISO and pycolmap against the truth
   (median, mean, RMS, max error in degrees); where pycolmap leaves images out, each
   method is also scored on pycolmap's registered images only (aligned on them), the
-  like-for-like comparison (``on_pycolmap_images``);
+  like-for-like comparison (``on_pycolmap_images``, from run.py's metrics);
 - our path's wall time (features → rotations, every method) against pycolmap's
   total (extraction + matching + incremental mapping), and their ratio;
 - images our view graph leaves out and images pycolmap does not register, with why.
@@ -64,6 +64,10 @@ def case_row(name: str, m: dict, wall_s: float) -> dict:
         for k in ("certified", "rank", "gap"):
             if k in s:
                 row["methods"][label][k] = s[k]
+        for ref_name, sub in s.get("references", {}).items():
+            if ref_name.startswith("truth, pycolmap's"):  # run.py's like-for-like reference
+                row["methods"][label]["on_pycolmap_images"] = {k: sub.get(k) for k in (
+                    "n_evaluated", "median_deg", "mean_deg", "rms_deg", "max_deg")}
         vs_pyc = s.get("references", {}).get("pycolmap")
         if vs_pyc:
             row["methods"][label]["vs_pycolmap_median_deg"] = vs_pyc.get("median_deg")
@@ -86,31 +90,8 @@ def run_case(run, name: str, images: Path | None, gt: Path | None, K: Path | Non
     wall = time.perf_counter() - t0
     m = json.loads(Path(p).read_text())
     row = case_row(name, m, wall)
-    on_pycolmap_images(row, out, gt)
     print(f"  {name}: {wall:.1f} s", flush=True)
     return row
-
-
-def on_pycolmap_images(row: dict, out: Path, gt: Path | None) -> None:
-    """Score each method on the images pycolmap registered only, when it left some out."""
-    ref_rot = out / "reference" / "rotations.txt"
-    if not ref_rot.is_file() or not (row.get("pycolmap") or {}).get("unregistered"):
-        return
-    import numpy as np
-
-    from pipeline.evaluate import match_reference, summarize
-    from pipeline.io.references import read_reference
-    from pipeline.io.rotations import read_rotations
-
-    truth = read_reference(gt if gt is not None else out / "scene" / "cameras.txt")
-    reg = set(read_rotations(ref_rot)[0])
-    for label in row["methods"]:
-        names, R = read_rotations(out / "rotations" / f"{label}.txt")
-        R_ref, mask = match_reference(list(names), truth.names, truth.R)
-        mask = mask & np.array([n in reg for n in names])
-        s = summarize(np.asarray(R), R_ref, mask)
-        row["methods"][label]["on_pycolmap_images"] = {k: s[k] for k in ("n_evaluated", "median_deg", "mean_deg",
-                                                                        "rms_deg", "max_deg")}
 
 
 def without_degenerate(name: str, out: Path, gt: Path) -> dict | None:

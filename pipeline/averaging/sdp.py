@@ -101,8 +101,8 @@ FALLBACK_MAX_ITERS = 400
 #: caller set none. Well-conditioned problems need a few hundred iterations (fountain-P11: 600,
 #: rendered scenes: ~300); templeSparseRing's one huge H took SCS 46 850 iterations (34 s) to a
 #: rank-24 uncertified answer that Clarabel then fixed in 0.1 s. A capped SCS run that has not
-#: converged is handed to the fallback.
-FALLBACK_SCS_MAX_ITERS = 5000
+#: converged is handed to the fallback (Clarabel at N ≤ 30: at most a few seconds).
+FALLBACK_SCS_MAX_ITERS = 2000
 #: A solve whose gap exceeds this share of the residual cost (plus the requested relative
 #: accuracy of |d*|) is re-solved as an uncertified one is.
 FALLBACK_RESIDUAL_GAP = 1e-2
@@ -445,13 +445,16 @@ def solve_sdp(
         eps_abs, eps_rel: solver tolerances (paper 2, §5: 1e-5 and 1e-6). For SCS they
             are ``eps_abs``/``eps_rel``; for Clarabel ``tol_gap_abs`` and
             ``tol_gap_rel``/``tol_feas``.
-        max_iters: iteration cap (default 500 000 for SCS as in paper 2, 200 for Clarabel;
-            :data:`FALLBACK_SCS_MAX_ITERS` for SCS when the Clarabel fallback applies).
+        max_iters: iteration cap (default 500 000 for SCS as in paper 2, 200 for Clarabel).
         verbose: print the solver's log.
         **kw: ``cert_tol`` (relative gap below which a rank-3 solution is certified,
             default 1e-4); ``form`` (``"primal"`` or ``"dual"`` conic statement, see
             :func:`build_conic`; default primal for SCS, dual for Clarabel);
             ``lmi_pairs`` (``"edges"``, default, or ``"all"`` camera pairs);
+            ``fallback_scs_max_iters`` (default None; ``run.py`` passes
+            :data:`FALLBACK_SCS_MAX_ITERS`): when the fallback applies and no
+            ``max_iters`` is given, cap SCS at this many iterations and leave a
+            problem SCS has not solved by then to Clarabel;
             ``fallback`` (default True) and ``fallback_max_cameras`` (default
             :data:`FALLBACK_MAX_CAMERAS`): when ``N`` is at most that and the solve is
             not certified, or its gap exceeds :data:`FALLBACK_RESIDUAL_GAP` of the
@@ -502,9 +505,10 @@ def solve_sdp(
                                    axis1=1, axis2=2))) if aniso else 3.0 * vg.n_edges
     lmi_edges = np.argwhere(np.triu(np.ones((vg.n_cameras,) * 2, bool), 1)) if lmi_pairs == "all" else None
     common = dict(vg=vg, C=C, scale=scale, offset=offset, cso3=cso3, lmi_edges=lmi_edges, cert_tol=cert_tol)
-    if (solver == "scs" and max_iters is None and fallback and vg.n_cameras <= fallback_max_cameras
-            and not (min(eps_abs, eps_rel) <= FALLBACK_EPS)):
-        max_iters = FALLBACK_SCS_MAX_ITERS
+    scs_cap = kw.pop("fallback_scs_max_iters", None)
+    if (scs_cap is not None and solver == "scs" and max_iters is None and fallback
+            and vg.n_cameras <= fallback_max_cameras):
+        max_iters = int(scs_cap)
     att = _attempt(solver=solver, form=form, eps_abs=eps_abs, eps_rel=eps_rel, max_iters=max_iters,
                    verbose=verbose, kw=kw, **common)
     first = att
