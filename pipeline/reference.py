@@ -209,8 +209,65 @@ def _pinhole_params(K: np.ndarray) -> list[float]:
     return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) + COLMAP_PIXEL_OFFSET, float(K[1, 2]) + COLMAP_PIXEL_OFFSET]
 
 
+class _DatabaseProgress:
+    """A progress bar for a pycolmap call that has no callback, fed by polling its database.
+
+    pycolmap's feature extraction and exhaustive matching write one row per image
+    (``keypoints``) or per pair (``matches``) as they go; a daemon thread counts the
+    rows of ``table`` through a read-only SQLite connection every ``period`` seconds.
+    A locked or not-yet-created database just skips that poll; the bar never touches
+    the database's content.
+    """
+
+    def __init__(self, db_path: Path, table: str, total: int, desc: str, enabled: bool, period: float = 0.5):
+        import threading
+
+        from tqdm import tqdm  # noqa: PLC0415
+
+        self.db_path, self.table, self.period = Path(db_path), table, period
+        self.bar = tqdm(total=total, desc=desc, unit="img" if table == "keypoints" else "pair", disable=not enabled)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True) if enabled else None
+
+    def count(self) -> int | None:
+        import sqlite3
+
+        if not self.db_path.exists():
+            return None
+        try:
+            con = sqlite3.connect(f"file:{self.db_path}?mode=ro", uri=True, timeout=0.05)
+            try:
+                return int(con.execute(f"SELECT COUNT(*) FROM {self.table}").fetchone()[0])
+            finally:
+                con.close()
+        except sqlite3.Error:
+            return None
+
+    def _update(self) -> None:
+        n = self.count()
+        if n is not None and n > self.bar.n:
+            self.bar.update(min(n, self.bar.total or n) - self.bar.n)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            self._update()
+
+    def __enter__(self) -> "_DatabaseProgress":
+        if self._thread is not None:
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            if exc[0] is None:
+                self._update()
+        self.bar.close()
+
+
 def _build_database(pc, db_path: Path, images: Path, names: list[str], Ks: np.ndarray | None,
-                    cfg: ReferenceConfig, work: Path | None) -> dict[str, float]:
+                    cfg: ReferenceConfig, work: Path | None, progress: bool = False) -> dict[str, float]:
     """Extract + match (or import ours) into a fresh database at ``db_path``; returns timings."""
     reader = pc.ImageReaderOptions()
     same_K = Ks is not None and np.allclose(Ks, Ks[0])
@@ -239,13 +296,16 @@ def _build_database(pc, db_path: Path, images: Path, names: list[str], Ks: np.nd
         ext.max_image_size = cfg.max_image_size
         ext.num_threads = cfg.num_threads
         ext.sift.max_num_features = cfg.max_num_features
-        pc.extract_features(db_path, images, image_names=names, camera_mode=mode, reader_options=reader,
-                            extraction_options=ext, device=pc.Device.cpu)
+        with _DatabaseProgress(db_path, "keypoints", len(names), "pycolmap features", progress):
+            pc.extract_features(db_path, images, image_names=names, camera_mode=mode, reader_options=reader,
+                                extraction_options=ext, device=pc.Device.cpu)
         times["extract_s"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         mopt = pc.FeatureMatchingOptions()
         mopt.num_threads = cfg.num_threads
-        pc.match_exhaustive(db_path, matching_options=mopt, device=pc.Device.cpu)
+        n_pairs = len(names) * (len(names) - 1) // 2
+        with _DatabaseProgress(db_path, "matches", n_pairs, "pycolmap matching", progress):
+            pc.match_exhaustive(db_path, matching_options=mopt, device=pc.Device.cpu)
         times["match_s"] = time.perf_counter() - t1
     if Ks is not None and not same_K:
         # PER_IMAGE cameras were created from the reader defaults: set each one to its known K
@@ -390,7 +450,7 @@ def reconstruct(images: Path, out: Path, names: list[str], Ks: np.ndarray | None
                     "extracting and matching", len(names))
         with atomic_path(db_path) as tmp:
             tmp.unlink()
-            times.update(_build_database(pc, tmp, images, names, Ks, cfg, work))
+            times.update(_build_database(pc, tmp, images, names, Ks, cfg, work, progress))
         write_json(timing_path, times)
     else:
         logger.info("pycolmap: reusing database %s", db_path)

@@ -198,3 +198,26 @@ def test_reuse_our_matches_needs_work(scene6, tmp_path):
 
     with pytest.raises(PipelineError, match="needs the WORK folder"):
         reference.main(scene6, tmp_path / "ref", config=reference.ReferenceConfig(use_our_matches=True))
+
+
+def test_database_progress_counts_rows_as_they_are_written(tmp_path):
+    """pycolmap's extraction and matching have no callback: their bars poll the database."""
+    import sqlite3
+    import time
+
+    from pipeline.reference import _DatabaseProgress
+
+    db = tmp_path / "d.db"
+    missing = _DatabaseProgress(db, "keypoints", 5, "x", enabled=False)
+    assert missing.count() is None  # not created yet: the poll is skipped, nothing raises
+    con = sqlite3.connect(db)
+    con.execute("CREATE TABLE keypoints (image_id INTEGER)")
+    con.commit()
+    with _DatabaseProgress(db, "keypoints", 5, "x", enabled=True, period=0.01) as p:
+        for k in range(4):
+            con.execute("INSERT INTO keypoints VALUES (?)", (k,))
+            con.commit()
+            time.sleep(0.03)
+        assert 1 <= p.bar.n <= 4
+    assert p.bar.n == 4  # the final poll on exit
+    con.close()
