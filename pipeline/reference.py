@@ -214,9 +214,10 @@ class _DatabaseProgress:
 
     pycolmap's feature extraction and exhaustive matching write one row per image
     (``keypoints``) or per pair (``matches``) as they go; a daemon thread counts the
-    rows of ``table`` through a read-only SQLite connection every ``period`` seconds.
-    A locked or not-yet-created database just skips that poll; the bar never touches
-    the database's content.
+    rows of ``table`` through a lock-free (``immutable``) read-only SQLite connection
+    every ``period`` seconds, so it never blocks the writer. A half-written or
+    not-yet-created database just skips that poll; the bar never touches the
+    database's content.
     """
 
     def __init__(self, db_path: Path, table: str, total: int, desc: str, enabled: bool, period: float = 0.5):
@@ -235,7 +236,11 @@ class _DatabaseProgress:
         if not self.db_path.exists():
             return None
         try:
-            con = sqlite3.connect(f"file:{self.db_path}?mode=ro", uri=True, timeout=0.05)
+            # immutable=1: no locks at all, so COLMAP's writer is never blocked by this reader (a
+            # plain read-only connection takes SHARED locks, and a writer that finds the database
+            # busy drops the image: seen as "could not read the image"). The price is that a read
+            # can see a half-written page; it then raises and this poll is skipped.
+            con = sqlite3.connect(f"file:{self.db_path}?mode=ro&immutable=1", uri=True, timeout=0.0)
             try:
                 return int(con.execute(f"SELECT COUNT(*) FROM {self.table}").fetchone()[0])
             finally:

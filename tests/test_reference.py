@@ -221,3 +221,26 @@ def test_database_progress_counts_rows_as_they_are_written(tmp_path):
         assert 1 <= p.bar.n <= 4
     assert p.bar.n == 4  # the final poll on exit
     con.close()
+
+
+def test_progress_polling_never_blocks_pycolmap(scene6, tmp_path, monkeypatch):
+    """Polling the database every 2 ms while pycolmap extracts and matches loses no image.
+
+    A plain read-only SQLite connection takes SHARED locks; COLMAP's writer, finding the
+    database busy, dropped an image or aborted. The bars' connection is lock-free.
+    """
+    import sqlite3
+
+    init = reference._DatabaseProgress.__init__
+    monkeypatch.setattr(reference._DatabaseProgress, "__init__",
+                        lambda self, *a, **k: init(self, *a, **{**k, "period": 0.002}))
+    s = json.loads(reference.main(scene6, tmp_path / "ref", progress=True).read_text())
+    db = next((tmp_path / "ref").glob("database-*.db"))
+    con = sqlite3.connect(db)
+    try:
+        n_kp = con.execute("SELECT COUNT(*) FROM keypoints").fetchone()[0]
+        n_match_rows = con.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
+    finally:
+        con.close()
+    assert n_kp == 6 and n_match_rows == 15
+    assert s["n_registered"] == 6
