@@ -46,6 +46,7 @@ METHODS = ["irls", "irls-h", "sdp-cso3", "sdp-o3-iso"]
 
 sys.path.insert(0, str(REPO))
 from pipeline.atomic import write_json  # noqa: E402
+from pipeline.run import SUBSET_PREFIX  # noqa: E402
 
 
 
@@ -65,7 +66,7 @@ def case_row(name: str, m: dict, wall_s: float) -> dict:
             if k in s:
                 row["methods"][label][k] = s[k]
         for ref_name, sub in s.get("references", {}).items():
-            if ref_name.startswith("truth, pycolmap's"):  # run.py's like-for-like reference
+            if ref_name.startswith(SUBSET_PREFIX):  # run.py's like-for-like reference
                 row["methods"][label]["on_pycolmap_images"] = {k: sub.get(k) for k in (
                     "n_evaluated", "median_deg", "mean_deg", "rms_deg", "max_deg")}
         vs_pyc = s.get("references", {}).get("pycolmap")

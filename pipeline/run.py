@@ -122,17 +122,6 @@ def parse_method(token: str, solver: str = "scs") -> MethodSpec:
     """``irls``, ``irls-<loss>``, ``<loss>``, ``irls-h``, ``irls-h-<loss>``, ``l1``, ``weiszfeld``, ``sdp``,
     ``sdp-<variant>`` → a spec."""
     t = token.strip().lower()
-    if t in ("irls", ""):
-        return MethodSpec("irls-l0.5", {"method": "irls", "loss": "l0.5"})
-    if t == "irls-h" or t.startswith("irls-h-"):
-        loss = t[7:] or "l0.5"
-        try:
-            from pipeline.averaging.losses import get_loss  # noqa: PLC0415
-
-            get_loss(loss)
-        except (KeyError, ValueError) as exc:
-            raise PipelineError(f"unknown method {token!r}: {' '.join(str(exc).split())}") from None
-        return MethodSpec(f"irls-h-{loss}", {"method": "irls-h", "loss": loss})
     if t == "l1":
         return MethodSpec("l1", {"method": "l1"})
     if t == "weiszfeld":
@@ -145,17 +134,18 @@ def parse_method(token: str, solver: str = "scs") -> MethodSpec:
             raise PipelineError(f"unknown SDP variant {v!r} in --methods {token!r}; choose sdp-" +
                                 ", sdp-".join(SDP_VARIANTS))
         return MethodSpec(t, {"method": "sdp", "variant": v, "solver": solver})
-    loss = t[5:] if t.startswith("irls-") else t
-    try:
-        from pipeline.averaging.losses import get_loss  # noqa: PLC0415
+    # IRLS: irls[-<loss>], irls-h[-<loss>] or a bare loss name; ℓ½ by default
+    method = "irls-h" if t == "irls-h" or t.startswith("irls-h-") else "irls"
+    loss = t.removeprefix(method).removeprefix("-") if t.startswith("irls") else t
+    loss = loss or "l0.5"
+    from pipeline.averaging.losses import get_loss  # noqa: PLC0415
 
+    try:
         get_loss(loss)
-    except ImportError:
-        pass
     except (KeyError, ValueError) as exc:
         raise PipelineError(f"unknown method {token!r}: {' '.join(str(exc).split())}; methods are irls, "
                             "irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, sdp-<variant>") from None
-    return MethodSpec(f"irls-{loss}", {"method": "irls", "loss": loss})
+    return MethodSpec(f"{method}-{loss}", {"method": method, "loss": loss})
 
 
 def _mtimes(paths: list[Path]) -> list[int | None]:
@@ -351,7 +341,7 @@ def truth_on_registered(truth: "RefSet | None", pyc: "RefSet", vg: ViewGraph) ->
     view graph. Scoring our methods on pycolmap's images too (aligned on them) is the
     like-for-like comparison; None when pycolmap registered all of ours or there is no truth.
     """
-    if truth is None or truth.name != "truth":
+    if truth is None:
         return None
     from pipeline import evaluate  # noqa: PLC0415
 
@@ -572,15 +562,12 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         runner.times["reference"] = 0.0
         runner.k += 1
 
-    refs: list[RefSet] = []
-    if truth is not None:
-        refs.append(RefSet("truth", list(truth.names), np.asarray(truth.R),
-                           None if truth.centers is None else np.asarray(truth.centers)))
+    truth_ref = None if truth is None else RefSet(
+        "truth", list(truth.names), np.asarray(truth.R), None if truth.centers is None else np.asarray(truth.centers))
+    refs: list[RefSet] = [truth_ref] if truth_ref is not None else []
     if pyc is not None and len(pyc.names) >= 2:
-        refs.append(pyc)
-        sub = truth_on_registered(refs[0] if truth is not None else None, pyc, vg)
-        if sub is not None:
-            refs.insert(1, sub)
+        sub = truth_on_registered(truth_ref, pyc, vg)
+        refs += ([sub] if sub is not None else []) + [pyc]
     metrics, cam_err, edge_err = runner("evaluation", "evaluation", lambda: evaluate_all(
         vg, ransac_vg, results, refs, pyc, rcfg.align))
     if not refs:

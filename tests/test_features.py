@@ -17,7 +17,7 @@ from pipeline.errors import InputFileError
 from pipeline.features import FeatureConfig, extract_sift, load_features
 from pipeline.images import parse_intrinsics_file
 from pipeline.matching import match_descriptors
-from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
+from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
 
@@ -28,17 +28,6 @@ def scene(tmp_path_factory):
     return render_scene(n_views=3, seed=7, out=out, config=CFG)
 
 
-def _sampson_px(s, i, j, xi, xj):
-    R, t = s.relative_pose(i, j)
-    E = essential_from_Rt(R, t)
-    yi = np.column_stack([xi, np.ones(len(xi))]) @ np.linalg.inv(s.K[i]).T
-    yj = np.column_stack([xj, np.ones(len(xj))]) @ np.linalg.inv(s.K[j]).T
-    Ex, Etx = yi @ E.T, yj @ E
-    num = np.sum(yj * Ex, 1)
-    den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
-    return np.abs(num) / np.sqrt(den) * s.K[i][0, 0]
-
-
 def test_keypoints_are_scaled_back_to_full_resolution(scene):
     gray = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) for im in scene.images[:2]]
     cfg = FeatureConfig(max_image_size=160)  # half size
@@ -46,7 +35,7 @@ def test_keypoints_are_scaled_back_to_full_resolution(scene):
     assert k0.xy[:, 0].max() > 200  # full-resolution frame, not the 160-pixel copy
     m = match_descriptors(k0.descriptors, k1.descriptors)
     assert len(m) > 20
-    err = _sampson_px(scene, 0, 1, k0.xy[m[:, 0]], k1.xy[m[:, 1]])
+    err = scene.epipolar_distance_px(0, 1, k0.xy[m[:, 0]], k1.xy[m[:, 1]])
     # true epipolar geometry holds in full-resolution pixels (a wrong scale gives tens of px)
     assert np.median(err) < 1.0
 

@@ -15,7 +15,7 @@ from pipeline import features, matching
 from pipeline.errors import InputFileError
 from pipeline.features import extract_sift
 from pipeline.matching import MatchingConfig, exhaustive_pairs, load_matches, match_descriptors, read_pairs
-from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
+from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
 
@@ -30,22 +30,12 @@ def kps(scene):
     return [extract_sift(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY)) for im in scene.images]
 
 
-def _epipolar_px(s, i, j, xi, xj):
-    R, t = s.relative_pose(i, j)
-    E = essential_from_Rt(R, t)
-    yi = np.column_stack([xi, np.ones(len(xi))]) @ np.linalg.inv(s.K[i]).T
-    yj = np.column_stack([xj, np.ones(len(xj))]) @ np.linalg.inv(s.K[j]).T
-    Ex, Etx = yi @ E.T, yj @ E
-    den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
-    return np.abs(np.sum(yj * Ex, 1)) / np.sqrt(den) * s.K[i][0, 0]
-
-
 @pytest.mark.parametrize("method", ["bf", "flann"])
 def test_matches_follow_true_geometry_and_are_one_to_one(scene, kps, method):
     m = match_descriptors(kps[0].descriptors, kps[1].descriptors, MatchingConfig(method=method))
     assert len(m) > 100
     assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)  # mutual check: one-to-one
-    err = _epipolar_px(scene, 0, 1, kps[0].xy[m[:, 0]], kps[1].xy[m[:, 1]])
+    err = scene.epipolar_distance_px(0, 1, kps[0].xy[m[:, 0]], kps[1].xy[m[:, 1]])
     assert np.mean(err < 2.0) > 0.9
 
 

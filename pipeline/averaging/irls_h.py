@@ -140,8 +140,10 @@ class BlockLaplacianSolver:
 
     def factor(self, B: np.ndarray) -> None:
         """Factor the gauge-fixed block Laplacian for edge blocks ``B`` (M, 3, 3)."""
-        self._lu = sla.splu(self.matrix(B), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                            options=dict(SymmetricMode=True))
+        self._factorize(self.matrix(B))
+
+    def _factorize(self, A: sp.csc_matrix) -> None:
+        self._lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
         self._lu_pinned = self.pinned.copy()
         self.n_factorizations += 1
 
@@ -155,8 +157,8 @@ class BlockLaplacianSolver:
         gauge (the pinned cameras) changed, the current matrix is factored instead. The
         solution is that of the current matrix either way (to ``rtol``).
         """
-        A = self.matrix(B)
-        pinned = self.pinned.copy()
+        A = self.matrix(B)  # sets self.pinned for B
+        pinned = self.pinned
         if self._lu is not None and np.array_equal(pinned, self._lu_pinned):
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[pinned] = 0.0
@@ -173,9 +175,7 @@ class BlockLaplacianSolver:
                 x = x.reshape(self.n, 3)
                 x[pinned] = 0.0
                 return x
-        self._lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-        self._lu_pinned = pinned
-        self.n_factorizations += 1
+        self._factorize(A)
         return self.solve(b)
 
     def solve(self, b: np.ndarray) -> np.ndarray:

@@ -106,13 +106,20 @@ def _isotropic_measurements(
     M = edges.shape[0]
     dw = np.deg2rad(sigma_deg) * rng.standard_normal((M, 3))
     R_rel = so3.exp(dw) @ _true_relative(R, edges)
-    n_out = int(round(outlier_frac * M))
+    idx, rot = _draw_outliers(M, outlier_frac, rng)
     mask = np.zeros(M, dtype=bool)
-    if n_out:
-        idx = rng.choice(M, size=n_out, replace=False)
-        mask[idx] = True
-        R_rel[idx] = so3.random_rotations(n_out, rng)
+    mask[idx] = True
+    R_rel[idx] = rot
     return R_rel, mask
+
+
+def _draw_outliers(m: int, frac: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``round(frac·m)`` edge indices drawn uniformly without replacement, and as many Haar-random rotations."""
+    n_out = int(round(frac * m))
+    if not n_out:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3))
+    idx = rng.choice(m, size=n_out, replace=False)
+    return idx, so3.random_rotations(n_out, rng)
 
 
 def paper1_graph(n: int, p: float, sigma_deg: float, outlier_frac: float = 0.0, seed: int = 0) -> SyntheticGraph:
@@ -294,9 +301,9 @@ def with_outliers(vg: ViewGraph, frac: float, seed: int = 0) -> tuple[ViewGraph,
         the new view graph and the (M,) outlier mask.
     """
     _check(2, outlier_frac=frac)
-    rng = np.random.default_rng(seed)
+    idx, rot = _draw_outliers(vg.n_edges, frac, np.random.default_rng(seed))
     out = np.zeros(vg.n_edges, dtype=bool)
-    out[rng.choice(vg.n_edges, int(round(frac * vg.n_edges)), replace=False)] = True
+    out[idx] = True
     R_rel = vg.R_rel.copy()
-    R_rel[out] = so3.random_rotations(int(out.sum()), rng)
+    R_rel[out] = rot  # in edge order (as benchmarks/results/irls_h.json was made), not in draw order
     return ViewGraph(vg.names, vg.edges, R_rel, H=vg.H, inliers=vg.inliers), out

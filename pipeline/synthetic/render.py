@@ -164,6 +164,14 @@ class RenderedScene:
         t_ij = self.t[j] - R_ij @ self.t[i]
         return R_ij, t_ij / np.linalg.norm(t_ij)
 
+    def epipolar_distance_px(self, i: int, j: int, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+        """|Sampson distance| in pixels (view i's focal) of matches ``x_i ↔ x_j`` (n, 2) from the true geometry."""
+        from ..two_view import _normalize, sampson_distance  # noqa: PLC0415
+
+        R, t = self.relative_pose(i, j)
+        y_i, y_j = _normalize(x_i, self.K[i]), _normalize(x_j, self.K[j])
+        return np.abs(sampson_distance(R, t, y_i, y_j)) * self.K[i][0, 0]
+
     def project(self, i: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points X (P, 3) into view i: pixels (P, 2) and depths (P,)."""
         Xc = X @ self.R[i].T + self.t[i]
