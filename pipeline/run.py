@@ -118,6 +118,20 @@ class MethodSpec:
     options: dict[str, Any]
 
 
+def parse_methods(methods: list[str] | tuple[str, ...], solver: str = "scs") -> list[MethodSpec]:
+    """Specs of ``--methods`` tokens (each may hold several, comma-separated); empty: the defaults apply.
+
+    A token naming an existing folder is the image folder swallowed by ``--methods M [M ...]``:
+    the error says so, before any work is done.
+    """
+    tokens = [t.strip() for m in methods for t in str(m).split(",") if t.strip()]
+    for t in tokens:
+        if Path(t).is_dir():
+            raise InputFileError(f"--methods got the folder {t!r}: put IMAGE_DIR before --methods "
+                                 f"(run.py {t} --methods irls sdp) or separate the methods by commas")
+    return [parse_method(t, solver) for t in tokens]
+
+
 def parse_method(token: str, solver: str = "scs") -> MethodSpec:
     """``irls``, ``irls-<loss>``, ``<loss>``, ``irls-h``, ``irls-h-<loss>``, ``l1``, ``weiszfeld``, ``sdp``,
     ``sdp-<variant>`` → a spec."""
@@ -451,6 +465,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     if unknown:
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
+    given = parse_methods(methods or rcfg.methods, rcfg.sdp_solver)  # checked before any work
     out = Path(out) if out is not None else default_out(images)
     check_writable(out)
     progress = not quiet
@@ -507,8 +522,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                      f"left out: {', '.join(dropped)}")
         notes += [f"left out of the view graph: {n}: {w}" for n, w in left_out.items()]
 
-    tokens = [t for m in (methods or rcfg.methods) for t in str(m).split(",") if t.strip()]
-    specs = [parse_method(m, rcfg.sdp_solver) for m in tokens]
+    specs = list(given)
     if not specs:
         specs = [parse_method("irls")]
         if vg.H is not None:
@@ -677,7 +691,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
     p.add_argument("--methods", nargs="+", default=None, metavar="M",
                    help="averaging methods: irls, irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, "
-                        "sdp-<cso3|cso3-iso|o3-iso|o3-aniso>")
+                        "sdp-<cso3|cso3-iso|o3-iso|o3-aniso>; put IMAGE_DIR first or separate methods by commas")
     p.add_argument("--gt", type=Path, default=None, help="true cameras (cameras file, gt_dense_cameras/, *_par.txt, "
                    "COLMAP model, rotations file)")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3×3) or a per-image cameras file")

@@ -91,6 +91,19 @@ def test_single_image(tmp_path, two_views):
     assert_one_line_error(run_cli(str(folder), "--out", str(tmp_path / "o")), "at least 2")
 
 
+def test_folder_swallowed_by_methods_is_named_before_any_work(tmp_path, two_views):
+    out = tmp_path / "o"
+    r = run_cli("--methods", "irls", "sdp", str(two_views), "--out", str(out))
+    assert_one_line_error(r, "put IMAGE_DIR before --methods")
+    assert not out.exists(), "nothing is rendered or computed before the methods are checked"
+
+
+def test_unknown_method_is_named_before_any_work(tmp_path, two_views):
+    out = tmp_path / "o"
+    assert_one_line_error(run_cli(str(two_views), "--methods", "irls,nope", "--out", str(out)), "unknown method 'nope'")
+    assert not out.exists()
+
+
 def test_missing_folder(tmp_path):
     assert_one_line_error(run_cli(str(tmp_path / "nope"), "--out", str(tmp_path / "o")), "does not exist")
 
