@@ -56,6 +56,7 @@ __all__ = [
     "summarize",
     "edge_errors_deg",
     "edge_stats",
+    "match_indices",
     "match_reference",
     "main",
     "main_cli",
@@ -275,12 +276,28 @@ def _stem(name: str) -> str:
     return p.name[: -len(p.suffix)] if p.suffix else p.name
 
 
-def match_reference(names: list[str], ref_names: list[str], R_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reference rotation for each camera name.
+def match_indices(names: list[str], ref_names: list[str]) -> np.ndarray:
+    """(N,) index into ``ref_names`` of each name, or −1.
 
     A name matches a reference name exactly, or else by file stem (``"0001"``
     matches ``"0001.jpg"``, ``"img/0001.png"`` matches ``"0001.jpg"``); stems
     shared by several reference names are ambiguous and do not match.
+    """
+    exact = {n: k for k, n in enumerate(ref_names)}
+    stems: dict[str, int] = {}
+    ambiguous: set[str] = set()
+    for k, n in enumerate(ref_names):
+        s = _stem(n)
+        if s in stems:
+            ambiguous.add(s)
+        stems[s] = k
+    for s in ambiguous:
+        del stems[s]
+    return np.array([exact.get(n, stems.get(_stem(n), -1)) for n in names], dtype=np.int64)
+
+
+def match_reference(names: list[str], ref_names: list[str], R_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reference rotation for each camera name, matched by :func:`match_indices`.
 
     Args:
         names: N camera names of the estimate.
@@ -293,17 +310,7 @@ def match_reference(names: list[str], ref_names: list[str], R_ref: np.ndarray) -
     R_ref = np.asarray(R_ref, dtype=np.float64)
     if R_ref.shape != (len(ref_names), 3, 3):
         raise ValueError(f"R_ref.shape={R_ref.shape} but expected ({len(ref_names)}, 3, 3)")
-    exact = {n: k for k, n in enumerate(ref_names)}
-    stems: dict[str, int] = {}
-    ambiguous: set[str] = set()
-    for k, n in enumerate(ref_names):
-        s = _stem(n)
-        if s in stems:
-            ambiguous.add(s)
-        stems[s] = k
-    for s in ambiguous:
-        del stems[s]
-    idx = np.array([exact.get(n, stems.get(_stem(n), -1)) for n in names], dtype=np.int64)
+    idx = match_indices(names, ref_names)
     mask = idx >= 0
     out = np.broadcast_to(np.eye(3), (len(names), 3, 3)).copy()
     out[mask] = R_ref[idx[mask]]
