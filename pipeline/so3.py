@@ -16,6 +16,7 @@ __all__ = [
     "log",
     "angle",
     "angle_between",
+    "relative",
     "chordal_distance",
     "project_to_so3",
     "quat_from_matrix",
@@ -46,6 +47,13 @@ def _check_vectors(w: np.ndarray, name: str = "w") -> np.ndarray:
     if w.shape[-1:] != (3,):
         raise ValueError(f"{name}.shape={w.shape} but expected (..., 3)")
     return w
+
+
+def relative(R: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``R_j R_iᵀ`` (M, 3, 3) of the blocks ``R`` (N, 3, 3) on the edges (M, 2) ``(i, j)``."""
+    R = _check_matrices(R)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    return R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], -1, -2)
 
 
 def hat(w: np.ndarray) -> np.ndarray:

@@ -237,8 +237,7 @@ class ViewGraph:
     def from_absolute(cls, names: list[str], R: np.ndarray, edges: np.ndarray, **kw) -> "ViewGraph":
         """Noise-free view graph ``R_ij = R_j R_iᵀ`` from absolute rotations ``R`` (N, 3, 3)."""
         edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-        R = np.asarray(R, dtype=np.float64)
-        return cls.from_edges(names, edges, R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2), **kw)
+        return cls.from_edges(names, edges, so3.relative(R, edges), **kw)
 
     # ------------------------------------------------------------------ graphs
     def adjacency(self, weights: np.ndarray | None = None) -> sp.csr_matrix:

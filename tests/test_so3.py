@@ -163,3 +163,14 @@ def test_benchmark_script_runs(tmp_path, repo_root) -> None:
     data = json.loads(js.read_text())
     assert {r["op"] for r in data["results"]} == {"exp", "log"}
     assert data["max_abs_diff"]["exp"] < 1e-12 and data["max_abs_diff"]["log"] < 1e-12
+
+
+def test_relative_is_rj_ri_transpose_per_edge():
+    rng = np.random.default_rng(11)
+    R = so3.random_rotations(5, rng)
+    edges = np.array([[0, 1], [3, 2], [4, 0]])
+    got = so3.relative(R, edges)
+    for k, (i, j) in enumerate(edges):
+        np.testing.assert_allclose(got[k], R[j] @ R[i].T, atol=1e-15)
+    with pytest.raises(ValueError, match="expected"):
+        so3.relative(np.zeros((5, 3)), edges)

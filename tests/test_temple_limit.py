@@ -34,10 +34,6 @@ def bench():
     return mod
 
 
-def _relative(R, edges):
-    return R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2)
-
-
 def test_information_matches_a_dense_assembly_and_has_the_rotation_gauge(bench):
     g = paper2_graph(7, 0.6, eig_range=(10.0, 1e4), seed=3)
     vg, R = g.vg, g.R_true
@@ -45,7 +41,7 @@ def test_information_matches_a_dense_assembly_and_has_the_rotation_gauge(bench):
     ref = np.zeros_like(J)
     for k, (i, j) in enumerate(vg.edges):  # the textbook assembly, one edge at a time
         A = np.zeros((3, 3 * vg.n_cameras))
-        A[:, 3 * i:3 * i + 3] = -_relative(R, vg.edges)[k]
+        A[:, 3 * i:3 * i + 3] = -so3.relative(R, vg.edges)[k]
         A[:, 3 * j:3 * j + 3] = np.eye(3)
         ref += A.T @ vg.H[k] @ A
     np.testing.assert_allclose(J, ref, rtol=1e-12, atol=1e-9)
@@ -62,7 +58,7 @@ def test_bound_matches_monte_carlo_of_the_maximum_likelihood_estimate(bench):
     mask[:3] = False  # score a subset, aligned on it, as the benchmark scores pycolmap's images
     pred = bench.predicted_errors(bench.information(vg, R, vg.H), R, mask, draws=4000, seed=0)
     rng = np.random.default_rng(7)
-    Rrel = _relative(R, vg.edges)
+    Rrel = so3.relative(R, vg.edges)
     got = []
     for _ in range(120):
         meas = so3.exp(sample_left_noise(vg.H, rng)) @ Rrel
@@ -80,11 +76,11 @@ def test_bound_matches_monte_carlo_of_the_maximum_likelihood_estimate(bench):
     assert np.median(iso) > 1.2 * np.median(pred)
 
 
-def _pose_measurement(R, C, edges, B):
-    """(δ-free) measured quantities of the model: R_ij and Bᵀ t with t = normalize(R_j (c_i − c_j))."""
+def _pose_measurement(R, C, edges):
+    """What the model predicts a pair measures: ``R_ij`` and ``t = normalize(R_j (c_i − c_j))``."""
     u = np.einsum("mab,mb->ma", R[edges[:, 1]], C[edges[:, 0]] - C[edges[:, 1]])
     t = u / np.linalg.norm(u, axis=1, keepdims=True)
-    return _relative(R, edges), t
+    return so3.relative(R, edges), t
 
 
 def test_pose_jacobian_matches_finite_differences(bench):
@@ -94,7 +90,7 @@ def test_pose_jacobian_matches_finite_differences(bench):
     g = paper2_graph(6, 0.7, seed=2)
     vg, R = g.vg, g.R_true
     C = rng.normal(size=(vg.n_cameras, 3))
-    Rij, t = _pose_measurement(R, C, vg.edges, None)
+    Rij, t = _pose_measurement(R, C, vg.edges)
     B = np.stack([tangent_basis(v) for v in t])
     A = bench.pose_jacobian(vg, R, C, B)
     i, j = vg.edges.T
@@ -111,7 +107,7 @@ def test_pose_jacobian_matches_finite_differences(bench):
                     R3[cam] = so3.exp(d) @ R[cam]
                 else:
                     C3[cam] = C[cam] + d
-                Rk, tk = _pose_measurement(R3, C3, vg.edges[k:k + 1], None)
+                Rk, tk = _pose_measurement(R3, C3, vg.edges[k:k + 1])
                 dd = so3.log(Rk[0] @ Rij[k].T) / h
                 dt = B[k].T @ (tk[0] - t[k]) / h
                 np.testing.assert_allclose(np.concatenate([dd, dt]), A[k, :, var, a], atol=2e-5)
@@ -125,7 +121,7 @@ def test_pose_information_has_the_similarity_gauge(bench):
     vg, R = g.vg, g.R_true
     N = vg.n_cameras
     C = rng.normal(size=(N, 3))
-    _, t = _pose_measurement(R, C, vg.edges, None)
+    _, t = _pose_measurement(R, C, vg.edges)
     B = np.stack([tangent_basis(v) for v in t])
     L = rng.normal(size=(vg.n_edges, 5, 5))
     S = L @ np.swapaxes(L, 1, 2) + 0.1 * np.eye(5)

@@ -55,7 +55,7 @@ def edge_cost(edges: np.ndarray, C: np.ndarray, R: np.ndarray) -> float:
     Returns:
         The cost, a float.
     """
-    Rij = R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2)
+    Rij = so3.relative(R, edges)
     return float(-np.sum(C * Rij))
 
 

@@ -551,7 +551,7 @@ def solve_sdp(
             method, att["rank"], att["gap"], cert_tol, att["status"],
         )
     R = att["R"]
-    resid = so3.angle_between(R[vg.edges[:, 1]] @ np.swapaxes(R[vg.edges[:, 0]], 1, 2), vg.R_rel)
+    resid = so3.angle_between(so3.relative(R, vg.edges), vg.R_rel)
     stats = {
         "variant": variant,
         "solver": att["solver"],

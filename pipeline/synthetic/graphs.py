@@ -90,7 +90,7 @@ def _pairs(n: int) -> np.ndarray:
 
 def _true_relative(R: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """(M, 3, 3) ``R_j R_iᵀ`` for each edge."""
-    return R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2)
+    return so3.relative(R, edges)
 
 
 def _isotropic_measurements(
