@@ -45,7 +45,7 @@ RESULTS = REPO / "benchmarks" / "results" / "end_to_end.json"
 METHODS = ["irls", "irls-h", "sdp-cso3", "sdp-o3-iso"]
 
 sys.path.insert(0, str(REPO))
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.run import SUBSET_PREFIX  # noqa: E402
 
 
@@ -107,7 +107,7 @@ def without_degenerate(name: str, out: Path, gt: Path) -> dict | None:
     from pipeline.average import average
     from pipeline.evaluate import match_reference, summarize
     from pipeline.io.references import read_reference
-    from pipeline.viewgraph import ViewGraph
+    from pipeline.core.viewgraph import ViewGraph
 
     vg = ViewGraph.load(out / "viewgraph.npz")
     flag = np.asarray(vg.stats.get("degenerate", np.zeros(vg.n_edges, bool)), bool)

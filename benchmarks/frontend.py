@@ -46,10 +46,10 @@ sys.path.insert(0, str(REPO))
 import pycolmap  # noqa: E402
 
 from pipeline import features, matching, two_view  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.evaluate import edge_stats, match_reference  # noqa: E402
 from pipeline.io.references import read_reference  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 MAX_SIZE = 1600

@@ -39,13 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import so3
-from pipeline.atomic import write_json
+from pipeline.core import so3
+from pipeline.core.atomic import write_json
 from pipeline.averaging.init import rotations_from_tree, spanning_tree
 from pipeline.averaging.irls import irls
 from pipeline.averaging.weiszfeld import weiszfeld
 from pipeline.evaluate import rotation_errors_deg
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.atomic import save_figure, write_json
+from pipeline.core.atomic import save_figure, write_json
 from pipeline.averaging.irls import irls
 from pipeline.averaging.weiszfeld import weiszfeld
 from pipeline.evaluate import rotation_errors_deg

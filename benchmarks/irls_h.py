@@ -59,13 +59,13 @@ import sdp_common  # noqa: E402  (drops benchmarks/ from sys.path again)
 
 import numpy as np  # noqa: E402
 
-from pipeline import so3  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core import so3  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.average import average  # noqa: E402
 from pipeline.averaging.irls import irls  # noqa: E402
 from pipeline.evaluate import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise, with_outliers  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 sys.path.append(str(_HERE))  # at the end: nothing there may shadow the package
 from irls_peers import run_colmap  # noqa: E402

@@ -52,7 +52,7 @@ print(json.dumps({"n": n, "m": g.vg.n_edges, "wall_s": wall, "solver_time_s": re
 
 
 def main(argv: list[str] | None = None) -> int:
-    from pipeline.atomic import write_json
+    from pipeline.core.atomic import write_json
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="N = 2000, k = 22")

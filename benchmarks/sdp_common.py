@@ -20,7 +20,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 import numpy as np  # noqa: E402
 
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 RESULTS = _HERE / "results"
 

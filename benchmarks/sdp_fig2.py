@@ -32,11 +32,11 @@ import numpy as np
 _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
-from pipeline import so3  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core import so3  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging.sdp import solve_sdp  # noqa: E402
 from pipeline.synthetic.graphs import paper2_graph, random_precisions, sample_left_noise  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results" / "sdp_fig2.json"
 

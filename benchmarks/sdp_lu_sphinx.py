@@ -26,7 +26,7 @@ import sdp_common  # noqa: E402,F401  (fixes sys.path before pipeline is importe
 
 import numpy as np  # noqa: E402
 
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging.sdp import solve_sdp  # noqa: E402
 from pipeline.evaluate import summarize  # noqa: E402
 from pipeline.io.mat import read_lu_sphinx  # noqa: E402

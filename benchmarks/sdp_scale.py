@@ -34,11 +34,11 @@ import sdp_common  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from pipeline import so3  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core import so3  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.evaluate import frobenius_error, rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 OUT = sdp_common.RESULTS / "sdp_scale.json"
 MEM_CAP_GB = 8.0

@@ -30,8 +30,8 @@ import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from pipeline import so3  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core import so3  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "so3.json"
 

@@ -62,12 +62,12 @@ CHI2_1_MEDIAN = 0.455  # median of χ²₁ (0.4549), for the per-direction NEES
 EXPONENTS = (0.5, 0.75, 1.0, 1.25, 1.5)
 
 sys.path.insert(0, str(REPO))
-from pipeline import so3  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core import so3  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging.irls_h import CHI2_3_MEDIAN, irls_h  # noqa: E402
 from pipeline.evaluate import edge_errors_deg, match_indices, match_reference, rotation_errors_deg  # noqa: E402
 from pipeline.io.references import read_reference  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 
 def ensure_run(name: str, out: Path) -> Path:

@@ -43,9 +43,9 @@ from scipy.optimize import least_squares  # noqa: E402
 from scipy.optimize._numdiff import approx_derivative  # noqa: E402
 from scipy.sparse.linalg import splu  # noqa: E402
 
-from pipeline import so3  # noqa: E402
+from pipeline.core import so3  # noqa: E402
 from pipeline import two_view_ba as tb  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "two_view_ba.json"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -215,7 +215,7 @@ def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
     from pipeline.evaluate import edge_stats, match_reference
     from pipeline.io.references import read_reference
     from pipeline.two_view import load_two_view
-    from pipeline.viewgraph import ViewGraph
+    from pipeline.core.viewgraph import ViewGraph
 
     out: dict = {}
     print("\n== accuracy (median relative-rotation error vs reference) and anisotropy of H ==")

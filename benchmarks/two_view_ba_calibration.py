@@ -32,9 +32,9 @@ sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).re
 
 import numpy as np  # noqa: E402
 
-from pipeline import so3  # noqa: E402
+from pipeline.core import so3  # noqa: E402
 from pipeline import two_view_ba as tb  # noqa: E402
-from pipeline.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "two_view_ba_calibration.json"
 

@@ -40,14 +40,14 @@ from typing import Any
 
 import numpy as np
 
-from .averaging.irls import check_graph, irls
-from .averaging.l1 import l1_averaging, edge_residuals
-from .averaging.init import initial_rotations
-from .averaging.losses import LOSS_NAMES, get_loss
-from .averaging.result import AveragingResult
-from .averaging.weiszfeld import weiszfeld
-from .errors import InputFileError, ViewGraphError
-from .viewgraph import ViewGraph
+from pipeline.averaging.irls import check_graph, irls
+from pipeline.averaging.l1 import l1_averaging, edge_residuals
+from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.losses import LOSS_NAMES, get_loss
+from pipeline.averaging.result import AveragingResult
+from pipeline.averaging.weiszfeld import weiszfeld
+from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["average", "main", "main_cli", "METHODS"]
 
@@ -140,7 +140,7 @@ def average(
         kw.setdefault("refine", True)
         out = irls(sub, loss=loss, alpha_deg=alpha_deg, init=init, **kw)
     elif method == "irls-h":
-        from .averaging.irls_h import irls_h
+        from pipeline.averaging.irls_h import irls_h
 
         out = irls_h(sub, loss=loss, init=init, **kw)
     elif method == "l1":
@@ -149,7 +149,7 @@ def average(
         out = weiszfeld(sub, init=init, **kw)
     else:
         try:
-            from .averaging.sdp import solve_sdp
+            from pipeline.averaging.sdp import solve_sdp
         except ImportError as exc:  # pragma: no cover - depends on helper C's module
             raise ValueError(f"method 'sdp' is unavailable: {exc}") from exc
         out = solve_sdp(sub, variant=variant, solver=solver, **kw)
@@ -184,7 +184,7 @@ def _stored_hash(path: Path) -> str | None:
 def _load_init(init: str, vg: ViewGraph) -> str | np.ndarray:
     if init in ("mst", "random"):
         return init
-    from .io.rotations import read_rotations
+    from pipeline.io.rotations import read_rotations
 
     p = Path(init)
     if not p.is_file():
@@ -214,9 +214,9 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
     Returns:
         ``out_path``.
     """
-    from .atomic import write_json
-    from .io.mat import read_input_graph
-    from .io.rotations import write_rotations
+    from pipeline.core.atomic import write_json
+    from pipeline.io.mat import read_input_graph
+    from pipeline.io.rotations import write_rotations
 
     input_path, out_path = Path(input_path), Path(out_path)
     if not input_path.is_file():
@@ -250,7 +250,7 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
                  "relative_weight": float(w[k])} for (a, b), k in zip(e, order)
             ]
         if data.R_gt is not None:
-            from .evaluate import summarize
+            from pipeline.evaluate import summarize
 
             kept = np.array([vg.names.index(n) for n in res.names])
             mask = None if data.gt_mask is None else data.gt_mask[kept]
@@ -262,7 +262,7 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli
+    from pipeline.core.cli import run_cli
 
     p = argparse.ArgumentParser(prog="python -m pipeline.average", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)

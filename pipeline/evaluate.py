@@ -41,10 +41,10 @@ from typing import Any
 
 import numpy as np
 
-from . import so3
-from .atomic import write_json
-from .cli import run_cli
-from .viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.atomic import write_json
+from pipeline.core.cli import run_cli
+from pipeline.core.viewgraph import ViewGraph
 
 logger = logging.getLogger(__name__)
 
@@ -380,9 +380,9 @@ def main(
         with ``viewgraph``, ``edges`` (the :func:`edge_stats` dict). With only
         ``viewgraph``: the :func:`edge_stats` dict.
     """
-    from .io.mat import read_input_graph
-    from .io.references import read_reference
-    from .io.rotations import read_rotations
+    from pipeline.io.mat import read_input_graph
+    from pipeline.io.references import read_reference
+    from pipeline.io.rotations import read_rotations
 
     if rotations is None and viewgraph is None:
         raise ValueError("nothing to evaluate: give --rotations FILE and/or --viewgraph FILE")

@@ -42,10 +42,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .atomic import save_npz, write_json
-from .config import config_hash
-from .errors import InputFileError
-from .images import IMAGE_EXTENSIONS, list_images, read_gray, resolve_intrinsics
+from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.config import config_hash
+from pipeline.core.errors import InputFileError
+from pipeline.images import IMAGE_EXTENSIONS, list_images, read_gray, resolve_intrinsics
 
 logger = logging.getLogger(__name__)
 
@@ -354,8 +354,8 @@ def load_features(work: Path) -> FeatureSet:
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli
-    from .config import load_yaml, stage_config
+    from pipeline.core.cli import run_cli
+    from pipeline.core.config import load_yaml, stage_config
 
     p = argparse.ArgumentParser(prog="python -m pipeline.features", description="SIFT features of an image folder (cached per image).")
     p.add_argument("--images", type=Path, required=True, help="folder of images")

@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import InputFileError
+from pipeline.core.errors import InputFileError
 
 logger = logging.getLogger(__name__)
 

@@ -56,10 +56,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .atomic import save_npz, write_json
-from .config import config_hash
-from .errors import InputFileError
-from .features import FeatureSet, load_features
+from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.config import config_hash
+from pipeline.core.errors import InputFileError
+from pipeline.features import FeatureSet, load_features
 
 logger = logging.getLogger(__name__)
 
@@ -393,8 +393,8 @@ def load_matches(work: Path) -> MatchSet:
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli
-    from .config import load_yaml, stage_config
+    from pipeline.core.cli import run_cli
+    from pipeline.core.config import load_yaml, stage_config
 
     p = argparse.ArgumentParser(prog="python -m pipeline.matching", description="Match the SIFT features of WORK (ratio test + mutual check).")
     p.add_argument("--work", type=Path, required=True, help="WORK folder written by pipeline.features")

@@ -52,10 +52,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from .atomic import atomic_path, write_json
-from .config import config_hash
-from .errors import InputFileError, PipelineError
-from .io.rotations import read_rotations, write_rotations
+from pipeline.core.atomic import atomic_path, write_json
+from pipeline.core.config import config_hash
+from pipeline.core.errors import InputFileError, PipelineError
+from pipeline.io.rotations import read_rotations, write_rotations
 
 logger = logging.getLogger(__name__)
 
@@ -114,7 +114,7 @@ def _pycolmap():
 
 def list_images(images: Path) -> list[str]:
     """Sorted image file names in ``images`` (the front end's listing, so both see the same images)."""
-    from .images import list_images as _list  # noqa: PLC0415
+    from pipeline.images import list_images as _list  # noqa: PLC0415
 
     return _list(images)[0]
 
@@ -147,14 +147,14 @@ def load_known_K(K: str | os.PathLike | np.ndarray | None, names: list[str]) -> 
     if not path.exists():
         raise InputFileError(f"intrinsics file {path} does not exist; pass a K.txt (3×3) or a cameras file")
     if path.is_file():
-        from .images import parse_intrinsics_file  # noqa: PLC0415
+        from pipeline.images import parse_intrinsics_file  # noqa: PLC0415
 
         parsed = parse_intrinsics_file(path)
         if isinstance(parsed, np.ndarray):
             return np.broadcast_to(parsed, (n, 3, 3)).copy()
         by_name = dict(parsed)
     else:
-        from .io.references import read_reference  # noqa: PLC0415
+        from pipeline.io.references import read_reference  # noqa: PLC0415
 
         ref = read_reference(path)
         if ref.K is None:
@@ -327,8 +327,8 @@ def _build_database(pc, db_path: Path, images: Path, names: list[str], Ks: np.nd
 
 def _import_our_matches(pc, db_path: Path, images: Path, names: list[str], reader, mode, work: Path) -> None:
     """Write our keypoints and putative matches into a COLMAP database."""
-    from .features import load_features  # noqa: PLC0415
-    from . import matching as our_matching  # noqa: PLC0415
+    from pipeline.features import load_features  # noqa: PLC0415
+    from pipeline import matching as our_matching  # noqa: PLC0415
 
     fs = load_features(work)
     if list(fs.names) != list(names):
@@ -563,7 +563,7 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
     if len(names) < 2:
         raise InputFileError(f"{images} has {len(names)} image(s); a reconstruction needs at least 2")
     if K is None and cfg.find_K_in_folder:
-        from .images import find_intrinsics_file  # noqa: PLC0415
+        from pipeline.images import find_intrinsics_file  # noqa: PLC0415
 
         K = find_intrinsics_file(images)  # the same file our feature stage picks up
     Ks = load_known_K(K, names)
@@ -606,8 +606,8 @@ def load_reference_result(out: str | os.PathLike) -> ReferenceResult:
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli  # noqa: PLC0415
-    from .config import load_yaml, stage_config  # noqa: PLC0415
+    from pipeline.core.cli import run_cli  # noqa: PLC0415
+    from pipeline.core.config import load_yaml, stage_config  # noqa: PLC0415
 
     parser = argparse.ArgumentParser(prog="python -m pipeline.reference",
                                      description="pycolmap incremental reconstruction of an image folder (a reference)")

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .atomic import atomic_open, save_figure
+from pipeline.core.atomic import atomic_open, save_figure
 
 logger = logging.getLogger(__name__)
 

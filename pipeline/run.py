@@ -62,10 +62,10 @@ from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from pipeline.atomic import write_json  # noqa: E402
-from pipeline.config import load_yaml, stage_config  # noqa: E402
-from pipeline.errors import InputFileError, PipelineError  # noqa: E402
-from pipeline.viewgraph import ViewGraph  # noqa: E402
+from pipeline.core.atomic import write_json  # noqa: E402
+from pipeline.core.config import load_yaml, stage_config  # noqa: E402
+from pipeline.core.errors import InputFileError, PipelineError  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 logger = logging.getLogger("run")
 
@@ -701,7 +701,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli  # noqa: PLC0415
+    from pipeline.core.cli import run_cli  # noqa: PLC0415
 
     def body(a: argparse.Namespace) -> int:
         main(a.images, a.out, a.config, a.methods, a.gt, a.K, False if a.no_reference else None, a.overwrite, a.quiet)

@@ -63,12 +63,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from .atomic import save_npz, write_json
-from .config import config_hash
-from .errors import InputFileError
-from .features import load_features
-from .matching import load_matches
-from .viewgraph import ViewGraph
+from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.config import config_hash
+from pipeline.core.errors import InputFileError
+from pipeline.features import load_features
+from pipeline.matching import load_matches
+from pipeline.core.viewgraph import ViewGraph
 
 logger = logging.getLogger(__name__)
 
@@ -201,7 +201,7 @@ def refine_pose(R0: np.ndarray, t0: np.ndarray, y_i: np.ndarray, y_j: np.ndarray
     """
     from scipy.optimize import least_squares
 
-    from . import so3
+    from pipeline.core import so3
 
     t0 = t0 / np.linalg.norm(t0)
     # orthonormal basis of the tangent plane of the unit sphere at t0
@@ -529,8 +529,8 @@ def load_two_view(work: Path) -> TwoViewData:
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from .cli import run_cli
-    from .config import load_yaml, stage_config
+    from pipeline.core.cli import run_cli
+    from pipeline.core.config import load_yaml, stage_config
 
     p = argparse.ArgumentParser(prog="python -m pipeline.two_view", description="5-point RANSAC relative poses of the matched pairs of WORK.")
     p.add_argument("--work", type=Path, required=True, help="WORK folder written by pipeline.features and pipeline.matching")

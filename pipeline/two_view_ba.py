@@ -55,7 +55,7 @@ WORK layout (read and written by :func:`main`):
 * input: whatever :func:`pipeline.two_view.load_two_view` reads (helper D's
   stage), giving the RANSAC view graph, the intrinsics and the inlier
   correspondences of every edge;
-* output: ``WORK/viewgraph.npz`` (a :class:`~pipeline.viewgraph.ViewGraph` with
+* output: ``WORK/viewgraph.npz`` (a :class:`~pipeline.core.viewgraph.ViewGraph` with
   ``H``, BA inlier counts and per-edge stats, ``allow_isolated=True``) and
   ``WORK/viewgraph.json`` (configuration, its hash, a fingerprint of the input,
   timings and the pairs that were dropped, with reasons). A re-run with the same
@@ -85,11 +85,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from . import so3
-from .atomic import write_json
-from .config import config_hash, load_yaml, stage_config
-from .errors import InputFileError, PipelineError
-from .viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.atomic import write_json
+from pipeline.core.config import config_hash, load_yaml, stage_config
+from pipeline.core.errors import InputFileError, PipelineError
+from pipeline.core.viewgraph import ViewGraph
 
 __all__ = [
     "BAConfig",
@@ -1138,7 +1138,7 @@ def main(work: Path, config: BAConfig | None = None, overwrite: bool = False, pr
     work = Path(work)
     if not work.is_dir():
         raise InputFileError(f"WORK folder {work} does not exist; run the front end (features, matching, two_view) first")
-    from .two_view import load_two_view  # the front end; imported lazily so this module stands alone
+    from pipeline.two_view import load_two_view  # the front end; imported lazily so this module stands alone
 
     out = work / OUTPUT_NAME
     summary_path = work / SUMMARY_NAME
@@ -1220,7 +1220,7 @@ def main(work: Path, config: BAConfig | None = None, overwrite: bool = False, pr
 
 
 def main_cli(argv: Sequence[str] | None = None) -> int:
-    from .cli import run_cli
+    from pipeline.core.cli import run_cli
 
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.two_view_ba",

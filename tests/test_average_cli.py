@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.average import average, main, main_cli
 from pipeline.io.rotations import read_rotations, write_rotations
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.evaluate import (
     align_rotations,
     edge_errors_deg,
@@ -23,7 +23,7 @@ from pipeline.evaluate import (
     summarize,
 )
 from pipeline.io.rotations import write_rotations
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 SUMMARY_KEYS = {"n_cameras", "n_evaluated", "median_deg", "mean_deg", "rms_deg", "max_deg", "frobenius", "pct_below"}
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline import features
-from pipeline.errors import InputFileError
+from pipeline.core.errors import InputFileError
 from pipeline.features import FeatureConfig, extract_sift, load_features
 from pipeline.images import parse_intrinsics_file
 from pipeline.matching import match_descriptors

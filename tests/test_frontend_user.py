@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.synthetic.render import SceneConfig, render_scene
 from pipeline.two_view import load_two_view
 

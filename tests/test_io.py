@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import scipy.io as sio
 
-from pipeline import so3
-from pipeline.errors import InputFileError
+from pipeline.core import so3
+from pipeline.core.errors import InputFileError
 from pipeline.io.mat import MatData, read_input_graph, read_l1_mat, read_lu_sphinx, read_mat, write_l1_mat
 from pipeline.io.references import read_cameras_file, read_reference, write_cameras_file
 from pipeline.io.rotations import read_rotations, write_rotations
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 
 # ------------------------------------------------------------------ rotations files

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.averaging.init import initial_rotations, rotations_from_tree, spanning_tree
 from pipeline.averaging.irls import irls
 from pipeline.averaging.l1 import LaplacianSolver, apply_update, edge_residuals
 from pipeline.average import average
-from pipeline.errors import ViewGraphError
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 LOSSES = ["l2", "l1", "l0.5", "geman-mcclure", "huber", "pseudo-huber", "andrews", "bisquare",
           "cauchy", "fair", "logistic", "talwar", "welsch"]

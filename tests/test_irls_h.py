@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.average import average, main_cli
 from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.irls_h import TRIM_T, BlockLaplacianSolver, _jl_inv, edge_metric, irls_h
 from pipeline.averaging.l1 import edge_residuals
-from pipeline.errors import ViewGraphError
+from pipeline.core.errors import ViewGraphError
 from pipeline.evaluate import rotation_errors_deg
 from pipeline.io.rotations import read_rotations
 from pipeline.synthetic.graphs import paper2_graph, random_precisions, with_outliers
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.averaging.l1 import LaplacianSolver, l1_averaging, l1_step
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 
 def _lad_linprog(A: np.ndarray, b: np.ndarray, ref: int) -> float:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline import features, matching
-from pipeline.errors import InputFileError
+from pipeline.core.errors import InputFileError
 from pipeline.features import extract_sift
 from pipeline.matching import MatchingConfig, exhaustive_pairs, load_matches, match_descriptors, read_pairs
 from pipeline.synthetic.render import SceneConfig, render_scene

@@ -15,7 +15,7 @@ import pytest
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from pipeline import reference  # noqa: E402
-from pipeline.errors import InputFileError  # noqa: E402
+from pipeline.core.errors import InputFileError  # noqa: E402
 from pipeline.evaluate import match_reference, summarize  # noqa: E402
 from pipeline.io.references import read_reference  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
@@ -194,7 +194,7 @@ def test_reuse_our_matches(scene6, tmp_path):
 
 
 def test_reuse_our_matches_needs_work(scene6, tmp_path):
-    from pipeline.errors import PipelineError
+    from pipeline.core.errors import PipelineError
 
     with pytest.raises(PipelineError, match="needs the WORK folder"):
         reference.main(scene6, tmp_path / "ref", config=reference.ReferenceConfig(use_our_matches=True))

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.errors import PipelineError
+from pipeline.core.errors import PipelineError
 from pipeline.synthetic.render import SceneConfig, essential_from_Rt, make_planes, render_scene
 
 SMALL = SceneConfig(width=200, height=150, focal=175.0, texture_px_per_unit=120.0)

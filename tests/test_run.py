@@ -13,7 +13,7 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.errors import PipelineError  # noqa: E402
+from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.io.rotations import read_rotations  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
@@ -217,8 +217,8 @@ def test_stage_help(module):
 
 
 def test_truth_on_pycolmap_images_is_the_like_for_like_reference():
-    from pipeline import so3
-    from pipeline.viewgraph import ViewGraph
+    from pipeline.core import so3
+    from pipeline.core.viewgraph import ViewGraph
 
     rng = np.random.default_rng(0)
     names = [f"im{k}.png" for k in range(5)]

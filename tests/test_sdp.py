@@ -7,7 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.averaging.certificate import (
     edge_cost,
     numerical_rank,
@@ -24,8 +24,8 @@ from pipeline.averaging.sdp import (
     svec_index,
     unsvec,
 )
-from pipeline.errors import ViewGraphError
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 
 # ----------------------------------------------------------------- fixtures

@@ -1,4 +1,4 @@
-"""pipeline.so3: round trips (hypothesis), stability near 0 and π, projections, means."""
+"""pipeline.core.so3: round trips (hypothesis), stability near 0 and π, projections, means."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from pipeline import so3
+from pipeline.core import so3
 
 RTOL = 1e-12
 

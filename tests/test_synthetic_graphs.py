@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.synthetic.graphs import SyntheticGraph, knn_graph, paper1_graph, paper2_graph
 
 

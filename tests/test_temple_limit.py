@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.averaging.irls_h import irls_h
 from pipeline.evaluate import rotation_errors_deg
 from pipeline.synthetic.graphs import paper2_graph, sample_left_noise
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "temple_limit.py"
 

@@ -9,8 +9,9 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline import features, matching, so3, two_view
-from pipeline.errors import InputFileError
+from pipeline import features, matching, two_view
+from pipeline.core import so3
+from pipeline.core.errors import InputFileError
 from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
 from pipeline.two_view import TwoViewConfig, estimate_pair, load_two_view
 

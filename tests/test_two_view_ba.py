@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline import two_view_ba as tb
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph
 
 
 def _skewed_K(f: float, cx: float, cy: float, aspect: float = 1.02, skew: float = 0.7) -> np.ndarray:

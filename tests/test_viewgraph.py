@@ -1,13 +1,13 @@
-"""pipeline.viewgraph: every validation error, H flipping, components, save/load."""
+"""pipeline.core.viewgraph: every validation error, H flipping, components, save/load."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline import so3
-from pipeline.errors import InputFileError, ViewGraphError
-from pipeline.viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 
 def _triangle(rng: np.random.Generator, **kw) -> tuple[ViewGraph, np.ndarray]:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import so3
+from pipeline.core import so3
 from pipeline.averaging.weiszfeld import independent_sets, weiszfeld
-from pipeline.errors import ViewGraphError
-from pipeline.viewgraph import ViewGraph
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 
 def _graph(n, p, sigma_deg, seed):

@@ -1,5 +1,5 @@
 """Rotation averaging: robust IRLS (paper 1), Weiszfeld, and SDP-cSO(3) (paper 2)."""
 
-from .result import AveragingResult
+from pipeline.averaging.result import AveragingResult
 
 __all__ = ["AveragingResult"]

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import so3
+from pipeline.core import so3
 
 __all__ = [
     "weight_matrices",

@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
 
-from ..errors import ViewGraphError
-from ..viewgraph import ViewGraph
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["spanning_tree", "rotations_from_tree", "initial_rotations"]
 
@@ -154,7 +154,7 @@ def initial_rotations(
         raise ValueError(f"init rotations have shape {R0.shape} but expected ({vg.n_cameras}, 3, 3)")
     if not np.all(np.isfinite(R0)):
         raise ValueError("init rotations contain NaN or inf")
-    from .. import so3
+    from pipeline.core import so3
 
     if not np.all(so3.is_rotation(R0, 1e-5)):
         raise ValueError("init rotations are not all rotation matrices; project them with so3.project_to_so3")

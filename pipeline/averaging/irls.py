@@ -26,12 +26,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..errors import ViewGraphError
-from ..viewgraph import ViewGraph
-from .init import initial_rotations
-from .l1 import LaplacianSolver, apply_update, edge_residuals, l1_averaging
-from .losses import get_loss
-from .result import AveragingResult
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.l1 import LaplacianSolver, apply_update, edge_residuals, l1_averaging
+from pipeline.averaging.losses import get_loss
+from pipeline.averaging.result import AveragingResult
 
 __all__ = ["IRLSConfig", "irls", "check_graph"]
 

@@ -59,14 +59,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .. import so3
-from ..errors import ViewGraphError
-from ..viewgraph import ViewGraph
-from .init import initial_rotations
-from .irls import check_graph
-from .l1 import apply_update, edge_residuals, l1_averaging, LaplacianSolver
-from .losses import get_loss
-from .result import AveragingResult
+from pipeline.core import so3
+from pipeline.core.errors import ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.irls import check_graph
+from pipeline.averaging.l1 import apply_update, edge_residuals, l1_averaging, LaplacianSolver
+from pipeline.averaging.losses import get_loss
+from pipeline.averaging.result import AveragingResult
 
 __all__ = ["BlockLaplacianSolver", "irls_h", "edge_metric", "CHI2_3_MEDIAN", "TRIM_T"]
 

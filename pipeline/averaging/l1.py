@@ -30,8 +30,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from .. import so3
-from ..viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.viewgraph import ViewGraph
 
 __all__ = [
     "edge_residuals",

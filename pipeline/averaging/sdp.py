@@ -57,17 +57,17 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from .. import so3
-from ..errors import PipelineError, ViewGraphError
-from ..viewgraph import ViewGraph
-from .certificate import (
+from pipeline.core import so3
+from pipeline.core.errors import PipelineError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.certificate import (
     edge_cost,
     numerical_rank,
     relative_gap,
     round_to_rotations,
     weight_matrices,
 )
-from .result import AveragingResult
+from pipeline.averaging.result import AveragingResult
 
 __all__ = [
     "VARIANTS",

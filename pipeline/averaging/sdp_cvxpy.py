@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from ..viewgraph import ViewGraph
-from .certificate import edge_cost, numerical_rank, relative_gap, round_to_rotations
-from .result import AveragingResult
-from .sdp import _check_inputs, edge_weights
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.certificate import edge_cost, numerical_rank, relative_gap, round_to_rotations
+from pipeline.averaging.result import AveragingResult
+from pipeline.averaging.sdp import _check_inputs, edge_weights
 
 __all__ = ["solve_sdp_cvxpy", "conv_so3_lmi_expr"]
 

@@ -24,11 +24,11 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from .. import so3
-from ..viewgraph import ViewGraph
-from .init import initial_rotations
-from .irls import check_graph
-from .result import AveragingResult
+from pipeline.core import so3
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.irls import check_graph
+from pipeline.averaging.result import AveragingResult
 
 __all__ = ["weiszfeld", "independent_sets"]
 

@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 import scipy.io as sio
 
-from .. import so3
-from ..atomic import atomic_path
-from ..errors import InputFileError, ViewGraphError
-from ..viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.atomic import atomic_path
+from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
 logger = logging.getLogger(__name__)
 

@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import so3
-from ..atomic import atomic_open
-from ..errors import InputFileError
-from .rotations import read_rotations
+from pipeline.core import so3
+from pipeline.core.atomic import atomic_open
+from pipeline.core.errors import InputFileError
+from pipeline.io.rotations import read_rotations
 
 logger = logging.getLogger(__name__)
 
@@ -262,7 +262,7 @@ def read_reference(path: str | os.PathLike) -> Reference:
     if not path.is_file():
         raise InputFileError(f"reference {path} does not exist")
     if path.suffix.lower() == ".mat":
-        from .mat import read_mat
+        from pipeline.io.mat import read_mat
 
         data = read_mat(path)
         if data.R_gt is None:

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import so3
-from ..atomic import atomic_open
-from ..errors import InputFileError
+from pipeline.core import so3
+from pipeline.core.atomic import atomic_open
+from pipeline.core.errors import InputFileError
 
 
 def write_rotations(path: str | os.PathLike, names: list[str], R: np.ndarray, header: str | None = None) -> Path:

@@ -37,8 +37,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .. import so3
-from ..viewgraph import ViewGraph
+from pipeline.core import so3
+from pipeline.core.viewgraph import ViewGraph
 
 logger = logging.getLogger(__name__)
 

@@ -40,8 +40,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..atomic import atomic_open, atomic_path
-from ..errors import PipelineError
+from pipeline.core.atomic import atomic_open, atomic_path
+from pipeline.core.errors import PipelineError
 
 logger = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ class RenderedScene:
 
     def epipolar_distance_px(self, i: int, j: int, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
         """|Sampson distance| in pixels (view i's focal) of matches ``x_i ↔ x_j`` (n, 2) from the true geometry."""
-        from ..two_view import _normalize, sampson_distance  # noqa: PLC0415
+        from pipeline.two_view import _normalize, sampson_distance  # noqa: PLC0415
 
         R, t = self.relative_pose(i, j)
         y_i, y_j = _normalize(x_i, self.K[i]), _normalize(x_j, self.K[j])
@@ -428,7 +428,7 @@ def _sample_points(planes: list[Plane], scene_K, scene_R, scene_t, depths, rng, 
 
 def write_cameras_txt(path: Path, names: list[str], K: np.ndarray, R: np.ndarray, t: np.ndarray) -> Path:
     """Write ``name fx fy cx cy r11 .. r33 t1 t2 t3`` per line (cam_from_world), atomically."""
-    from ..io.references import write_cameras_file
+    from pipeline.io.references import write_cameras_file
 
     return Path(write_cameras_file(path, names, K, R, t))
 
@@ -498,7 +498,7 @@ def main(out: str | Path, n_views: int = 12, seed: int = 0, noise_sigma: float =
 
 
 def main_cli(argv: list[str] | None = None) -> int:
-    from ..cli import run_cli
+    from pipeline.core.cli import run_cli
 
     p = argparse.ArgumentParser(prog="python -m pipeline.synthetic.render", description=__doc__.split("\n")[0])
     p.add_argument("--views", type=int, default=12, help="number of views (default 12)")

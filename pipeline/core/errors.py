@@ -11,3 +11,11 @@ class ViewGraphError(PipelineError, ValueError):
 
 class InputFileError(PipelineError, ValueError):
     """A file that is missing, unreadable or malformed."""
+
+
+class ConfigError(PipelineError, ValueError):
+    """A configuration value of the wrong type, out of range, or an unknown key."""
+
+
+class CacheError(PipelineError):
+    """A cached output that is missing, truncated or inconsistent: it is recomputed, never trusted."""

@@ -30,9 +30,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from . import so3
-from .atomic import save_npz
-from .errors import InputFileError, ViewGraphError
+from pipeline.core import so3
+from pipeline.core.atomic import save_npz
+from pipeline.core.errors import InputFileError, ViewGraphError
 
 __all__ = ["ViewGraph", "Restriction"]
 

@@ -1,0 +1,152 @@
+"""Atomic file writes: write to a temporary file beside the target, then rename.
+
+An interrupted run leaves either the old file or the new one, never a torn one.
+Its temporary files carry :data:`TMP_TAG` in their names, so the next run in the
+same folder removes them (:func:`remove_stale_temporaries`). Outputs get the
+usual permissions of a new file (0644 under the common umask 022), not the 0600
+of :func:`tempfile.mkstemp`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import IO, Any, Iterator
+
+import numpy as np
+
+__all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "save_npz", "save_figure",
+           "remove_stale_temporaries", "TMP_TAG"]
+
+TMP_TAG = ".rotavg-tmp-"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _publish(tmp: Path, path: Path, mode: int = 0o666) -> None:
+    os.chmod(tmp, mode & ~_umask())
+    os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; rename it onto ``path`` on success.
+
+    Args:
+        path: final destination.
+        suffix: suffix of the temporary file (default: that of ``path``), for
+            writers such as ``np.savez`` that append their own extension.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}",
+                               suffix=suffix if suffix is not None else path.suffix)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        _publish(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp_path.unlink()
+        raise
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; it replaces ``path`` (and anything there) on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}"))
+    try:
+        yield tmp
+        os.chmod(tmp, 0o777 & ~_umask())
+        if path.exists():
+            old = path.with_name(f".{path.name}{TMP_TAG}old")
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
+    """Open a temporary file for writing; it replaces ``path`` when the block exits cleanly."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON atomically; numpy scalars and arrays are converted."""
+
+    def default(o: Any) -> Any:
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, Path):
+            return str(o)
+        raise TypeError(f"{type(o).__name__} is not JSON serializable")
+
+    with atomic_open(path) as f:
+        json.dump(obj, f, indent=2, default=default)
+        f.write("\n")
+    return Path(path)
+
+
+def save_npz(path: str | os.PathLike, **arrays: Any) -> Path:
+    """``np.savez_compressed`` written atomically to exactly ``path``."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+    return Path(path)
+
+
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110, close: bool = True) -> Path:
+    """Write a matplotlib figure as PNG atomically; close it unless ``close=False``."""
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format="png")
+    if close:
+        import matplotlib.pyplot as plt  # noqa: PLC0415 - only callers that plot pay for the import
+
+        plt.close(fig)
+    return Path(path)
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> int:
+    """Remove the temporary files and folders an interrupted run left under ``folder``.
+
+    Only names carrying :data:`TMP_TAG` are touched. Call it while holding the
+    folder's lock (:func:`pipeline.core.lock.folder_lock`), never while another
+    writer works in the same folder. Returns the number of entries removed.
+    """
+    folder = Path(folder)
+    n = 0
+    if not folder.is_dir():
+        return 0
+    for root, dirs, files in os.walk(folder):
+        for d in [d for d in dirs if TMP_TAG in d]:
+            shutil.rmtree(Path(root) / d, ignore_errors=True)
+            dirs.remove(d)
+            n += 1
+        for f in files:
+            if TMP_TAG in f:
+                with contextlib.suppress(FileNotFoundError):
+                    (Path(root) / f).unlink()
+                n += 1
+    return n
