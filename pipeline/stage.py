@@ -85,9 +85,13 @@ class StageRecord:
                 "outputs": self.outputs, "summary": self.summary, "time_s": self.time_s}
 
 
-def read_record(folder: Path, name: str) -> StageRecord | None:
-    """The record of stage ``name`` in ``folder``; None if absent; :class:`CacheError` if unreadable."""
-    path = Path(folder) / f"{name}{RECORD_SUFFIX}"
+def read_record(folder: Path, name: str, record_name: str | None = None) -> StageRecord | None:
+    """The record of stage ``name`` in ``folder``; None if absent; :class:`CacheError` if unreadable.
+
+    ``record_name`` names the file when one stage has several records in a folder
+    (one per averaging method); it defaults to ``name``.
+    """
+    path = Path(folder) / f"{record_name or name}{RECORD_SUFFIX}"
     if not path.is_file():
         return None
     try:
@@ -116,8 +120,9 @@ class Stage(abc.ABC, Generic[C]):
     config_cls: ClassVar[type[Config]]
     version: ClassVar[int] = 1
 
-    def __init__(self, folder: Path, config: C | None = None) -> None:
+    def __init__(self, folder: Path, config: C | None = None, record_name: str | None = None) -> None:
         self.folder = Path(folder)
+        self.record_name = record_name or self.name
         self.config: C = config if config is not None else self.config_cls()  # type: ignore[assignment]
         if not isinstance(self.config, self.config_cls):
             raise TypeError(f"{type(self).__name__} needs a {self.config_cls.__name__}, got {type(self.config).__name__}")
@@ -140,20 +145,21 @@ class Stage(abc.ABC, Generic[C]):
     # ------------------------------------------------------------ the contract
     @property
     def record_path(self) -> Path:
-        return self.folder / f"{self.name}{RECORD_SUFFIX}"
+        return self.folder / f"{self.record_name}{RECORD_SUFFIX}"
 
     def fingerprint(self, inputs: dict[str, str] | None = None) -> str:
         inputs = self.inputs() if inputs is None else inputs
         return fingerprint_of(self.name, self.version, self.config.fingerprint(), sorted(inputs.items()))
 
-    def upstream(self, name: str) -> StageRecord:
+    def upstream(self, name: str, folder: Path | None = None, record_name: str | None = None) -> StageRecord:
         """The record of the stage ``name`` that this one reads; a clear error if it has not run."""
+        folder = self.folder if folder is None else Path(folder)
         try:
-            rec = read_record(self.folder, name)
+            rec = read_record(folder, name, record_name)
         except CacheError as exc:
             raise InputFileError(f"{exc}; re-run the '{name}' stage (python -m pipeline {name} ...)") from None
         if rec is None:
-            raise InputFileError(f"{self.folder} has no result of the '{name}' stage, which '{self.name}' needs; "
+            raise InputFileError(f"{folder} has no result of the '{name}' stage, which '{self.name}' needs; "
                                  f"run it first")
         return rec
 
@@ -161,7 +167,7 @@ class Stage(abc.ABC, Generic[C]):
         """The intact cached record whose fingerprint matches, else None (with why, logged)."""
         fp = self.fingerprint(inputs)
         try:
-            rec = read_record(self.folder, self.name)
+            rec = read_record(self.folder, self.name, self.record_name)
         except CacheError as exc:
             logger.warning("%s; recomputing %s", exc, self.name)
             return None

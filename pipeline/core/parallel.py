@@ -1,0 +1,129 @@
+"""Where per-item work runs: in this process, in a pool of processes, or on a Dask cluster.
+
+Every per-image and per-pair stage maps a picklable function over chunks of
+work through an :class:`Executor`. The result is the same whatever runs it: the
+functions are deterministic and results come back in order.
+
+- ``serial``: in this process (tests, small runs, debugging);
+- ``processes``: a local pool; its workers die with their parent, even on
+  SIGKILL (Linux ``PR_SET_PDEATHSIG``, and a watchdog thread elsewhere);
+- ``dask``: ``dask.distributed`` (:mod:`pipeline.core.dask_executor`), a
+  ``LocalCluster`` or an existing scheduler.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, Callable, Iterator, Protocol, Sequence, TypeVar
+
+__all__ = ["Executor", "SerialExecutor", "ProcessExecutor", "make_executor", "die_with_parent"]
+
+logger = logging.getLogger(__name__)
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class Executor(Protocol):
+    """Maps a function over items, yielding results in order."""
+
+    workers: int
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]: ...
+
+    def close(self) -> None: ...
+
+
+class SerialExecutor:
+    """Runs everything in this process."""
+
+    workers = 1
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+        for it in items:
+            yield fn(it)
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> "SerialExecutor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _watch_parent(ppid: int) -> None:
+    while True:
+        if os.getppid() != ppid:
+            os._exit(1)
+        time.sleep(0.5)
+
+
+def die_with_parent() -> None:
+    """Make this (worker) process exit when its parent dies, even by SIGKILL."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL("libc.so.6", use_errno=True)
+            PR_SET_PDEATHSIG = 1
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        except OSError:  # pragma: no cover - no libc: the watchdog below still works
+            pass
+    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True).start()
+
+
+def _init_worker(threads: int) -> None:
+    die_with_parent()
+    # one pool worker per core: keep each worker's own libraries to one thread
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+    try:
+        import cv2  # noqa: PLC0415
+
+        cv2.setNumThreads(threads)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+class ProcessExecutor:
+    """A local process pool whose workers never outlive this process."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = max(1, int(workers))
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_init_worker, initargs=(1,))
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+        return self._pool.map(fn, items)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> "ProcessExecutor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def make_executor(workers: int = 1, backend: str = "processes", scheduler: str | None = None) -> Any:
+    """An executor for ``workers`` workers.
+
+    Args:
+        workers: workers of a local pool or cluster; 1 runs serially.
+        backend: ``"serial"``, ``"processes"`` or ``"dask"``.
+        scheduler: address of an existing Dask scheduler (implies ``"dask"``).
+    """
+    if scheduler is not None or backend == "dask":
+        from pipeline.core.dask_executor import DaskExecutor  # noqa: PLC0415 - optional dependency
+
+        return DaskExecutor(workers=workers, scheduler=scheduler)
+    if backend == "serial" or workers <= 1:
+        return SerialExecutor()
+    if backend == "processes":
+        return ProcessExecutor(workers)
+    raise ValueError(f"unknown executor backend {backend!r}; choose serial, processes or dask")

@@ -1,0 +1,161 @@
+"""Per-item results of a stage (one image, one pair), kept in chunk files so that work resumes per item.
+
+A per-image or per-pair stage computes its items in chunks (on an
+:class:`pipeline.core.parallel.Executor`) and writes each finished chunk at once,
+atomically, as one ``.npz`` in its store folder. Every item has a key that hashes
+everything its result depends on (the stage's result-affecting options and the
+item's own inputs), so
+
+- an interrupted run resumes: finished chunks are found and their items skipped;
+- a changed option or input gives new keys, never a stale result;
+- adding images reuses every pair already done;
+- a damaged chunk file is removed with a warning and its items recomputed.
+
+An item's result is a mapping of names to arrays (scalars as 0-d arrays, strings
+as 0-d unicode arrays). The store's index (``index.json``, written when the stage
+finishes) maps each current key to its chunk file; readers open only the chunks
+they need.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+
+from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.errors import CacheError
+
+__all__ = ["ItemStore", "item_key"]
+
+logger = logging.getLogger(__name__)
+
+INDEX = "index.json"
+_SEP = "__"
+
+
+def item_key(*parts: Any) -> str:
+    """A 20-hex-digit key from strings, numbers and arrays (their bytes, dtype and shape)."""
+    h = hashlib.sha1()
+    for p in parts:
+        if isinstance(p, np.ndarray):
+            a = np.ascontiguousarray(p)
+            h.update(f"{a.dtype.str}{a.shape}".encode())
+            h.update(a.tobytes())
+        else:
+            h.update(json.dumps(p, sort_keys=True, default=str).encode())
+        h.update(b"\x00")
+    return h.hexdigest()[:20]
+
+
+def _chunk_name(keys: Iterable[str]) -> str:
+    return "chunk-" + hashlib.sha1("\n".join(sorted(keys)).encode()).hexdigest()[:16] + ".npz"
+
+
+class ItemStore:
+    """A folder of chunk files holding per-item results.
+
+    Args:
+        folder: the store's folder (created when written).
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self._where: dict[str, str] | None = None
+        self._cache: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+
+    # ------------------------------------------------------------------ write
+    def write_chunk(self, results: Mapping[str, Mapping[str, Any]]) -> Path:
+        """Write the results ``{key: {name: array}}`` of one finished chunk; returns its path."""
+        keys = list(results)
+        arrays: dict[str, np.ndarray] = {"keys": np.array(keys, dtype=str)}
+        for q, k in enumerate(keys):
+            for name, v in results[k].items():
+                arrays[f"{q}{_SEP}{name}"] = np.asarray(v)
+        path = self.folder / _chunk_name(keys)
+        save_npz(path, **arrays)
+        if self._where is not None:
+            self._where.update({k: path.name for k in keys})
+        return path
+
+    # ------------------------------------------------------------------- read
+    @staticmethod
+    def read_chunk(path: Path) -> dict[str, dict[str, np.ndarray]]:
+        """All items of one chunk file; :class:`CacheError` if it is damaged."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                data = {k: z[k] for k in z.files}
+            keys = [str(k) for k in data.pop("keys")]
+            out: dict[str, dict[str, np.ndarray]] = {k: {} for k in keys}
+            for name, v in data.items():
+                q, _, field = name.partition(_SEP)
+                out[keys[int(q)]][field] = v
+        except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged chunk
+            raise CacheError(f"chunk {path} is damaged ({type(exc).__name__}: {' '.join(str(exc).split())[:80]})") from None
+        return out
+
+    def scan(self) -> dict[str, str]:
+        """``{key: chunk file name}`` of every intact chunk; damaged chunks are removed with a warning."""
+        where: dict[str, str] = {}
+        if self.folder.is_dir():
+            for path in sorted(self.folder.glob("chunk-*.npz")):
+                try:
+                    items = self.read_chunk(path)
+                except CacheError as exc:
+                    logger.warning("%s; removing it, its items will be recomputed", exc)
+                    path.unlink(missing_ok=True)
+                    continue
+                where.update({k: path.name for k in items})
+        self._where = where
+        return where
+
+    def done(self, keys: Iterable[str]) -> set[str]:
+        """The subset of ``keys`` already computed (scans the folder on first use)."""
+        where = self._where if self._where is not None else self.scan()
+        return {k for k in keys if k in where}
+
+    def get(self, key: str) -> dict[str, np.ndarray]:
+        """The result of ``key`` (chunks are read once and kept)."""
+        where = self._where if self._where is not None else self.load_index()
+        if key not in where:
+            raise CacheError(f"{self.folder} has no result for item {key}")
+        name = where[key]
+        if name not in self._cache:
+            self._cache = {name: self.read_chunk(self.folder / name)}  # keep one chunk: bounded memory
+        return self._cache[name][key]
+
+    # ------------------------------------------------------------------ index
+    def write_index(self, keys: list[str]) -> list[Path]:
+        """Record the current keys, remove chunks none of them uses; returns the files in use."""
+        where = self._where if self._where is not None else self.scan()
+        missing = [k for k in keys if k not in where]
+        if missing:
+            raise CacheError(f"{self.folder}: {len(missing)} item(s) were not computed")
+        used = sorted({where[k] for k in keys})
+        for path in self.folder.glob("chunk-*.npz"):
+            if path.name not in used:
+                path.unlink(missing_ok=True)
+        write_json(self.folder / INDEX, {"keys": keys, "chunks": [where[k] for k in keys]})
+        self._where = {k: where[k] for k in keys}
+        return [self.folder / u for u in used] + [self.folder / INDEX]
+
+    def load_index(self) -> dict[str, str]:
+        """The index written by :meth:`write_index`; :class:`CacheError` if missing or damaged."""
+        path = self.folder / INDEX
+        try:
+            d = json.loads(path.read_text(encoding="utf-8"))
+            keys, chunks = list(d["keys"]), list(d["chunks"])
+            if len(keys) != len(chunks):
+                raise ValueError("keys and chunks differ in length")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise CacheError(f"the index {path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None
+        self._where = dict(zip(map(str, keys), map(str, chunks)))
+        return self._where
+
+    def keys(self) -> list[str]:
+        return list((self._where if self._where is not None else self.load_index()).keys())
