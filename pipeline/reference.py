@@ -4,7 +4,7 @@ The reference answers "how far are our rotations from what a standard
 incremental SfM gives on the same images". By default it runs pycolmap's own
 SIFT extraction and exhaustive matching, so it does not depend on our front
 end; ``use_our_matches=True`` instead imports our keypoints and matches from
-the WORK folder of :mod:`pipeline.features` / :mod:`pipeline.matching` into the
+the WORK folder of :mod:`pipeline.frontend.features` / :mod:`pipeline.frontend.matching` into the
 COLMAP database and lets pycolmap verify and map them.
 
 Intrinsics the pipeline knows (a ``K.txt`` with one 3×3 matrix, or any
@@ -114,7 +114,7 @@ def _pycolmap():
 
 def list_images(images: Path) -> list[str]:
     """Sorted image file names in ``images`` (the front end's listing, so both see the same images)."""
-    from pipeline.images import list_images as _list  # noqa: PLC0415
+    from pipeline.frontend.images import list_images as _list  # noqa: PLC0415
 
     return _list(images)[0]
 
@@ -124,7 +124,7 @@ def load_known_K(K: str | os.PathLike | np.ndarray | None, names: list[str]) -> 
 
     Args:
         K: None; a ``K.txt`` path (one 3×3 for every image); a per-image file that
-            :func:`pipeline.images.parse_intrinsics_file` reads (rendered cameras
+            :func:`pipeline.frontend.intrinsics.parse_intrinsics_file` reads (rendered cameras
             file, Middlebury ``*_par.txt``); a folder that
             :func:`pipeline.io.references.read_reference` reads with K (Strecha
             ``gt_dense_cameras/``); a (3,3) or (N,3,3) array in the order of ``names``.
@@ -147,7 +147,7 @@ def load_known_K(K: str | os.PathLike | np.ndarray | None, names: list[str]) -> 
     if not path.exists():
         raise InputFileError(f"intrinsics file {path} does not exist; pass a K.txt (3×3) or a cameras file")
     if path.is_file():
-        from pipeline.images import parse_intrinsics_file  # noqa: PLC0415
+        from pipeline.frontend.intrinsics import parse_intrinsics_file  # noqa: PLC0415
 
         parsed = parse_intrinsics_file(path)
         if isinstance(parsed, np.ndarray):
@@ -327,7 +327,7 @@ def _build_database(pc, db_path: Path, images: Path, names: list[str], Ks: np.nd
 
 def _import_our_matches(pc, db_path: Path, images: Path, names: list[str], reader, mode, work: Path) -> None:
     """Write our keypoints and putative matches into a COLMAP database."""
-    from pipeline.features import load_features  # noqa: PLC0415
+    from pipeline.frontend.feature_stage import load_features  # noqa: PLC0415
     from pipeline import matching as our_matching  # noqa: PLC0415
 
     fs = load_features(work)
@@ -336,7 +336,7 @@ def _import_our_matches(pc, db_path: Path, images: Path, names: list[str], reade
                             "re-run the features stage on this folder")
     loader = getattr(our_matching, "load_matches", None)
     if loader is None:
-        raise PipelineError("pipeline.matching exposes no load_matches(work); cannot reuse our matches")
+        raise PipelineError("pipeline.frontend.matching exposes no load_matches(work); cannot reuse our matches")
     md = loader(work)
     pc.Database.open(db_path).close()  # import_images needs an existing database file
     pc.import_images(db_path, images, camera_mode=mode, image_names=names, options=reader)
@@ -360,7 +360,7 @@ def _matches_as_lists(md: Any) -> tuple[list[tuple[int, int]], list[np.ndarray]]
     pairs = getattr(md, "pairs", None)
     matches = getattr(md, "matches", None)
     if pairs is None or matches is None:
-        raise PipelineError("cannot read our matches: expected .pairs and .matches from pipeline.matching.load_matches")
+        raise PipelineError("cannot read our matches: expected .pairs and .matches from pipeline.frontend.matching.load_matches")
     return [tuple(map(int, p)) for p in np.asarray(pairs)], list(matches)
 
 
@@ -563,7 +563,7 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
     if len(names) < 2:
         raise InputFileError(f"{images} has {len(names)} image(s); a reconstruction needs at least 2")
     if K is None and cfg.find_K_in_folder:
-        from pipeline.images import find_intrinsics_file  # noqa: PLC0415
+        from pipeline.frontend.intrinsics import find_intrinsics_file  # noqa: PLC0415
 
         K = find_intrinsics_file(images)  # the same file our feature stage picks up
     Ks = load_known_K(K, names)

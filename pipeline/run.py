@@ -496,14 +496,14 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     runner("features", "features", lambda: st_features.main(
         images, work, _cfg(st_features, ("FeatureConfig",), yaml_data, "features"), K_path=K, overwrite=overwrite,
-        progress=progress), lambda: sorted((work / "features").rglob("*.npz")))
+        progress=progress), lambda: [work / "features.record.json"])
     fs = st_features.load_features(work)
     n_default = sum(1 for s in fs.K_source if s == "default")
     if n_default:
         notes.append(f"{n_default} image(s) had no K file and no EXIF focal: default focal 1.2·max(w, h) used")
     runner("matching", "matching", lambda: st_matching.main(
         work, _cfg(st_matching, ("MatchingConfig",), yaml_data, "matching"), overwrite=overwrite, progress=progress),
-        lambda: sorted(work.glob("matches-*.npz")))
+        lambda: [work / "matching.record.json"])
     runner("two_view", "two-view geometry", lambda: st_two_view.main(
         work, _cfg(st_two_view, ("TwoViewConfig",), yaml_data, "two_view"), overwrite=overwrite, progress=progress),
         lambda: sorted(work.glob("two_view-*.npz")))

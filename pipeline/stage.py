@@ -123,6 +123,7 @@ class Stage(abc.ABC, Generic[C]):
     def __init__(self, folder: Path, config: C | None = None, record_name: str | None = None) -> None:
         self.folder = Path(folder)
         self.record_name = record_name or self.name
+        self.overwrite = False  # set by run(): per-item stages then recompute every item too
         self.config: C = config if config is not None else self.config_cls()  # type: ignore[assignment]
         if not isinstance(self.config, self.config_cls):
             raise TypeError(f"{type(self).__name__} needs a {self.config_cls.__name__}, got {type(self.config).__name__}")
@@ -157,10 +158,10 @@ class Stage(abc.ABC, Generic[C]):
         try:
             rec = read_record(folder, name, record_name)
         except CacheError as exc:
-            raise InputFileError(f"{exc}; re-run the '{name}' stage (python -m pipeline {name} ...)") from None
+            raise InputFileError(f"{exc}; re-run `python -m pipeline.{name}`") from None
         if rec is None:
             raise InputFileError(f"{folder} has no result of the '{name}' stage, which '{self.name}' needs; "
-                                 f"run it first")
+                                 f"run `python -m pipeline.{name}` on it first")
         return rec
 
     def cached(self, inputs: dict[str, str] | None = None) -> StageRecord | None:
@@ -193,11 +194,13 @@ class Stage(abc.ABC, Generic[C]):
 
     def run(self, overwrite: bool = False) -> StageRecord:
         """Reuse the intact cached result, or compute and record a new one."""
+        self.overwrite = overwrite
         inputs = self.inputs()
         if not overwrite:
             rec = self.cached(inputs)
             if rec is not None:
-                logger.info("%s: up to date; reusing %s", self.name, self.record_path)
+                logger.info("%s: up to date, nothing to compute; skipping (reusing %s; --overwrite redoes it)",
+                            self.name, self.record_path)
                 return rec
         self.folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(self.folder)

@@ -96,7 +96,8 @@ def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
 def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
     import pycolmap
 
-    from pipeline import average, features, two_view_ba
+    from pipeline import average, two_view_ba
+    from pipeline.frontend import feature_stage
 
     calls = {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
 
@@ -106,7 +107,7 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
             return fn(*a, **k)
         return wrapped
 
-    monkeypatch.setattr(features, "extract_sift", count("sift", features.extract_sift))
+    monkeypatch.setattr(feature_stage, "extract_sift", count("sift", feature_stage.extract_sift))
     monkeypatch.setattr(two_view_ba, "refine_pairs", count("ba", two_view_ba.refine_pairs))
     monkeypatch.setattr(average, "average", count("avg", average.average))
     monkeypatch.setattr(pycolmap, "extract_features", count("colmap", pycolmap.extract_features))
@@ -123,11 +124,12 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
 @pytest.mark.slow
 @pytest.mark.parametrize("where", ["features", "two_view_ba"])
 def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_config, tmp_path, monkeypatch, where):
-    from pipeline import features, two_view_ba
+    from pipeline import two_view_ba
+    from pipeline.frontend import feature_stage
 
     out = tmp_path / "out"
     if where == "features":
-        real = features.extract_sift
+        real = feature_stage.extract_sift
         n = {"k": 0}
 
         def flaky(*a, **k):  # Ctrl-C after 3 images were extracted and cached
@@ -136,7 +138,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
                 raise KeyboardInterrupt
             return real(*a, **k)
 
-        monkeypatch.setattr(features, "extract_sift", flaky)
+        monkeypatch.setattr(feature_stage, "extract_sift", flaky)
     else:
         def interrupted(*a, **k):
             raise KeyboardInterrupt

@@ -5,6 +5,8 @@ work through an :class:`Executor`. The result is the same whatever runs it: the
 functions are deterministic and results come back in order.
 
 - ``serial``: in this process (tests, small runs, debugging);
+- ``threads``: a thread pool, for work in libraries that release the GIL
+  (OpenCV's SIFT and FLANN, BLAS);
 - ``processes``: a local pool; its workers die with their parent, even on
   SIGKILL (Linux ``PR_SET_PDEATHSIG``, and a watchdog thread elsewhere);
 - ``dask``: ``dask.distributed`` (:mod:`pipeline.core.dask_executor`), a
@@ -20,10 +22,10 @@ import signal
 import sys
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from typing import Any, Callable, Iterator, Protocol, Sequence, TypeVar
 
-__all__ = ["Executor", "SerialExecutor", "ProcessExecutor", "make_executor", "die_with_parent"]
+__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "ProcessExecutor", "make_executor", "die_with_parent"]
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -53,6 +55,26 @@ class SerialExecutor:
         pass
 
     def __enter__(self) -> "SerialExecutor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+class ThreadExecutor:
+    """A thread pool in this process."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = max(1, int(workers))
+        self._pool = ThreadPoolExecutor(max_workers=self.workers)
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+        return self._pool.map(fn, items)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> "ThreadExecutor":
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -115,7 +137,7 @@ def make_executor(workers: int = 1, backend: str = "processes", scheduler: str |
 
     Args:
         workers: workers of a local pool or cluster; 1 runs serially.
-        backend: ``"serial"``, ``"processes"`` or ``"dask"``.
+        backend: ``"serial"``, ``"threads"``, ``"processes"`` or ``"dask"``.
         scheduler: address of an existing Dask scheduler (implies ``"dask"``).
     """
     if scheduler is not None or backend == "dask":
@@ -124,6 +146,8 @@ def make_executor(workers: int = 1, backend: str = "processes", scheduler: str |
         return DaskExecutor(workers=workers, scheduler=scheduler)
     if backend == "serial" or workers <= 1:
         return SerialExecutor()
+    if backend == "threads":
+        return ThreadExecutor(workers)
     if backend == "processes":
         return ProcessExecutor(workers)
-    raise ValueError(f"unknown executor backend {backend!r}; choose serial, processes or dask")
+    raise ValueError(f"unknown executor backend {backend!r}; choose serial, threads, processes or dask")

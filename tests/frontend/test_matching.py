@@ -13,8 +13,10 @@ import pytest
 
 from pipeline import features, matching
 from pipeline.core.errors import InputFileError
-from pipeline.features import extract_sift
-from pipeline.matching import MatchingConfig, exhaustive_pairs, load_matches, match_descriptors, read_pairs
+from pipeline.frontend.features import extract_sift
+from pipeline.frontend.matching import MatchingConfig, match_descriptors
+from pipeline.frontend.matching_stage import load_matches
+from pipeline.frontend.pairs import exhaustive_pairs, read_pairs
 from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
@@ -60,7 +62,7 @@ def test_ratio_and_mutual_filter(kps):
 
 def test_brute_force_is_exact(kps):
     """The BLAS brute force finds the same nearest neighbours as OpenCV's exhaustive matcher."""
-    from pipeline.matching import root_sift
+    from pipeline.frontend.matching import root_sift
 
     qa, qb = root_sift(kps[0].descriptors), root_sift(kps[1].descriptors)
     ref = cv2.BFMatcher(cv2.NORM_L2).knnMatch(qa, qb, k=2)
@@ -108,8 +110,7 @@ def test_main_resume_and_incremental(scene, tmp_path):
     matching.main(work, progress=False)
     man = json.loads((work / "matches.json").read_text())
     assert man["n_computed"] == 1 and man["n_pairs"] == 1
-    matching.main(work, progress=False)
-    assert json.loads((work / "matches.json").read_text())["n_computed"] == 0  # resumed
+    assert matching.MatchingStage(work, progress=False).run().reused  # resumed: nothing recomputed
     (tmp_path / "later.png").rename(images / "view_002.png")
     features.main(images, work, progress=False)
     matching.main(work, progress=False)

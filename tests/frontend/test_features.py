@@ -14,9 +14,10 @@ import pytest
 
 from pipeline import features
 from pipeline.core.errors import InputFileError
-from pipeline.features import FeatureConfig, extract_sift, load_features
-from pipeline.images import parse_intrinsics_file
-from pipeline.matching import match_descriptors
+from pipeline.frontend.feature_stage import load_features
+from pipeline.frontend.features import FeatureConfig, extract_sift
+from pipeline.frontend.intrinsics import parse_intrinsics_file
+from pipeline.frontend.matching import match_descriptors
 from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
@@ -63,8 +64,10 @@ def test_main_cache_and_resume(scene, tmp_path):
     work = tmp_path / "work"
     m = json.loads(features.main(images, work, progress=False).read_text())
     assert m["n_extracted"] == 2 and m["n_cached"] == 0
-    m = json.loads(features.main(images, work, progress=False).read_text())
-    assert m["n_extracted"] == 0 and m["n_cached"] == 2  # resumed: nothing recomputed
+    chunks = {c: c.stat().st_mtime_ns for c in (work / "features").glob("chunk-*.npz")}
+    rec = features.FeaturesStage(work, images=images, progress=False).run()
+    assert rec.reused  # resumed: nothing recomputed
+    assert {c: c.stat().st_mtime_ns for c in (work / "features").glob("chunk-*.npz")} == chunks
     (tmp_path / "later.png").rename(images / "view_002.png")
     m = json.loads(features.main(images, work, progress=False).read_text())
     assert m["n_extracted"] == 1 and m["n_cached"] == 2  # only the new image

@@ -125,7 +125,7 @@ def test_resume_through_the_command_line(scene, tmp_path):
     w = tmp_path / "w"
     assert _run("pipeline.features", "--images", img, "--work", w, "-q").returncode == 0
     r = _run("pipeline.features", "--images", img, "--work", w)
-    assert "0 extracted, 3 from cache" in r.stderr
+    assert "features: up to date, nothing to compute" in r.stderr
     assert _run("pipeline.matching", "--work", w, "-q").returncode == 0
     r = _run("pipeline.matching", "--work", w)
     assert "skipping" in r.stderr

@@ -1,0 +1,287 @@
+"""The features stage: SIFT for every usable image of a folder, cached per image.
+
+Before any image is decoded, every header is checked
+(:func:`pipeline.frontend.images.check_headers`) and the intrinsics are resolved
+and checked (:func:`pipeline.frontend.intrinsics.resolve_intrinsics`), so a bad
+``--K`` fails in a second, not after SIFT. Images that cannot be used are left out
+with their reason.
+
+WORK folder layout::
+
+    WORK/features.json            manifest: image folder, names, sizes (w, h), K per image
+                                  and its source, skipped images and why, item keys
+    WORK/features/chunk-*.npz     one image each: keypoints (n, 2) float32 px, scales,
+                                  orientations (deg), responses, descriptors (n, 128) uint8,
+                                  size (w, h)
+    WORK/features/index.json      the item keys of the current images
+    WORK/features.record.json     the stage record (pipeline.stage)
+
+An image's item key hashes the result-affecting options and the image file's
+name, size and mtime: a changed image or option is extracted again, an unchanged
+one never. Command line::
+
+    python -m pipeline.features --images DIR --work WORK [--K FILE] [--max-image-size 1600]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.core.atomic import write_json
+from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.parallel import make_executor
+from pipeline.core.store import ItemStore, item_key
+from pipeline.frontend.features import FeatureConfig, extract_sift
+from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
+from pipeline.frontend.intrinsics import resolve_intrinsics
+from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FeaturesStage", "FeatureSet", "load_features", "load_manifest", "main", "main_cli", "MANIFEST",
+           "STORE"]
+
+MANIFEST = "features.json"
+STORE = "features"
+
+
+@dataclass
+class FeatureSet:
+    """Features of all usable images of a WORK folder (see :func:`load_features`).
+
+    Attributes:
+        names: N image file names, sorted.
+        K: (N, 3, 3) intrinsics at full resolution.
+        sizes: (N, 2) image sizes (w, h).
+        keypoints: N arrays (n_i, 2) float32, full-resolution pixels.
+        descriptors: N arrays (n_i, 128) uint8.
+        images: image folder.
+        K_source: N strings: ``file:<path>``, ``exif`` or ``default``.
+        digest: the features stage's fingerprint (downstream cache input).
+        config: the extraction config.
+        signatures: (N, 2) int64 byte size and mtime (ns) of each image file.
+    """
+
+    names: list[str]
+    K: np.ndarray
+    sizes: np.ndarray
+    keypoints: list[np.ndarray]
+    descriptors: list[np.ndarray]
+    images: Path | None = None
+    K_source: list[str] = field(default_factory=list)
+    digest: str = ""
+    config: FeatureConfig | None = None
+    signatures: np.ndarray | None = None
+
+
+def _extract_task(args: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, dict[str, np.ndarray] | None, str]:
+    """Worker: read one image and extract SIFT; ``(key, name, arrays or None, reason)``."""
+    path, name, key, cfg = args
+    gray, reason = read_gray(path)
+    if gray is None:
+        return key, name, None, reason
+    kp = extract_sift(gray, FeatureConfig(**cfg))
+    return key, name, {"keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations,
+                       "responses": kp.responses, "descriptors": kp.descriptors,
+                       "size": np.array([gray.shape[1], gray.shape[0]])}, ""
+
+
+class FeaturesStage(Stage[FeatureConfig]):
+    """SIFT features of an image folder.
+
+    Args:
+        work: WORK folder.
+        config: extraction options.
+        images: image folder.
+        K_path: intrinsics file or folder (None: look in ``images``, then EXIF, then the default).
+        progress: show a progress bar.
+    """
+
+    name = "features"
+    title = "SIFT features"
+    config_cls = FeatureConfig
+
+    def __init__(self, work: Path, config: FeatureConfig | None = None, *, images: Path,
+                 K_path: Path | None = None, progress: bool = True) -> None:
+        super().__init__(work, config)
+        self.images = Path(images)
+        self.K_path = None if K_path is None else Path(K_path)
+        self.progress = progress
+        self._scan: dict[str, Any] | None = None
+
+    def scan(self) -> dict[str, Any]:
+        """List the images, check their headers and resolve K (no decoding); done once."""
+        if self._scan is not None:
+            return self._scan
+        names, other = list_images(self.images)
+        if other:
+            logger.info("ignoring %d non-image file(s) in %s: %s", len(other), self.images,
+                        ", ".join(other[:5]) + (" ..." if len(other) > 5 else ""))
+        if len(names) < 2:
+            raise InputFileError(
+                f"{self.images} holds {len(names)} image file(s) ({', '.join(names) or 'none'}) but at least 2 "
+                f"are needed; supported extensions: {', '.join(e.lstrip('.') for e in IMAGE_EXTENSIONS)}")
+        sizes, bad = check_headers(self.images, names)
+        for n, why in bad.items():
+            logger.warning("skipping %s: it %s", self.images / n, why)
+        ok = [n for n in names if n in sizes]
+        if len(ok) < 2:
+            raise InputFileError(f"only {len(ok)} of {len(names)} images in {self.images} are usable "
+                                 f"({'; '.join(f'{n} {w}' for n, w in list(bad.items())[:5])}); at least 2 are needed")
+        K, sources = resolve_intrinsics(self.images, ok, np.array([sizes[n] for n in ok], np.int64), self.K_path)
+        sigs = {}
+        for n in ok:
+            st = (self.images / n).stat()
+            sigs[n] = (int(st.st_size), int(st.st_mtime_ns))
+        self._scan = {"names": ok, "other": other, "sizes": sizes, "bad": bad, "K": K, "sources": sources,
+                      "sigs": sigs}
+        return self._scan
+
+    def inputs(self) -> dict[str, str]:
+        s = self.scan()
+        return {"images": fingerprint_of(str(self.images.resolve()), [[n, *s["sigs"][n]] for n in s["names"]]),
+                "K": fingerprint_of(np.round(s["K"], 9).tolist(), s["sources"])}
+
+    def _keys(self) -> dict[str, str]:
+        s = self.scan()
+        fp = self.config.fingerprint()
+        return {n: item_key(fp, n, *s["sigs"][n]) for n in s["names"]}
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        s = self.scan()
+        cfg = self.config
+        logger.info("features: %s", cfg)
+        keys = self._keys()
+        store = ItemStore(self.folder / STORE)
+        done = set() if self.overwrite else store.done(keys.values())
+        todo = [n for n in s["names"] if keys[n] not in done]
+        skipped = [{"name": n, "reason": w} for n, w in s["bad"].items()]
+        tasks = [(str(self.images / n), n, keys[n], cfg.as_dict()) for n in todo]
+        n_kp: list[int] = []
+        with make_executor(min(cfg.workers, max(len(tasks), 1)), "threads") as ex:
+            bar = tqdm(ex.map(_extract_task, tasks), total=len(tasks), desc="features", unit="img",
+                       disable=not self.progress)
+            for key, name, arrays, reason in bar:
+                if arrays is None:
+                    skipped.append({"name": name, "reason": reason})
+                    logger.warning("skipping %s: it %s", self.images / name, reason)
+                    continue
+                store.write_chunk({key: arrays})
+                n_kp.append(len(arrays["keypoints"]))
+        failed = {d["name"] for d in skipped}
+        usable = [n for n in s["names"] if n not in failed]
+        if len(usable) < 2:
+            why = "; ".join(f"{d['name']} {d['reason']}" for d in skipped[:5])
+            raise InputFileError(f"only {len(usable)} of {len(s['names']) + len(s['bad'])} images in {self.images} "
+                                 f"are usable ({why}); at least 2 are needed")
+        files = store.write_index([keys[n] for n in usable])
+        keep = [s["names"].index(n) for n in usable]
+        manifest = {
+            "format": "rotavg-features",
+            "images": str(self.images.resolve()),
+            "names": usable,
+            "sizes": [list(s["sizes"][n]) for n in usable],
+            "K": s["K"][keep].tolist(),
+            "K_source": [s["sources"][k] for k in keep],
+            "skipped": skipped,
+            "ignored_files": s["other"],
+            "signatures": [list(s["sigs"][n]) for n in usable],
+            "keys": [keys[n] for n in usable],
+            "config": cfg.as_dict(),
+            "n_extracted": len(n_kp),
+            "n_cached": len(usable) - len(n_kp),
+        }
+        path = write_json(self.folder / MANIFEST, manifest)
+        logger.info("features: %d images (%d extracted, %d from cache, %d skipped); median %d keypoints per "
+                    "extracted image", len(usable), len(n_kp), len(usable) - len(n_kp), len(skipped),
+                    int(np.median(n_kp)) if n_kp else 0)
+        return [path, *files], {"n_images": len(usable), "n_extracted": len(n_kp), "n_skipped": len(skipped)}
+
+    def verify(self, record: StageRecord) -> None:
+        m = load_manifest(self.folder)
+        keys = ItemStore(self.folder / STORE).load_index()
+        if list(keys) != list(m["keys"]) or len(m["names"]) != len(m["keys"]):
+            raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the images")
+        for chunk in sorted(set(keys.values())):
+            ItemStore.read_chunk(self.folder / STORE / chunk)
+
+
+def load_manifest(work: Path) -> dict:
+    """The features manifest of ``work``; a missing or damaged one gives an error naming the command to run."""
+    path = Path(work) / MANIFEST
+    if not path.is_file():
+        raise InputFileError(f"{path} not found: run `python -m pipeline.features --images DIR --work {work}` first")
+    try:
+        m = json.loads(path.read_text(encoding="utf-8"))
+        n = len(m["names"])
+        if not (len(m["sizes"]) == len(m["K"]) == len(m["keys"]) == n):
+            raise ValueError("per-image lists of different lengths")
+        return m
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run pipeline.features") from None
+
+
+def load_features(work: Path, descriptors: bool = True) -> FeatureSet:
+    """Read the features written by the stage (keypoints, descriptors, K, sizes)."""
+    work = Path(work)
+    m = load_manifest(work)
+    store = ItemStore(work / STORE)
+    store.load_index()
+    kps, descs = [], []
+    for k in m["keys"]:  # one read per image
+        item = store.get(k)
+        kps.append(item["keypoints"].astype(np.float32))
+        descs.append(item["descriptors"] if descriptors else np.zeros((0, 128), np.uint8))
+    rec = read_record(work, FeaturesStage.name)
+    return FeatureSet(
+        names=list(m["names"]),
+        K=np.array(m["K"], float).reshape(-1, 3, 3),
+        sizes=np.array(m["sizes"], np.int64).reshape(-1, 2),
+        keypoints=kps,
+        descriptors=descs,
+        images=Path(m["images"]),
+        K_source=list(m.get("K_source", [])),
+        digest=rec.fingerprint if rec is not None else "",
+        config=FeatureConfig.from_dict(m["config"]),
+        signatures=np.array(m["signatures"], np.int64).reshape(-1, 2),
+    )
+
+
+def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: Path | None = None,
+         overwrite: bool = False, progress: bool = True) -> Path:
+    """Run the stage (reusing an intact cached result); returns the manifest path."""
+    FeaturesStage(work, config, images=images, K_path=K_path, progress=progress).run(overwrite)
+    return Path(work) / MANIFEST
+
+
+def main_cli(argv: list[str] | None = None) -> int:
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.features",
+                                description="SIFT features of an image folder (cached per image).")
+    p.add_argument("--images", type=Path, required=True, help="folder of images")
+    p.add_argument("--work", type=Path, required=True, help="WORK folder for the front end's outputs")
+    p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3x3) or a per-image cameras file")
+    p.add_argument("--config", type=Path, default=None, help="YAML config; its 'features' section is used")
+    p.add_argument("--overwrite", action="store_true", help="re-extract even cached images")
+    add_config_args(p, FeatureConfig)
+
+    def body(a: argparse.Namespace) -> int:
+        cfg = config_from_args(FeatureConfig, a, a.config)
+        print(main(a.images, a.work, cfg, a.K, overwrite=a.overwrite, progress=not a.quiet))
+        return 0
+
+    return run_cli(body, p, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())

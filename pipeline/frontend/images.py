@@ -1,0 +1,151 @@
+"""Image listing, header checks and robust reading for the image front end.
+
+Every image is checked from its header before any work (:func:`check_headers`):
+a file that is not an image, whose header claims an absurd size (a decoder would
+try to allocate gigabytes), or that is too small, is left out with its reason.
+Reading (:func:`read_gray`) refuses truncated or corrupt JPEGs, which libjpeg
+would otherwise decode into partly grey images with only a warning. Intrinsics
+are resolved in :mod:`pipeline.frontend.intrinsics`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.core.errors import InputFileError
+
+logger = logging.getLogger(__name__)
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".pbm", ".bmp", ".tif", ".tiff", ".webp")
+MAX_PIXELS = 250_000_000  # 250 Mpx: more is a damaged or hostile header, not a photo
+MIN_SIDE = 16
+
+__all__ = ["IMAGE_EXTENSIONS", "MAX_PIXELS", "list_images", "read_gray", "image_size", "check_headers"]
+
+
+def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
+    """Image file names (sorted) in ``folder`` and the other files that were ignored.
+
+    Raises:
+        InputFileError: the folder does not exist.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(f"image folder {folder} does not exist or is not a folder; pass --images DIR with your images")
+    names, other = [], []
+    for p in sorted(folder.iterdir()):
+        if not p.is_file() or p.name.startswith("."):
+            continue
+        (names if p.suffix.lower() in IMAGE_EXTENSIONS else other).append(p.name)
+    return names, other
+
+
+def _jpeg_truncated(data: np.ndarray) -> bool:
+    """True if JPEG bytes lack the end-of-image marker (a truncated download or copy)."""
+    tail = data[-64:].tobytes().rstrip(b"\x00\n\r\t ")
+    return not tail.endswith(b"\xff\xd9")
+
+
+def _jpeg_corrupt(data: np.ndarray) -> str:
+    """libjpeg's complaint about corrupt entropy-coded data ('' if none), from a strict 1/8-scale decode."""
+    import simplejpeg  # noqa: PLC0415
+
+    kw = dict(colorspace="GRAY", min_height=1, min_width=1, min_factor=8)
+    try:
+        simplejpeg.decode_jpeg(data.tobytes(), strict=True, **kw)
+    except ValueError as exc:
+        try:  # a JPEG that decodes only when warnings are ignored is corrupt
+            simplejpeg.decode_jpeg(data.tobytes(), strict=False, **kw)
+        except ValueError:
+            return ""  # not a layout this check reads (e.g. CMYK): OpenCV decides
+        return " ".join(str(exc).split())[:80]
+    return ""
+
+
+def read_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
+    """Read an image as 8-bit grey.
+
+    Returns:
+        ``(image (h, w) uint8, "")`` or ``(None, reason)`` when the file cannot be used.
+    """
+    path = Path(path)
+    try:
+        data = np.fromfile(path, np.uint8)
+    except OSError as exc:
+        return None, f"cannot be read ({exc.strerror or exc})"
+    if data.size == 0:
+        return None, "is empty (0 bytes)"
+    is_jpeg = data.size >= 3 and data[:3].tobytes() == b"\xff\xd8\xff"
+    # libjpeg decodes a truncated or corrupt JPEG into a partly grey image with only a
+    # warning; such an image would give wrong features, so it is refused here
+    if is_jpeg and _jpeg_truncated(data):
+        return None, "is a truncated JPEG (no end-of-image marker); re-copy or re-download it"
+    if is_jpeg:
+        why = _jpeg_corrupt(data)
+        if why:
+            return None, f"is a corrupt JPEG ({why}); re-copy or re-download it"
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        return None, f"cannot be decoded ({' '.join(str(exc).split())[-80:]})"
+    if img is None:
+        return None, "is not an image OpenCV can decode (corrupt, truncated or not an image)"
+    if img.dtype == np.uint16:
+        img = (img / 257).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        img = cv2.normalize(img.astype(np.float32), None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code)
+    if min(img.shape[:2]) < MIN_SIDE:
+        return None, f"is too small ({img.shape[1]}x{img.shape[0]} pixels)"
+    return img, ""
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(w, h)`` from the file header (Pillow), or None."""
+    try:
+        from PIL import Image  # noqa: PLC0415
+
+        Image.MAX_IMAGE_PIXELS = None  # the size is judged by check_headers, not by a Pillow warning
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except Exception:  # noqa: BLE001 - any failure means "unknown"
+        return None
+
+
+def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, int]], dict[str, str]]:
+    """Sizes from the headers of ``names``, and the reason for each image left out.
+
+    Decodes nothing, so a header that claims 60000×60000 pixels costs nothing.
+
+    Returns:
+        ``{name: (w, h)}`` of the usable images and ``{name: reason}`` of the others.
+    """
+    sizes: dict[str, tuple[int, int]] = {}
+    bad: dict[str, str] = {}
+    for n in names:  # one header read per image
+        path = Path(folder) / n
+        try:
+            if path.stat().st_size == 0:
+                bad[n] = "is empty (0 bytes)"
+                continue
+        except OSError as exc:
+            bad[n] = f"cannot be read ({exc.strerror or exc})"
+            continue
+        wh = image_size(path)
+        if wh is None:
+            bad[n] = "is not an image this program can read (corrupt, truncated or not an image)"
+        elif wh[0] * wh[1] > MAX_PIXELS:
+            bad[n] = (f"claims {wh[0]}x{wh[1]} pixels in its header, more than {MAX_PIXELS // 1_000_000} Mpx; "
+                      "a damaged file, or resize it")
+        elif min(wh) < MIN_SIDE:
+            bad[n] = f"is too small ({wh[0]}x{wh[1]} pixels)"
+        else:
+            sizes[n] = wh
+    return sizes, bad

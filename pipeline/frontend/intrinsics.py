@@ -1,0 +1,222 @@
+"""The one resolver of camera intrinsics: every K the pipeline uses comes from here.
+
+Intrinsics are taken, per image, from the first source that has them:
+
+1. a file or folder given by the user (``--K``) or found in the image folder:
+   ``K.txt`` (one 3×3 for all images); a per-image cameras file (``name fx fy cx cy
+   [...]`` as the renderer writes); Middlebury ``*_par.txt``
+   (``name k11..k33 r11..r33 t1 t2 t3``); or a reference folder with K (Strecha
+   ``gt_dense_cameras/``). Without ``--K``, ``K.txt``, ``cameras.txt`` or a single
+   ``*_par.txt`` inside the image folder is used;
+2. the EXIF focal length (``pycolmap.infer_camera_from_image``, COLMAP's reader
+   with its sensor database, else Pillow's ``FocalLengthIn35mmFilm``);
+3. otherwise ``f = 1.2·max(w, h)`` (COLMAP's default factor), with a warning.
+
+Every K is checked (finite, ``fx, fy > 0``, last row ``0 0 1``, invertible) when
+it is read, before any image is processed. The source of each K is recorded.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.errors import InputFileError
+from pipeline.core.names import match_names
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DEFAULT_FOCAL_FACTOR", "parse_intrinsics_file", "check_K", "find_intrinsics_file", "exif_focal",
+           "default_K", "read_intrinsics", "resolve_intrinsics", "intrinsics_for_names"]
+
+DEFAULT_FOCAL_FACTOR = 1.2
+MAX_FILE_BYTES = 64 << 20
+
+
+def check_K(K: np.ndarray, where: str | os.PathLike) -> np.ndarray:
+    """``K`` as a (3, 3) float array if it is a usable pinhole matrix, else :class:`InputFileError`."""
+    K = np.asarray(K, dtype=np.float64)
+    ok = (K.shape == (3, 3) and np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0
+          and abs(K[2, 2] - 1) < 1e-6 and np.allclose(K[2, :2], 0))
+    if not ok:
+        raise InputFileError(f"{where}: {np.round(K, 6).tolist()} is not a pinhole K "
+                             "(finite, fx > 0, fy > 0, last row 0 0 1)")
+    if abs(np.linalg.det(K)) < 1e-12 * max(K[0, 0] * K[1, 1], 1e-300) or np.linalg.cond(K) > 1e12:
+        raise InputFileError(f"{where}: K {np.round(K, 6).tolist()} is singular; check its values")
+    return K
+
+
+def _read_text(path: Path) -> str:
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise InputFileError(f"{path} is {path.stat().st_size >> 20} MB; an intrinsics file is a few kB")
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"{path} is not UTF-8 text ({exc.reason} at byte {exc.start}); "
+                             "pass a K.txt (3x3) or a cameras file") from None
+
+
+def parse_intrinsics_file(path: str | os.PathLike) -> np.ndarray | dict[str, np.ndarray]:
+    """Read ``K.txt`` (one 3×3) or a per-image cameras file.
+
+    Returns:
+        a (3, 3) matrix shared by all images, or ``{name: (3, 3)}``.
+    Raises:
+        InputFileError: the file is missing or in none of the supported layouts.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"intrinsics file {path} does not exist")
+    lines = [ln.split("#")[0].split() for ln in _read_text(path).splitlines()]
+    lines = [ln for ln in lines if ln]
+    try:
+        nums: list[float] | None = [float(v) for ln in lines for v in ln]
+    except ValueError:
+        nums = None  # has names: a per-image file
+    if nums is not None:
+        if len(nums) != 9:
+            raise InputFileError(f"{path}: {len(nums)} numbers, but a K.txt holds exactly 9 (one 3x3 matrix)")
+        return check_K(np.array(nums).reshape(3, 3), path)
+    out: dict[str, np.ndarray] = {}
+    for k, ln in enumerate(lines):
+        if len(ln) == 1 and ln[0].isdigit():
+            continue  # Middlebury's first line is the image count
+        name, vals = ln[0], ln[1:]
+        try:
+            v = [float(x) for x in vals]
+        except ValueError:
+            raise InputFileError(f"{path} line {k + 1}: expected 'name' followed by numbers, "
+                                 f"got {' '.join(ln)[:80]!r}") from None
+        if len(v) == 21:  # Middlebury: name k11..k33 r11..r33 t1 t2 t3
+            K = np.array(v[:9]).reshape(3, 3)
+        elif len(v) in (4, 16):  # cameras file: name fx fy cx cy [r11..r33 t1 t2 t3]
+            K = np.array([[v[0], 0, v[2]], [0, v[1], v[3]], [0, 0, 1.0]])
+        else:
+            raise InputFileError(
+                f"{path} line {k + 1}: {len(v)} numbers after the name; expected 4 or 16 "
+                "('name fx fy cx cy [r11..r33 t1 t2 t3]') or 21 (Middlebury 'name k11..k33 r11..r33 t1 t2 t3')")
+        if name in out:
+            raise InputFileError(f"{path} line {k + 1}: image {name!r} is listed twice")
+        out[name] = check_K(K, f"{path} line {k + 1}")
+    if not out:
+        raise InputFileError(f"{path} holds no camera; expected K.txt (3x3) or lines 'name fx fy cx cy ...'")
+    return out
+
+
+def find_intrinsics_file(folder: str | os.PathLike) -> Path | None:
+    """``K.txt``, ``cameras.txt`` or the single ``*_par.txt`` in ``folder``, if present."""
+    folder = Path(folder)
+    for name in ("K.txt", "cameras.txt"):
+        if (folder / name).is_file():
+            return folder / name
+    par = sorted(folder.glob("*_par.txt"))
+    return par[0] if len(par) == 1 else None
+
+
+def read_intrinsics(source: str | os.PathLike) -> np.ndarray | dict[str, np.ndarray]:
+    """A shared (3, 3) K or ``{name: K}`` from a K file, a cameras file or a reference folder with K."""
+    path = Path(source)
+    if not path.exists():
+        raise InputFileError(f"intrinsics file {path} does not exist; pass a K.txt (3x3) or a cameras file")
+    if path.is_file():
+        return parse_intrinsics_file(path)
+    from pipeline.io.references import read_reference  # noqa: PLC0415 - a folder of true cameras
+
+    ref = read_reference(path)
+    if getattr(ref, "K", None) is None:
+        raise InputFileError(f"{path} holds no intrinsics; pass a K.txt (3x3) or a cameras file with K")
+    Kref = np.asarray(ref.K, dtype=float)
+    return {nm: check_K(Kref if Kref.ndim == 2 else Kref[k], f"{path} ({nm})") for k, nm in enumerate(ref.names)}
+
+
+def intrinsics_for_names(parsed: np.ndarray | dict[str, np.ndarray], names: list[str], where: str | os.PathLike
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3, 3) K for ``names`` from :func:`read_intrinsics`'s result and an (N,) mask of those found."""
+    n = len(names)
+    if isinstance(parsed, np.ndarray):
+        return np.broadcast_to(parsed, (n, 3, 3)).copy(), np.ones(n, bool)
+    keys = list(parsed)
+    idx = match_names(names, keys, what=str(where))
+    K = np.zeros((n, 3, 3))
+    found = idx >= 0
+    if found.any():
+        K[found] = np.stack([parsed[keys[i]] for i in idx[found]])
+    return K, found
+
+
+def exif_focal(path: str | os.PathLike) -> float | None:
+    """Focal length in pixels from the EXIF tags, or None."""
+    try:
+        import pycolmap  # noqa: PLC0415
+
+        cam = pycolmap.infer_camera_from_image(str(path))
+        if cam.has_prior_focal_length:
+            return float(cam.mean_focal_length())
+    except Exception:  # noqa: BLE001 - fall through to Pillow
+        logger.debug("pycolmap could not read EXIF of %s", path, exc_info=True)
+    try:
+        from PIL import Image  # noqa: PLC0415
+
+        with Image.open(path) as im:
+            exif = im.getexif()
+            w, h = im.size
+            sub = exif.get_ifd(0x8769) if hasattr(exif, "get_ifd") else {}
+            f35 = sub.get(0xA405) or exif.get(0xA405)  # FocalLengthIn35mmFilm
+            if f35:
+                # 35 mm film is 36 mm wide: f_px = f35 / 36 · (long side in pixels)
+                return float(f35) / 36.0 * max(w, h)
+    except Exception:  # noqa: BLE001
+        logger.debug("Pillow could not read EXIF of %s", path, exc_info=True)
+    return None
+
+
+def default_K(w: int, h: int, focal: float | None = None) -> np.ndarray:
+    """Pinhole K with the principal point at the image centre."""
+    f = focal if focal is not None else DEFAULT_FOCAL_FACTOR * max(w, h)
+    return np.array([[f, 0, w / 2.0], [0, f, h / 2.0], [0, 0, 1.0]])
+
+
+def resolve_intrinsics(folder: Path, names: list[str], sizes: np.ndarray, K_path: Path | None = None,
+                       parsed: np.ndarray | dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, list[str]]:
+    """One K per image, from a file, EXIF or the default focal length.
+
+    Args:
+        folder: image folder.
+        names: N image file names.
+        sizes: (N, 2) image sizes (w, h).
+        K_path: explicit intrinsics file or folder, or None to look for one in ``folder``.
+        parsed: the already-read content of ``K_path`` (it is read here if None).
+    Returns:
+        K (N, 3, 3) and the source of each (``"file:<path>"``, ``"exif"``, ``"default"``).
+    """
+    src = Path(K_path) if K_path is not None else find_intrinsics_file(folder)
+    if src is not None and parsed is None:
+        parsed = read_intrinsics(src)
+    if src is not None:
+        logger.info("intrinsics from %s", src)
+        K, found = intrinsics_for_names(parsed, names, src)
+    else:
+        K, found = np.zeros((len(names), 3, 3)), np.zeros(len(names), bool)
+    sources = [f"file:{src}" if f else "" for f in found]
+    missing_default: list[str] = []
+    for k in np.flatnonzero(~found):  # per image without a file entry: EXIF, else the default
+        w, h = (int(v) for v in sizes[k])
+        f = exif_focal(folder / names[k])
+        K[k] = default_K(w, h, f)
+        sources[k] = "exif" if f is not None else "default"
+        if f is None:
+            missing_default.append(names[k])
+    if src is not None and not found.all():
+        absent = [n for n, f in zip(names, found) if not f]
+        logger.warning("%s has no intrinsics for %d image(s) (%s); using EXIF or the default focal length for them",
+                       src, len(absent), ", ".join(absent[:5]) + (" ..." if len(absent) > 5 else ""))
+    if missing_default:
+        logger.warning(
+            "no intrinsics file and no EXIF focal length for %d image(s) (%s): assuming f = %.1f·max(w, h). "
+            "Pass --K K.txt (3x3) or a cameras file for accurate rotations",
+            len(missing_default), ", ".join(missing_default[:5]) + (" ..." if len(missing_default) > 5 else ""),
+            DEFAULT_FOCAL_FACTOR)
+    return K, sources
