@@ -23,16 +23,16 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
-from pipeline.averaging.l1 import l1_averaging
+from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
 from pipeline.averaging.result import AveragingResult, method_config, start_of
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.errors import ConfigError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
@@ -42,7 +42,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
-class IRLSConfig(Config):
+class IRLSConfig(L1StartConfig):
     """Options of :func:`irls` (the ``irls`` method); see :func:`irls` for what each does."""
 
     SECTION = "averaging.irls"
@@ -52,11 +52,6 @@ class IRLSConfig(Config):
                                          "otherwise", gt=0)
     max_iterations: int = option(100, "IRLS iteration cap", ge=0)
     tol_rad: float = option(1e-3, "stop when the mean camera update is below this (radians)", ge=0)
-    l1_iterations: int = option(20, "ℓ1 steps (paper 1, Algorithm 2) before IRLS; 0 skips them", ge=0)
-    l1_tol_rad: float = option(0.02, "early stop of the ℓ1 steps on their mean update (radians)", ge=0)
-    admm_max_iterations: int = option(10, "ADMM iterations per ℓ1 step", ge=1)
-    init: Literal["mst", "random"] = option("mst", "spanning tree of the start: mst (by inliers) or random")
-    seed: int | None = option(0, "seed of the random spanning tree")
     refine: bool = option(True, "after convergence, a trimmed-ℓ2 polish (not in paper 1)")
     refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
     refine_min_deg: float = option(1.0, "lower bound of the polish's trimming threshold, degrees", ge=0)

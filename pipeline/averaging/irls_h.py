@@ -56,7 +56,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -64,11 +64,11 @@ import scipy.sparse.linalg as sla
 
 from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
-from pipeline.averaging.l1 import l1_averaging
+from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
 from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.core import so3
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.errors import ConfigError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
@@ -271,7 +271,7 @@ def _steps(vg: ViewGraph, R: np.ndarray, solver: BlockLaplacianSolver, lossf: Lo
 
 
 @dataclass(frozen=True, kw_only=True)
-class IRLSHConfig(Config):
+class IRLSHConfig(L1StartConfig):
     """Options of :func:`irls_h` (the ``irls-h`` method); see :func:`irls_h` for what each does."""
 
     SECTION = "averaging.irls-h"
@@ -279,11 +279,6 @@ class IRLSHConfig(Config):
     alpha_sigma: float = option(2.0, "loss scale α in units of the robust residual scale s (not degrees)", gt=0)
     max_iterations: int = option(100, "IRLS iteration cap", ge=0)
     tol_rad: float = option(1e-5, "stop when the mean camera update is below this (radians)", ge=0)
-    l1_iterations: int = option(20, "isotropic ℓ1 steps (paper 1, Algorithm 2) first; 0 skips them", ge=0)
-    l1_tol_rad: float = option(0.02, "early stop of the ℓ1 steps on their mean update (radians)", ge=0)
-    admm_max_iterations: int = option(10, "ADMM iterations per ℓ1 step", ge=1)
-    init: Literal["mst", "random"] = option("mst", "spanning tree of the start: mst (by inliers) or random")
-    seed: int | None = option(0, "seed of the random spanning tree")
     refine: bool = option(True, "after convergence, least squares on the edges with t <= 3.76 (Talwar)")
     refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
     scale: float | None = option(None, "a fixed s² (NEES scale of H) instead of the robust estimate", gt=0)

@@ -1,6 +1,6 @@
 """Shared Lie-algebra kernel of the iterative methods: residuals, update, Laplacian solver, graph checks.
 
-Residual convention (``docs/CONVENTIONS.md``): for edge ``(i, j)`` carrying
+Residual convention (``../shared/DESIGN.md``): for edge ``(i, j)`` carrying
 ``R_ij ≈ R_j R_iᵀ``,
 
     ΔR_ij = R_jᵀ R_ij R_i,    r_ij = log(ΔR_ij)            (paper 1, eq. 7)

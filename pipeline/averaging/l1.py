@@ -19,17 +19,17 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
-from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.init import StartConfig, initial_rotations
 from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
 from pipeline.averaging.result import AveragingResult, method_config, start_of
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["L1Config", "solve_l1", "l1_step", "l1_averaging", "L1StepResult"]
+__all__ = ["L1Config", "L1StartConfig", "solve_l1", "l1_step", "l1_averaging", "L1StepResult"]
 
 logger = logging.getLogger(__name__)
 
@@ -201,15 +201,22 @@ def l1_averaging(
 
 
 @dataclass(frozen=True, kw_only=True)
-class L1Config(Config):
+class L1StartConfig(StartConfig):
+    """A spanning tree, then a few ℓ1 steps of Algorithm 2: the start of the IRLS methods."""
+
+    l1_iterations: int = option(20, "ℓ1 steps (paper 1, Algorithm 2) before IRLS; 0 skips them", ge=0)
+    l1_tol_rad: float = option(0.02, "early stop of the ℓ1 steps on their mean update (radians)", ge=0)
+    admm_max_iterations: int = option(10, "ADMM iterations per ℓ1 step", ge=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class L1Config(StartConfig):
     """Options of the ``l1`` method (paper 1, Algorithm 2 run to convergence)."""
 
     SECTION = "averaging.l1"
     max_iterations: int = option(100, "cap on ℓ1 steps", ge=0)
     tol_rad: float = option(1e-3, "stop when the mean camera update is below this (radians)", ge=0)
     admm_max_iterations: int = option(200, "ADMM iteration cap per ℓ1 step", ge=1)
-    init: Literal["mst", "random"] = option("mst", "spanning tree of the start: mst (by inliers) or random")
-    seed: int | None = option(0, "seed of the random spanning tree")
 
 
 def solve_l1(vg: ViewGraph, config: L1Config | None = None, *, init: str | np.ndarray | None = None,

@@ -33,6 +33,7 @@ has H; SDP-cSO(3) when it has H and at most ``run.sdp_max_n`` cameras.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -95,7 +96,8 @@ class Method:
         """The method's label for ``config``: ``irls-l0.5``, ``sdp-cso3``, ``weiszfeld``."""
         if self.token_option is None:
             return self.name
-        return f"{self.name}-{str(getattr(config, self.token_option)).strip().lower()}"
+        value = str(getattr(config, self.token_option)).strip().lower()
+        return f"{self.name}-{re.sub(r'[^a-z0-9._+-]', '_', value)}"  # a file name: no slash (loss alias l1/2)
 
     def requires_H(self, config: Config) -> bool:
         return bool(self.needs_H(config) if callable(self.needs_H) else self.needs_H)

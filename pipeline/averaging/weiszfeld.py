@@ -26,11 +26,11 @@ from typing import Any, Literal
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.averaging.init import initial_rotations
+from pipeline.averaging.init import StartConfig, initial_rotations
 from pipeline.averaging.kernel import check_graph, edge_residuals
 from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.core import so3
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["WeiszfeldConfig", "weiszfeld", "independent_sets"]
@@ -79,7 +79,7 @@ def _estimates(vg: ViewGraph, R: np.ndarray, cams: np.ndarray, inc: sp.csr_matri
 
 
 @dataclass(frozen=True, kw_only=True)
-class WeiszfeldConfig(Config):
+class WeiszfeldConfig(StartConfig):
     """Options of :func:`weiszfeld` (the ``weiszfeld`` method); see :func:`weiszfeld`."""
 
     SECTION = "averaging.weiszfeld"
@@ -89,8 +89,6 @@ class WeiszfeldConfig(Config):
     inner_tol_rad: float = option(1e-6, "stop the median search when its step is below this (radians)", ge=0)
     loss: Literal["l1", "l2"] = option("l1", "l1 (Weiszfeld) or l2 (distributed Karcher mean)")
     vardi_zhang: bool = option(True, "Vardi–Zhang step at a camera that coincides with some estimates")
-    init: Literal["mst", "random"] = option("mst", "spanning tree of the start: mst (by inliers) or random")
-    seed: int | None = option(0, "seed of the random spanning tree and of the colouring")
 
 
 def weiszfeld(vg: ViewGraph, config: WeiszfeldConfig | None = None, *, init: str | np.ndarray | None = None,

@@ -49,6 +49,7 @@ def test_parse_method():
     assert (parse_method("irls-huber").name, parse_method("irls-huber").config.loss) == ("irls", "huber")
     # a bare loss is the default method's
     assert parse_method("huber").label == "irls-huber" and parse_method(" L2 ").label == "irls-l2"
+    assert parse_method("irls-l1/2").label == "irls-l1_2"  # labels name files
 
 
 def test_parse_method_rejects_unknown():

@@ -1,6 +1,6 @@
 """Certificate of an SDP rotation-averaging solution: rank, rounding, costs, gap.
 
-Conventions (docs/CONVENTIONS.md): ``Y = [R_1; …; R_N]`` (3N, 3) stacks the
+Conventions (``../shared/DESIGN.md``): ``Y = [R_1; …; R_N]`` (3N, 3) stacks the
 cam_from_world rotations and ``X = Y Yᵀ``, so the block ``X_ji = R_j R_iᵀ`` is the
 relative rotation an edge ``(i, j)`` measures. The anisotropic cost (paper 2,
 eq. 11, summed once per edge) is
