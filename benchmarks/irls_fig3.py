@@ -75,7 +75,7 @@ def failure_trial(seed: int, layout: str = "chain") -> dict:
     ours = irls(vg, loss="l0.5", init=R0, refine=True)
     pure = irls(vg, loss="l0.5", init=R0, eps_rad=1e-6)
     core = irls(vg, loss="l0.5", init=R0)
-    w = weiszfeld(vg, init=R0, order=np.arange(n), max_sweeps=2000)
+    w = weiszfeld(vg, init=R0, order=np.arange(n), max_iterations=2000)
     eo, ew = rotation_errors_deg(ours.R, R), rotation_errors_deg(w.R, R)
     return {"seed": seed, "layout": layout, "init_max_deg": float(e0), "ours_max_deg": float(eo.max()),
             "pure_l0.5_max_deg": float(rotation_errors_deg(pure.R, R).max()),
@@ -121,10 +121,10 @@ def slow_convergence() -> dict:
                              ("weiszfeld-from-camera-2", [1, 2, 3, 4, 0], "l1"),
                              ("distributed-l2-from-camera-1", [0, 1, 2, 3, 4], "l2"),
                              ("distributed-l2-from-camera-2", [1, 2, 3, 4, 0], "l2")):
-        res = weiszfeld(vg, init=R0, order=np.array(order), tol_rad=1e-3, max_sweeps=10000, loss=wl)
+        res = weiszfeld(vg, init=R0, order=np.array(order), tol_rad=1e-3, max_iterations=10000, loss=wl)
         k_acc = None
         for k in range(1, 2000):
-            r = weiszfeld(vg, init=R0, order=np.array(order), max_sweeps=k, tol_rad=0.0, loss=wl)
+            r = weiszfeld(vg, init=R0, order=np.array(order), max_iterations=k, tol_rad=0.0, loss=wl)
             if rotation_errors_deg(r.R, R).max() < 1e-3:
                 k_acc = k
                 break

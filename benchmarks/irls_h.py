@@ -15,10 +15,10 @@ Methods, in the same run:
 * ``sdp-cso3``: ``solve_sdp(vg, "cso3", "scs")`` (paper 2; anisotropic least
   squares, certifiable, not robust), N ≤ 100 only (SCS: ~5 s per instance at N = 100);
 * ``gtsam-lm``: GTSAM ``BetweenFactorRot3`` + ``noiseModel.Gaussian.Information(H)``,
-  Levenberg–Marquardt (``benchmarks/sdp_common.lm_anisotropic``; local, not robust)
+  Levenberg–Marquardt (``pipeline.averaging.peers.lm_anisotropic``; local, not robust)
   from our spanning tree + ℓ1 start (``irls(vg, max_iterations=0)``, its time added);
 * ``colmap``: ``pycolmap.run_rotation_averaging`` with default options
-  (``run_colmap`` of ``benchmarks/irls_peers.py``: isotropic ℓ1 + IRLS);
+  (``pipeline.averaging.peers.run_colmap``: isotropic ℓ1 + IRLS);
 * ``oracle``: irls-h with the ℓ2 loss and no polish on the true inlier edges only
   (with 0% outliers: anisotropic least squares on every edge).
 
@@ -53,24 +53,18 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-_HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(_HERE))
-import sdp_common  # noqa: E402  (drops benchmarks/ from sys.path again)
-
 import numpy as np  # noqa: E402
 
+from pipeline.averaging import average  # noqa: E402
+from pipeline.averaging.irls import irls  # noqa: E402
+from pipeline.averaging.peers import have_gtsam, lm_anisotropic, run_colmap  # noqa: E402
 from pipeline.core import so3  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.average import average  # noqa: E402
-from pipeline.averaging.irls import irls  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluate import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise, with_outliers  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
-sys.path.append(str(_HERE))  # at the end: nothing there may shadow the package
-from irls_peers import run_colmap  # noqa: E402
-
-RESULTS = sdp_common.RESULTS
+RESULTS = Path(__file__).resolve().parent / "results"
 EIG_RANGES = [(1.0, 1000.0), (10.0, 100.0)]
 OUTLIER_FRACS = [0.0, 0.1]
 METHODS = ["irls-h", "irls", "sdp-cso3", "gtsam-lm", "colmap", "oracle"]
@@ -140,7 +134,7 @@ def run_instance(vg: ViewGraph, R_true: np.ndarray, out: np.ndarray, reps: int, 
     if gtsam:
         def g():
             l1 = irls(vg, max_iterations=0)  # spanning tree + ℓ1 steps (Algorithm 2), as our IRLS starts
-            R, dt, it = sdp_common.lm_anisotropic(vg, l1.R)
+            R, dt, it = lm_anisotropic(vg, l1.R)
             return (R, it), dt + l1.time_s
         (R, it), t, ts = timed(g, reps)
         rec["gtsam-lm"] = {**errors(R, R_true), "time_s": t, "times_s": ts, "iterations": it}
@@ -221,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     seeds = a.seeds if a.seeds is not None else ([0] if a.quick else [0, 1, 2])
     scale_sizes = [] if a.no_scale else (a.scale_sizes or ([2000] if a.quick else [2000, 10000]))
     out_path = a.out or RESULTS / ("irls_h_quick.json" if a.quick else "irls_h.json")
-    gtsam = sdp_common.have_gtsam()
+    gtsam = have_gtsam()
     if not gtsam:
         print("GTSAM not installed (pip install -e '.[bench]'): skipping gtsam-lm")
     t_start = time.perf_counter()

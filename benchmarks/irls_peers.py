@@ -9,7 +9,7 @@ Methods, in the same run:
   ``RotationEstimatorOptions`` (L1 + IRLS Geman–McClure);
 * ``colmap-l1x20``: the same with ``max_num_l1_iterations = 20``;
 * ``oracle-l2``: our IRLS with the ℓ2 loss on the true inlier edges only;
-* ``ours-l0.5``: the product default (``pipeline.average.average``): ℓ½ with a
+* ``ours-l0.5``: the product default (``pipeline.averaging.average``): ℓ½ with a
   quadratic core of radius α, then the trimmed-ℓ2 polish (``refine=True``);
   ``ours-l0.5-norefine``: Algorithm 3 alone; ``ours-l0.5-pure``: floor 1e-6 rad,
   paper 1's ℓ½, no polish; ``ours-l1``, ``ours-gm`` (Geman–McClure), no polish;
@@ -39,42 +39,14 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.average import average  # noqa: E402
+from pipeline.averaging import average  # noqa: E402
 from pipeline.averaging.irls import irls  # noqa: E402
+from pipeline.averaging.peers import run_colmap  # noqa: E402
 from pipeline.evaluate import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def run_colmap(vg: ViewGraph, **opts) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """pycolmap rotation averaging; returns (R (N,3,3), registered mask, seconds, ok)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 500.0, 640, 480))
-    for i in range(vg.n_cameras):
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=vg.names[i], camera_id=1, image_id=i + 1))
-    pg = pycolmap.PoseGraph()
-    inl = vg.inliers if vg.inliers is not None else np.full(vg.n_edges, 100)
-    for (a, b), Rr, n in zip(vg.edges, vg.R_rel, inl):
-        e = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(Rr), np.zeros(3)))
-        e.num_matches = int(n)
-        pg.add_edge(int(a) + 1, int(b) + 1, e)
-    o = pycolmap.RotationEstimatorOptions()
-    for k, v in opts.items():
-        setattr(o, k, v)
-    t = time.perf_counter()
-    ok = pycolmap.run_rotation_averaging(o, pg, rec, [])
-    dt = time.perf_counter() - t
-    R = np.tile(np.eye(3), (vg.n_cameras, 1, 1))
-    reg = np.zeros(vg.n_cameras, bool)
-    for iid, im in rec.images.items():
-        if im.has_pose:
-            R[iid - 1] = im.cam_from_world().rotation.matrix()
-            reg[iid - 1] = True
-    return R, reg, dt, bool(ok)
 
 
 def run_gtsam(vg: ViewGraph, R0: np.ndarray, sigma_deg: float = 2.0, c_deg: float = 5.0) -> tuple[np.ndarray, float]:

@@ -34,7 +34,7 @@ import json, resource, sys, time, logging
 import numpy as np
 logging.disable(logging.WARNING)
 from pipeline.synthetic.graphs import knn_graph
-from pipeline.average import average
+from pipeline.averaging import average
 from pipeline.evaluate import rotation_errors_deg
 n, k, seed = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 g = knn_graph(n, k=k, sigma_deg=2.0, outlier_frac=0.15, seed=seed)
@@ -72,9 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         row = json.loads(out.stdout.strip().splitlines()[-1])
         if not a.no_colmap:
-            sys.path.insert(0, str(Path(__file__).resolve().parent))
-            from irls_peers import run_colmap
-
+            from pipeline.averaging.peers import run_colmap
             from pipeline.evaluate import rotation_errors_deg
             from pipeline.synthetic.graphs import knn_graph
 

@@ -17,19 +17,17 @@ import logging
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import sdp_common  # noqa: E402,F401
+import numpy as np
 
-import numpy as np  # noqa: E402
+from pipeline.averaging.sdp import solve_sdp
+from pipeline.core import so3
+from pipeline.core.atomic import save_figure, write_json
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.evaluate import frobenius_error
 
-from pipeline.core import so3  # noqa: E402
-from pipeline.core.atomic import save_figure, write_json  # noqa: E402
-from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.evaluate import frobenius_error  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-
-OUT = sdp_common.RESULTS / "sdp_c1.json"
-PNG = sdp_common.RESULTS / "sdp_c1.png"
+RESULTS = Path(__file__).resolve().parent / "results"
+OUT = RESULTS / "sdp_c1.json"
+PNG = RESULTS / "sdp_c1.png"
 EPS = 1e-3
 
 

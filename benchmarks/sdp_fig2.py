@@ -28,15 +28,13 @@ from pathlib import Path
 
 import numpy as np
 
-# benchmarks/pipeline.py (another benchmark) would shadow the package when run as a script
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+from pipeline.averaging.sdp import solve_sdp
+from pipeline.core import so3
+from pipeline.core.atomic import write_json
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.synthetic.graphs import paper2_graph, random_precisions, sample_left_noise
 
-from pipeline.core import so3  # noqa: E402
-from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.synthetic.graphs import paper2_graph, random_precisions, sample_left_noise  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
+_HERE = Path(__file__).resolve().parent
 
 OUT = Path(__file__).resolve().parent / "results" / "sdp_fig2.json"
 

@@ -22,19 +22,17 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import sdp_common  # noqa: E402,F401
+import numpy as np
 
-import numpy as np  # noqa: E402
+from pipeline.averaging.sdp import solve_sdp
+from pipeline.core.atomic import save_figure, write_json
+from pipeline.evaluate import frobenius_error
+from pipeline.synthetic.graphs import paper2_graph
 
-from pipeline.core.atomic import save_figure, write_json  # noqa: E402
-from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.evaluate import frobenius_error  # noqa: E402
-from pipeline.synthetic.graphs import paper2_graph  # noqa: E402
-
-OUT = sdp_common.RESULTS / "sdp_fig3.json"
-PNG_ERR = sdp_common.RESULTS / "sdp_fig3_errors.png"
-PNG_TIME = sdp_common.RESULTS / "sdp_fig3_runtimes.png"
+RESULTS = Path(__file__).resolve().parent / "results"
+OUT = RESULTS / "sdp_fig3.json"
+PNG_ERR = RESULTS / "sdp_fig3_errors.png"
+PNG_TIME = RESULTS / "sdp_fig3_runtimes.png"
 NS = [5, 10, 20, 50, 100]
 PS = [0.1, 0.3, 0.5, 1.0]
 ORDER = ["o3-iso", "o3-aniso", "cso3-iso", "cso3"]

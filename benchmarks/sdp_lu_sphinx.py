@@ -21,18 +21,16 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import sdp_common  # noqa: E402,F401  (fixes sys.path before pipeline is imported)
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.evaluate import summarize  # noqa: E402
-from pipeline.io.mat import read_lu_sphinx  # noqa: E402
+from pipeline.averaging.peers import have_gtsam, lm_anisotropic, shonan
+from pipeline.averaging.sdp import solve_sdp
+from pipeline.core.atomic import write_json
+from pipeline.evaluate import summarize
+from pipeline.io.mat import read_lu_sphinx
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lu_sphinx" / "lu_sphinx.mat"
-OUT = sdp_common.RESULTS / "sdp_lu_sphinx.json"
+OUT = Path(__file__).resolve().parent / "results" / "sdp_lu_sphinx.json"
 PAPER = {  # paper 2, Table 1 and Table C.1
     "o3-iso": {"rank": 3, "frobenius": 0.0944, "rms_deg": 0.46, "mahalanobis": 0.3879, "runtime_s": 2},
     "o3-aniso": {"rank": 7, "frobenius": 18.6037, "runtime_s": 460},
@@ -43,7 +41,7 @@ _CVXPY_CHILD = """
 import json, sys, time, warnings
 warnings.filterwarnings("ignore")
 from pipeline.io.mat import read_lu_sphinx
-from pipeline.averaging.sdp_cvxpy import solve_sdp_cvxpy
+from pipeline.averaging.sdp.cvxpy_ref import solve_sdp_cvxpy
 vg = read_lu_sphinx(sys.argv[1]).vg
 t0 = time.perf_counter()
 r = solve_sdp_cvxpy(vg, sys.argv[2], "scs")
@@ -108,13 +106,13 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.no_peers:
         pass
-    elif sdp_common.have_gtsam():
-        R_sh, lam, t_sh = sdp_common.shonan(vg)
+    elif have_gtsam():
+        R_sh, lam, t_sh = shonan(vg)
         record("gtsam-shonan3", R_sh, t_sh, {"lambda_min": lam})
-        R_lm, t_lm, it = sdp_common.lm_anisotropic(vg, R_sh)
+        R_lm, t_lm, it = lm_anisotropic(vg, R_sh)
         record("gtsam-lm-aniso(shonan init)", R_lm, t_sh + t_lm, {"lm_s": t_lm, "iterations": it})
         if "sdp-o3-iso" in out["methods"]:
-            R_lm2, t_lm2, it2 = sdp_common.lm_anisotropic(vg, R_iso)
+            R_lm2, t_lm2, it2 = lm_anisotropic(vg, R_iso)
             record("gtsam-lm-aniso(o3-iso init)", R_lm2, t_lm2, {"iterations": it2, "note": "time excludes the SDP init"})
     else:
         out["gtsam"] = "skipped: gtsam not installed (pip install .[bench])"

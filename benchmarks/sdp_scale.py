@@ -29,18 +29,16 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import sdp_common  # noqa: E402
+import numpy as np
 
-import numpy as np  # noqa: E402
+from pipeline.averaging.peers import have_gtsam, lm_anisotropic, shonan
+from pipeline.core import so3
+from pipeline.core.atomic import write_json
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.evaluate import frobenius_error, rotation_errors_deg
+from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise
 
-from pipeline.core import so3  # noqa: E402
-from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.evaluate import frobenius_error, rotation_errors_deg  # noqa: E402
-from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-
-OUT = sdp_common.RESULTS / "sdp_scale.json"
+OUT = Path(__file__).resolve().parent / "results" / "sdp_scale.json"
 MEM_CAP_GB = 8.0
 
 
@@ -61,14 +59,12 @@ import json, resource, sys, time, logging
 logging.disable(logging.WARNING)
 cap = int(float(sys.argv[5]) * 2**30)
 resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
-sys.path.insert(0, sys.argv[6])
-import sdp_common  # drops the benchmarks folder from sys.path after importing pipeline
-sys.path.append(sys.argv[6])
+import runpy
 from pipeline.evaluate import frobenius_error, rotation_errors_deg
-import sdp_scale
 import numpy as np
 from pipeline.averaging.sdp import solve_sdp
-vg, R_true = sdp_scale.make_graph(sys.argv[1], int(sys.argv[2]))
+make_graph = runpy.run_path(sys.argv[6])["make_graph"]  # this benchmark's graphs, without touching sys.path
+vg, R_true = make_graph(sys.argv[1], int(sys.argv[2]))
 kw = json.loads(sys.argv[4])
 t0 = time.perf_counter()
 r = solve_sdp(vg, "cso3", sys.argv[3], **kw)
@@ -85,7 +81,7 @@ def run_child(kind: str, n: int, solver: str, kw: dict, time_limit: float) -> di
     t0 = time.perf_counter()
     try:
         p = subprocess.run([sys.executable, "-c", _CHILD, kind, str(n), solver, json.dumps(kw), str(MEM_CAP_GB),
-                            str(Path(__file__).resolve().parent)], capture_output=True, text=True,
+                            str(Path(__file__).resolve())], capture_output=True, text=True,
                            timeout=time_limit + 60)
     except subprocess.TimeoutExpired:
         return {"failed": f"killed after {time.perf_counter() - t0:.0f} s (limit {time_limit} s)"}
@@ -136,9 +132,9 @@ def main(argv: list[str] | None = None) -> int:
                     f"wall {res['wall_s']:8.1f} s build {res['build_s']:.3f} s ({100 * res.get('build_over_solve', 0):.2f}% of solve) "
                     f"rank {res['rank']} gap {res['gap']:.1e} iters {res['solver_iterations']} {res['status']} "
                     f"frob {res['frobenius']:.3f}" if "rank" in res else str(res)), flush=True)
-            if sdp_common.have_gtsam():
-                R_sh, lam, t_sh = sdp_common.shonan(vg)
-                R_lm, t_lm, it = sdp_common.lm_anisotropic(vg, R_sh)
+            if have_gtsam():
+                R_sh, lam, t_sh = shonan(vg)
+                R_lm, t_lm, it = lm_anisotropic(vg, R_sh)
                 for name, R, t in (("gtsam-shonan3", R_sh, t_sh), ("gtsam-shonan3+lm-aniso", R_lm, t_sh + t_lm)):
                     res = {"wall_s": t, "frobenius": frobenius_error(R, R_true),
                            "median_deg": float(np.nanmedian(rotation_errors_deg(R, R_true)))}

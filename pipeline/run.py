@@ -52,7 +52,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
-import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -62,6 +61,10 @@ from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.averaging import registry  # noqa: E402
+from pipeline.averaging.convergence import error_vs_time_curves  # noqa: E402
+from pipeline.averaging.registry import parse_methods  # noqa: E402
+from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.config import load_yaml, stage_config  # noqa: E402
 from pipeline.core.errors import InputFileError, PipelineError  # noqa: E402
@@ -71,7 +74,6 @@ logger = logging.getLogger("run")
 
 # configs/ sits beside the package in a checkout; without it the dataclass defaults apply
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
-SDP_VARIANTS = ("cso3", "cso3-iso", "o3-iso", "o3-aniso")
 STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "reference", "evaluation",
           "report")
 
@@ -103,63 +105,12 @@ class RunConfig:
     plots: bool = True
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "methods", tuple(self.methods or ()))
+        m = self.methods  # a YAML scalar (methods: irls) is one entry, not its characters
+        object.__setattr__(self, "methods", (m,) if isinstance(m, str) else tuple(m or ()))
         if self.align not in ("l2", "l1"):
             raise InputFileError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
         if self.sdp_max_n < 0:
             raise InputFileError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
-
-
-@dataclass
-class MethodSpec:
-    """One averaging method to run: its label and the options of ``pipeline.average``."""
-
-    label: str
-    options: dict[str, Any]
-
-
-def parse_methods(methods: list[str] | tuple[str, ...], solver: str = "scs") -> list[MethodSpec]:
-    """Specs of ``--methods`` tokens (each may hold several, comma-separated); empty: the defaults apply.
-
-    A token naming an existing folder is the image folder swallowed by ``--methods M [M ...]``:
-    the error says so, before any work is done.
-    """
-    tokens = [t.strip() for m in methods for t in str(m).split(",") if t.strip()]
-    for t in tokens:
-        if Path(t).is_dir():
-            raise InputFileError(f"--methods got the folder {t!r}: put IMAGE_DIR before --methods "
-                                 f"(run.py {t} --methods irls sdp) or separate the methods by commas")
-    return [parse_method(t, solver) for t in tokens]
-
-
-def parse_method(token: str, solver: str = "scs") -> MethodSpec:
-    """``irls``, ``irls-<loss>``, ``<loss>``, ``irls-h``, ``irls-h-<loss>``, ``l1``, ``weiszfeld``, ``sdp``,
-    ``sdp-<variant>`` → a spec."""
-    t = token.strip().lower()
-    if t == "l1":
-        return MethodSpec("l1", {"method": "l1"})
-    if t == "weiszfeld":
-        return MethodSpec("weiszfeld", {"method": "weiszfeld"})
-    if t == "sdp":
-        t = "sdp-cso3"
-    if t.startswith("sdp-"):
-        v = t[4:]
-        if v not in SDP_VARIANTS:
-            raise PipelineError(f"unknown SDP variant {v!r} in --methods {token!r}; choose sdp-" +
-                                ", sdp-".join(SDP_VARIANTS))
-        return MethodSpec(t, {"method": "sdp", "variant": v, "solver": solver})
-    # IRLS: irls[-<loss>], irls-h[-<loss>] or a bare loss name; ℓ½ by default
-    method = "irls-h" if t == "irls-h" or t.startswith("irls-h-") else "irls"
-    loss = t.removeprefix(method).removeprefix("-") if t.startswith("irls") else t
-    loss = loss or "l0.5"
-    from pipeline.averaging.losses import get_loss  # noqa: PLC0415
-
-    try:
-        get_loss(loss)
-    except (KeyError, ValueError) as exc:
-        raise PipelineError(f"unknown method {token!r}: {' '.join(str(exc).split())}; methods are irls, "
-                            "irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, sdp-<variant>") from None
-    return MethodSpec(f"{method}-{loss}", {"method": method, "loss": loss})
 
 
 def _mtimes(paths: list[Path]) -> list[int | None]:
@@ -262,16 +213,6 @@ def stage_viewgraph(work: Path, out: Path, rejected: list[dict] | None = None) -
     return sub, left_out, path
 
 
-def run_averaging(vg_path: Path, out_dir: Path, spec: MethodSpec, extra: dict[str, Any], overwrite: bool) -> dict:
-    """Stage 6 for one method: ``pipeline.average.main`` (which skips a result it already has)."""
-    from pipeline import average  # noqa: PLC0415
-
-    rot = out_dir / f"{spec.label}.txt"
-    js = out_dir / f"{spec.label}.json"
-    average.main(vg_path, rot, json_path=js, overwrite=overwrite, **{**extra, **spec.options})
-    return json.loads(js.read_text())
-
-
 def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, vg: ViewGraph | None = None
           ) -> tuple[dict[str, Any], np.ndarray]:
     R_ref, mask = evaluate.match_reference(names, ref.names, ref.R)
@@ -285,55 +226,6 @@ def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, 
     if missing:
         s["not_in_reference"] = missing
     return s, errs
-
-
-def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any], R_final: np.ndarray,
-                  ref: "RefSet", align: str, max_n: int = 300) -> list[dict[str, float]]:
-    """Median error against ``ref`` after each iteration of an IRLS run (paper 1, Fig. 5c).
-
-    The solver keeps no per-iteration rotations, so the run is repeated (same
-    options, no final polish) with budgets of 1..L ℓ1 steps, then L ℓ1 + 1..K
-    IRLS steps, where L and K are what the full run took; each point is placed
-    at the full run's cumulative time of that iteration (its ``history``), and
-    the last point is the full run's own result. Cheap for N ≤ ``max_n``.
-    """
-    if options.get("method") not in ("irls", "irls-h") or vg.n_cameras > max_n:
-        return []
-    from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.averaging import irls, irls_h  # noqa: PLC0415
-
-    R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
-    if mask.sum() < 2:
-        return []
-    kw = {k: v for k, v in options.items() if k != "method"}
-    kw["refine"] = False
-    solve = irls.irls if options["method"] == "irls" else irls_h.irls_h
-    hist = list(stats.get("history") or [])
-    L = int(stats.get("l1_iterations", 0) or 0)
-    K = int(stats.get("irls_iterations", 0) or 0)
-    budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
-    quiet = [logging.getLogger(irls.__name__), logging.getLogger(irls_h.__name__)]
-    levels = [lg.level for lg in quiet]
-    for lg in quiet:
-        lg.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
-    curve = []
-    try:
-        for n_done, (l, k) in enumerate(budgets):
-            try:
-                r = solve(vg, l1_iterations=l, max_iterations=k, **kw)
-            except (PipelineError, ValueError, IndexError, TypeError):
-                continue
-            e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
-            t = hist[n_done]["time_s"] if n_done < len(hist) and "time_s" in hist[n_done] else r.time_s
-            curve.append({"time_s": float(t), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
-                          "irls_iterations": k})
-    finally:
-        for lg, lv in zip(quiet, levels):
-            lg.setLevel(lv)
-    e = evaluate.rotation_errors_deg(R_final, R_ref, mask, align=align)
-    curve.append({"time_s": float(stats.get("time_s", curve[-1]["time_s"] if curve else 0.0)),
-                  "median_deg": float(np.nanmedian(e)), "l1_iterations": L, "irls_iterations": K, "final": True})
-    return curve
 
 
 @dataclass
@@ -460,12 +352,13 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     t_start = time.perf_counter()
     yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
-    allowed = {"run", "features", "matching", "two_view", "two_view_ba", "averaging", "sdp", "reference"}
+    allowed = {"run", "features", "matching", "two_view", "two_view_ba", "reference", *registry.sections()}
     unknown = sorted(set(yaml_data) - allowed)
     if unknown:
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
-    given = parse_methods(methods or rcfg.methods, rcfg.sdp_solver)  # checked before any work
+    overrides = {"sdp": {"solver": rcfg.sdp_solver}}
+    given = parse_methods(methods or rcfg.methods, yaml_data, overrides)  # checked before any work
     out = Path(out) if out is not None else default_out(images)
     check_writable(out)
     progress = not quiet
@@ -524,29 +417,15 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     specs = list(given)
     if not specs:
-        specs = [parse_method("irls")]
-        if vg.H is not None:
-            specs.append(parse_method("irls-h"))
-        if vg.H is not None and vg.n_cameras <= rcfg.sdp_max_n:
-            specs.append(parse_method("sdp", rcfg.sdp_solver))
-        elif vg.n_cameras > rcfg.sdp_max_n:
-            notes.append(f"SDP-cSO(3) not run by default: N={vg.n_cameras} > run.sdp_max_n={rcfg.sdp_max_n}")
-    avg_extra = dict(yaml_data.get("averaging", {}))
-    sdp_extra = dict(yaml_data.get("sdp", {}))
-    # small graphs: hand a problem SCS has not solved in 2000 iterations to the Clarabel
-    # fallback instead of running SCS to its 500 000 (temple: 34 s -> 1.6 s, same answer)
-    from pipeline.averaging.sdp import FALLBACK_SCS_MAX_ITERS  # noqa: PLC0415
-
-    sdp_extra.setdefault("fallback_scs_max_iters", FALLBACK_SCS_MAX_ITERS)
+        specs, why = registry.default_methods(vg, rcfg, yaml_data, overrides)
+        notes += why
 
     def do_averaging() -> dict[str, dict]:
         res = {}
         from tqdm import tqdm  # noqa: PLC0415
 
         for spec in tqdm(specs, desc="averaging", unit="method", disable=not progress):
-            extra = sdp_extra if spec.options["method"] == "sdp" else avg_extra
-            stats = run_averaging(vg_path, out / "rotations", spec, extra, overwrite)
-            res[spec.label] = {"rotations": out / "rotations" / f"{spec.label}.txt", "stats": stats}
+            res[spec.label] = run_averaging(out / "rotations", spec, vg_path, overwrite)
         return res
 
     results = runner("averaging", "rotation averaging", do_averaging)
@@ -588,20 +467,9 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
 
     def do_report() -> Path:
-        histories = {}
-        if refs:
-            for spec in specs:
-                if spec.options["method"] in ("irls", "irls-h"):
-                    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
-
-                    names_m, R_m = read_rotations(results[spec.label]["rotations"])
-                    if list(names_m) != list(vg.names):
-                        continue
-                    c = error_vs_time(vg, {**avg_extra, **spec.options}, results[spec.label]["stats"],
-                                      np.asarray(R_m), refs[0], rcfg.align)
-                    if c:
-                        histories[spec.label] = c
-                        metrics["methods"][spec.label]["error_vs_time"] = c
+        histories = error_vs_time_curves(vg, specs, results, refs[0], rcfg.align) if refs else {}
+        for label, c in histories.items():
+            metrics["methods"][label]["error_vs_time"] = c
         table = {r.name: {k: m["references"][r.name] | {kk: m.get(kk) for kk in ("time_s", "certified", "rank", "gap")
                                                             if kk in m}
                           for k, m in metrics["methods"].items()} for r in refs}
@@ -690,8 +558,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="output folder (default: out/<folder name>)")
     p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
     p.add_argument("--methods", nargs="+", default=None, metavar="M",
-                   help="averaging methods: irls, irls-<loss>, irls-h, irls-h-<loss>, l1, weiszfeld, sdp, "
-                        "sdp-<cso3|cso3-iso|o3-iso|o3-aniso>; put IMAGE_DIR first or separate methods by commas")
+                   help=f"averaging methods: {registry.tokens_help()}; put IMAGE_DIR first or separate methods "
+                        "by commas")
     p.add_argument("--gt", type=Path, default=None, help="true cameras (cameras file, gt_dense_cameras/, *_par.txt, "
                    "COLMAP model, rotations file)")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3×3) or a per-image cameras file")

@@ -38,7 +38,7 @@ from pipeline.core.atomic import remove_stale_temporaries, write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
 
-__all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "RECORD_SUFFIX"]
+__all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "file_fingerprint", "RECORD_SUFFIX"]
 
 logger = logging.getLogger(__name__)
 
@@ -51,6 +51,23 @@ def fingerprint_of(*parts: Any) -> str:
     """A stable 16-hex-digit hash of JSON-serializable parts."""
     blob = json.dumps(parts, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
+
+
+def file_fingerprint(path: Path) -> str:
+    """A 16-hex-digit hash of a file's bytes: the fingerprint of a user file a stage reads.
+
+    Raises:
+        InputFileError: the file is missing or unreadable.
+    """
+    path = Path(path)
+    h = hashlib.sha1()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        raise InputFileError(f"cannot read {path} ({exc.strerror or exc})") from None
+    return h.hexdigest()[:16]
 
 
 @dataclass

@@ -96,7 +96,8 @@ def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
 def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
     import pycolmap
 
-    from pipeline import average, two_view_ba
+    from pipeline import two_view_ba
+    from pipeline.averaging import solve as average
     from pipeline.frontend import feature_stage
 
     calls = {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
@@ -173,26 +174,6 @@ def test_reference_failure_keeps_our_result(scene, full_run, tmp_path, monkeypat
     assert m["methods"]["irls-l0.5"]["median_deg"] < 0.3
     assert set(m["methods"]["irls-l0.5"]["references"]) == {"truth"}
     assert any("pycolmap reference failed: pycolmap crashed" in n for n in m["notes"])
-
-
-def test_parse_method():
-    assert run.parse_method("irls").label == "irls-l0.5"
-    assert run.parse_method("irls-geman-mcclure").options == {"method": "irls", "loss": "geman-mcclure"}
-    assert run.parse_method("sdp").options["variant"] == "cso3"
-    assert run.parse_method("sdp-o3-iso").options["variant"] == "o3-iso"
-    assert run.parse_method("l1").options == {"method": "l1"}
-    assert run.parse_method("weiszfeld").label == "weiszfeld"
-    assert run.parse_method("irls-h").options == {"method": "irls-h", "loss": "l0.5"}
-    assert run.parse_method("irls-h-cauchy").label == "irls-h-cauchy"
-
-
-def test_parse_method_rejects_unknown():
-    with pytest.raises(PipelineError, match="unknown SDP variant"):
-        run.parse_method("sdp-so4")
-    with pytest.raises(PipelineError, match="unknown method"):
-        run.parse_method("irls-nosuchloss")
-    with pytest.raises(PipelineError, match="unknown method"):
-        run.parse_method("irls-h-nosuchloss")
 
 
 def test_bad_config_key(tmp_path, scene):

@@ -16,17 +16,28 @@ Trees:
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
 
+from pipeline.core.config import Config, option
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["spanning_tree", "rotations_from_tree", "initial_rotations"]
+__all__ = ["StartConfig", "spanning_tree", "rotations_from_tree", "initial_rotations"]
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class StartConfig(Config):
+    """The spanning-tree start, shared by the options of every iterative method."""
+
+    init: Literal["mst", "random"] = option("mst", "spanning tree of the start: mst (by inliers) or random")
+    seed: int | None = option(0, "seed of the random spanning tree (and of Weiszfeld's colouring)")
 
 
 def _edge_lookup(vg: ViewGraph, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ Each iteration (paper 1, Alg. 1):
 1. residuals ``r_ij = log(R_jᵀ R_ij R_i)`` (eq. 7), batched over edges;
 2. weights ``φ_ij = φ(‖r_ij‖)`` of the chosen loss (Table 1, eq. 12);
 3. the quasi-Newton step of eq. 21, in this code's sign convention (see
-   :mod:`pipeline.averaging.l1`): ``(Aᵀ Φ A) ΔΩ = Aᵀ Φ r`` with one sparse
+   :mod:`pipeline.averaging.kernel`): ``(Aᵀ Φ A) ΔΩ = Aᵀ Φ r`` with one sparse
    factorization of the gauge-fixed weighted Laplacian shared by the three axes;
 4. ``R_i ← R_i exp([Δω_i]×)``.
 
@@ -22,95 +22,63 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from pipeline.core.errors import ViewGraphError
-from pipeline.core.viewgraph import ViewGraph
 from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.l1 import LaplacianSolver, apply_update, edge_residuals, l1_averaging
-from pipeline.averaging.losses import get_loss
-from pipeline.averaging.result import AveragingResult
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.l1 import L1StartConfig, l1_averaging
+from pipeline.averaging.losses import Loss, get_loss
+from pipeline.averaging.result import AveragingResult, method_config, start_of
+from pipeline.core.config import option
+from pipeline.core.errors import ConfigError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["IRLSConfig", "irls", "check_graph"]
+__all__ = ["IRLSConfig", "irls"]
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
-class IRLSConfig:
-    """Options of :func:`irls` (the ``averaging`` stage).
+class IRLSConfig(L1StartConfig):
+    """Options of :func:`irls` (the ``irls`` method); see :func:`irls` for what each does."""
 
-    Attributes:
-        loss: loss name (see :func:`pipeline.averaging.losses.get_loss`).
-        alpha_deg: loss scale α in degrees.
-        eps_rad: weight floor of ℓ1 / ℓ_p (p < 2) in radians (None: loss default).
-        max_iterations: IRLS iteration cap.
-        tol_rad: stop when the mean camera update is below this (radians).
-        l1_iterations: initial ℓ1 steps of Algorithm 2 (0 to skip; see :func:`irls`).
-        l1_tol_rad: early stop of the ℓ1 stage on its mean update (radians).
-        admm_max_iterations: ADMM cap per ℓ1 step.
-        init: ``"mst"``, ``"random"`` (spanning trees).
-        seed: seed of the random spanning tree.
-    """
+    SECTION = "averaging.irls"
+    loss: str = option("l0.5", "IRLS loss of paper 1, Table 1 (l2, l1, l<p>, geman-mcclure, huber, cauchy, ...)")
+    alpha_deg: float = option(5.0, "loss scale α in degrees", gt=0)
+    eps_rad: float | None = option(None, "weight floor of ℓ1/ℓp (p < 2) in radians; null: α for p < 1, 1e-6 "
+                                         "otherwise", gt=0)
+    max_iterations: int = option(100, "IRLS iteration cap", ge=0)
+    tol_rad: float = option(1e-3, "stop when the mean camera update is below this (radians)", ge=0)
+    refine: bool = option(True, "after convergence, a trimmed-ℓ2 polish (not in paper 1)")
+    refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
+    refine_min_deg: float = option(1.0, "lower bound of the polish's trimming threshold, degrees", ge=0)
 
-    loss: str = "l0.5"
-    alpha_deg: float = 5.0
-    eps_rad: float | None = None
-    max_iterations: int = 100
-    tol_rad: float = 1e-3
-    l1_iterations: int = 20
-    l1_tol_rad: float = 0.02
-    admm_max_iterations: int = 10
-    init: str = "mst"
-    seed: int = 0
-    refine: bool = False
+    def check(self) -> None:
+        try:
+            get_loss(self.loss, self.alpha_deg, self.eps_rad)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
 
 
-def check_graph(vg: ViewGraph) -> None:
-    """Reject graphs no averaging method can use (raises :class:`ViewGraphError`)."""
-    if vg.n_cameras == 0:
-        raise ViewGraphError("the view graph is empty (no cameras); nothing to average")
-    if vg.n_edges == 0:
-        raise ViewGraphError(
-            f"the view graph has {vg.n_cameras} camera(s) but no edge; rotation averaging needs relative rotations"
-        )
-    if not np.all(np.isfinite(vg.R_rel)):
-        raise ViewGraphError("R_rel contains NaN or inf; fix or drop those edges before averaging")
-    if not vg.is_connected():
-        raise ViewGraphError(
-            f"the view graph is not connected ({int(vg.components().max()) + 1} components); "
-            "use pipeline.average.average(), which solves the largest component and reports the rest, "
-            "or restrict it with vg.largest_component()"
-        )
-
-
-def irls(
-    vg: ViewGraph,
-    loss: str = "l0.5",
-    alpha_deg: float = 5.0,
-    init: str | np.ndarray = "mst",
-    max_iterations: int = 100,
-    tol_rad: float = 1e-3,
-    l1_iterations: int = 20,
-    l1_tol_rad: float = 0.02,
-    eps_rad: float | None = None,
-    admm_max_iterations: int = 10,
-    seed: int | None = 0,
-    init_weights: np.ndarray | None = None,
-    refine: bool = False,
-    refine_iterations: int = 20,
-    refine_min_deg: float = 1.0,
-) -> AveragingResult:
+def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndarray | None = None,
+         init_weights: np.ndarray | None = None, **options: Any) -> AveragingResult:
     """Robust rotation averaging, paper 1 Algorithm 3 (ℓ1 steps, then IRLS).
 
+    Called bare (no ``config``), this is paper 1's Algorithm 3 alone (``refine``
+    defaults to False); the ``irls`` method of the registry, run by ``run.py`` and
+    ``python -m pipeline.average``, adds the polish (:class:`IRLSConfig` default).
+
     Args:
-        vg: a connected view graph (see :func:`pipeline.average.average` for
+        vg: a connected view graph (see :func:`pipeline.averaging.average` for
             disconnected ones).
+        config: the options; ``**options`` override its fields (:class:`IRLSConfig`):
         loss: loss name, e.g. ``"l0.5"`` (ℓ½, default), ``"l2"``, ``"geman-mcclure"``.
         alpha_deg: loss scale α in degrees (paper 1: 5°).
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
+        init_weights: (M,) edge weights for the ``"mst"`` tree (default: inliers).
         max_iterations: IRLS iteration cap.
         tol_rad: stop when the mean camera update falls below this (radians).
         l1_iterations: iterations of Algorithm 2 first (0 skips). Paper 1 runs 5
@@ -128,7 +96,6 @@ def irls(
             None: the loss default (α for p < 1, 1e-6 otherwise).
         admm_max_iterations: ADMM iteration cap per ℓ1 step.
         seed: seed for ``init="random"``.
-        init_weights: (M,) edge weights for the ``"mst"`` tree (default: inliers).
         refine: after convergence, run IRLS with the Talwar loss (ℓ2 on edges
             whose residual is below τ, weight 0 beyond) with τ set from the
             converged residuals: σ̂ = median(‖r‖)/1.538 (the median of a χ₃
@@ -146,48 +113,49 @@ def irls(
         ``final_cost``, ``converged``, ``l1_iterations``, ``n_factorizations``,
         ``init_s``).
     """
+    cfg = method_config(IRLSConfig, config, options, init, bare={"refine": False})
     check_graph(vg)
-    lossf = get_loss(loss, alpha_deg, eps_rad)
+    lossf = get_loss(cfg.loss, cfg.alpha_deg, cfg.eps_rad)
     t0 = time.perf_counter()
     N, M = vg.n_cameras, vg.n_edges
-    R = initial_rotations(vg, init, weights=init_weights, seed=seed)
+    R = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
     t_init = time.perf_counter() - t0
     ref = int(np.argmax(vg.degrees()))
     solver = LaplacianSolver(vg.edges, N, ref=ref)
     history: list[dict[str, float]] = []
-    if l1_iterations > 0:
+    if cfg.l1_iterations > 0:
         R, h1 = l1_averaging(
-            vg, R, max_iterations=l1_iterations, tol_rad=l1_tol_rad, admm_max_iterations=admm_max_iterations,
-            solver=solver,
+            vg, R, max_iterations=cfg.l1_iterations, tol_rad=cfg.l1_tol_rad,
+            admm_max_iterations=cfg.admm_max_iterations, solver=solver,
         )
         for h in h1:
             h["time_s"] += t_init
         history.extend(h1)
-    R, it, converged = _reweighted_steps(vg, R, solver, lossf, max_iterations, tol_rad, "irls", t0, history)
+    R, it, converged = _reweighted_steps(vg, R, solver, lossf, cfg.max_iterations, cfg.tol_rad, "irls", t0, history)
     refine_tau = None
-    if refine:
+    if cfg.refine:
         theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
         sigma = float(np.median(theta)) / 1.538
-        refine_tau = max(3.76 * sigma, float(np.deg2rad(refine_min_deg)))
+        refine_tau = max(3.76 * sigma, float(np.deg2rad(cfg.refine_min_deg)))
         tal = get_loss("talwar", float(np.rad2deg(refine_tau)))
-        R, _, _ = _reweighted_steps(vg, R, solver, tal, refine_iterations, tol_rad, "refine", t0, history)
+        R, _, _ = _reweighted_steps(vg, R, solver, tal, cfg.refine_iterations, cfg.tol_rad, "refine", t0, history)
     r = edge_residuals(vg.edges, vg.R_rel, R)
     theta = np.linalg.norm(r, axis=1)
     phi = lossf.phi(theta)
     grad = solver.AT @ (phi[:, None] * r)
     elapsed = time.perf_counter() - t0
     n_l1 = sum(1 for h in history if h.get("stage") == "l1")
-    if not converged and max_iterations > 0:
+    if not converged and cfg.max_iterations > 0:
         logger.warning(
             "IRLS-%s stopped at the iteration cap (%d) with mean step %.3g rad > %.3g rad",
-            lossf.name, max_iterations, history[-1]["mean_step_rad"], tol_rad,
+            lossf.name, cfg.max_iterations, history[-1]["mean_step_rad"], cfg.tol_rad,
         )
     logger.info(
         "IRLS-%s: %d cameras, %d edges, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
         lossf.name, N, M, n_l1, it, elapsed, np.rad2deg(np.median(theta)),
     )
     return AveragingResult(
-        method=f"irls-{lossf.name}" + ("+refine" if refine else ""),
+        method=f"irls-{lossf.name}" + ("+refine" if cfg.refine else ""),
         names=list(vg.names),
         R=R,
         time_s=elapsed,
@@ -199,7 +167,7 @@ def irls(
         history=history,
         stats={
             "loss": lossf.name,
-            "alpha_deg": float(alpha_deg),
+            "alpha_deg": float(cfg.alpha_deg),
             "gradient_norm": float(np.sqrt(np.square(grad).sum())),
             "final_cost": float(lossf.rho(theta).sum()),
             "converged": converged,
@@ -208,12 +176,13 @@ def irls(
             "n_factorizations": solver.n_factorizations,
             "init_s": t_init,
             "refine_threshold_deg": None if refine_tau is None else float(np.rad2deg(refine_tau)),
-            "config": asdict(IRLSConfig(loss=lossf.name, alpha_deg=alpha_deg, eps_rad=lossf.eps_rad,
-                                        max_iterations=max_iterations, tol_rad=tol_rad,
-                                        l1_iterations=l1_iterations, l1_tol_rad=l1_tol_rad,
-                                        admm_max_iterations=admm_max_iterations,
-                                        init=init if isinstance(init, str) else "user", seed=seed or 0,
-                                        refine=refine)),
+            # the resolved options, as earlier versions recorded them (metrics.json keeps its shape)
+            "config": {"loss": lossf.name, "alpha_deg": cfg.alpha_deg, "eps_rad": lossf.eps_rad,
+                       "max_iterations": cfg.max_iterations, "tol_rad": cfg.tol_rad,
+                       "l1_iterations": cfg.l1_iterations, "l1_tol_rad": cfg.l1_tol_rad,
+                       "admm_max_iterations": cfg.admm_max_iterations,
+                       "init": cfg.init if isinstance(start_of(init, cfg), str) else "user",
+                       "seed": cfg.seed or 0, "refine": cfg.refine},
         },
     )
 
@@ -222,7 +191,7 @@ def _reweighted_steps(
     vg: ViewGraph,
     R: np.ndarray,
     solver: LaplacianSolver,
-    lossf,
+    lossf: Loss,
     max_iterations: int,
     tol_rad: float,
     stage: str,

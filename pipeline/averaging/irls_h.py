@@ -17,7 +17,7 @@ for the left perturbation ``R_j R_iᵀ = exp([Δω]×) R̃_ij`` (DESIGN.md),
 2. weights ``φ_ij = φ(t_ij)`` of the chosen loss, with α in units of ``s``;
 3. the block step ``(Σ A_kᵀ φ_k G_kᵀ H_k G_k A_k) ΔΩ = −Σ A_kᵀ φ_k G_kᵀ H_k Δω_k``
    (paper 1, eq. 21, with 3×3 blocks in place of scalars; same sign convention as
-   :mod:`pipeline.averaging.l1`) on the gauge-fixed (3N, 3N) block Laplacian, by
+   :mod:`pipeline.averaging.kernel`) on the gauge-fixed (3N, 3N) block Laplacian, by
    conjugate gradients preconditioned with the SuperLU factor of an earlier
    iteration's matrix, refactoring only when CG needs more than 15 iterations or
    the gauge changes (:meth:`BlockLaplacianSolver.solve_reusing`; N = 10,000: 2
@@ -41,7 +41,8 @@ measured a median NEES of 14 on templeSparseRing and 86 on fountain-P11, against
 3 in theory). The loss therefore does not read ``√q`` as a number of standard
 deviations: ``s² = median(q) / 2.366`` (2.366 is the median of χ²₃) is estimated
 from the residuals of the starting point, a robust NEES calibration, and the loss
-scale α is in units of ``s`` (default 2).
+scale α is in units of ``s`` (``alpha_sigma``, default 2; not degrees, hence not
+``alpha_deg`` as in :mod:`pipeline.averaging.irls`).
 
 **Start and polish.** As :func:`pipeline.averaging.irls.irls`: a spanning tree,
 isotropic ℓ1 steps (paper 1, Algorithm 2), then the anisotropic IRLS, then (with
@@ -54,21 +55,24 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.core import so3
-from pipeline.core.errors import ViewGraphError
-from pipeline.core.viewgraph import ViewGraph
 from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.irls import check_graph
-from pipeline.averaging.l1 import apply_update, edge_residuals, l1_averaging, LaplacianSolver
-from pipeline.averaging.losses import get_loss
-from pipeline.averaging.result import AveragingResult
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.l1 import L1StartConfig, l1_averaging
+from pipeline.averaging.losses import Loss, get_loss
+from pipeline.averaging.result import AveragingResult, method_config, start_of
+from pipeline.core import so3
+from pipeline.core.config import option
+from pipeline.core.errors import ConfigError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["BlockLaplacianSolver", "irls_h", "edge_metric", "CHI2_3_MEDIAN", "TRIM_T"]
+__all__ = ["IRLSHConfig", "BlockLaplacianSolver", "irls_h", "edge_metric", "CHI2_3_MEDIAN", "TRIM_T"]
 
 logger = logging.getLogger(__name__)
 
@@ -84,7 +88,7 @@ class BlockLaplacianSolver:
     The (3N, 3N) sparsity pattern and the map from the (M, 3, 3) blocks to matrix
     entries are built once; :meth:`factor` scatters the blocks with
     ``np.bincount`` and calls SuperLU once. The gauge is fixed as in
-    :class:`pipeline.averaging.l1.LaplacianSolver`: one pinned camera per
+    :class:`pipeline.averaging.kernel.LaplacianSolver`: one pinned camera per
     connected component of the edges with a nonzero block.
 
     Args:
@@ -233,7 +237,9 @@ def _scale(q: np.ndarray) -> float:
     return s2
 
 
-def _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, stage, t0, history, reuse=True):
+def _steps(vg: ViewGraph, R: np.ndarray, solver: BlockLaplacianSolver, lossf: Loss, s2: float, max_iterations: int,
+           tol_rad: float, stage: str, t0: float, history: list[dict[str, float]], reuse: bool = True
+           ) -> tuple[np.ndarray, int, bool]:
     it = 0
     for it in range(1, max_iterations + 1):
         r, W, q = _squared_norms(vg, R)
@@ -264,28 +270,35 @@ def _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, stage, t0, history
     return R, it, False
 
 
-def irls_h(
-    vg: ViewGraph,
-    loss: str = "l0.5",
-    alpha: float = 2.0,
-    init: str | np.ndarray = "mst",
-    max_iterations: int = 100,
-    tol_rad: float = 1e-5,
-    l1_iterations: int = 20,
-    l1_tol_rad: float = 0.02,
-    admm_max_iterations: int = 10,
-    seed: int | None = 0,
-    init_weights: np.ndarray | None = None,
-    refine: bool = True,
-    refine_iterations: int = 20,
-    scale: float | None = None,
-) -> AveragingResult:
+@dataclass(frozen=True, kw_only=True)
+class IRLSHConfig(L1StartConfig):
+    """Options of :func:`irls_h` (the ``irls-h`` method); see :func:`irls_h` for what each does."""
+
+    SECTION = "averaging.irls-h"
+    loss: str = option("l0.5", "loss of paper 1, Table 1, on the H-normalized residual")
+    alpha_sigma: float = option(2.0, "loss scale α in units of the robust residual scale s (not degrees)", gt=0)
+    max_iterations: int = option(100, "IRLS iteration cap", ge=0)
+    tol_rad: float = option(1e-5, "stop when the mean camera update is below this (radians)", ge=0)
+    refine: bool = option(True, "after convergence, least squares on the edges with t <= 3.76 (Talwar)")
+    refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
+    scale: float | None = option(None, "a fixed s² (NEES scale of H) instead of the robust estimate", gt=0)
+
+    def check(self) -> None:
+        try:
+            get_loss(self.loss)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+
+def irls_h(vg: ViewGraph, config: IRLSHConfig | None = None, *, init: str | np.ndarray | None = None,
+           init_weights: np.ndarray | None = None, **options: Any) -> AveragingResult:
     """Robust rotation averaging with each edge's residual in its H metric.
 
     Args:
         vg: a connected view graph with H.
+        config: the options; ``**options`` override its fields (:class:`IRLSHConfig`):
         loss: loss name of :func:`pipeline.averaging.losses.get_loss` (default ℓ½).
-        alpha: loss scale α in units of the robust residual scale ``s`` (module
+        alpha_sigma: loss scale α in units of the robust residual scale ``s`` (module
             docstring), not degrees. Default 2: residuals up to 2s (≈ 1.3× the
             median of an inlier) are in ℓ½'s quadratic core.
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
@@ -309,33 +322,32 @@ def irls_h(
     Raises:
         ViewGraphError: the view graph has no H, or a step is not finite.
     """
+    cfg = method_config(IRLSHConfig, config, options, init)
     check_graph(vg)
     if vg.H is None:
         raise ViewGraphError("anisotropic IRLS needs a view graph with H (two-view BA precisions); "
                              "run the two-view BA stage or use method 'irls'")
-    if not (np.isfinite(alpha) and alpha > 0):
-        raise ValueError(f"alpha={alpha!r} but expected a positive number of robust scale units (default 2)")
-    if scale is not None and not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale={scale!r} but expected a positive s² (or None for the robust estimate)")
     # get_loss takes degrees; the normalized residual t is dimensionless, used here as if radians
-    lossf = get_loss(loss, float(np.rad2deg(alpha)), None)
+    lossf = get_loss(cfg.loss, float(np.rad2deg(cfg.alpha_sigma)), None)
     t0 = time.perf_counter()
-    R = initial_rotations(vg, init, weights=init_weights, seed=seed)
+    R = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
     ref = int(np.argmax(vg.degrees()))
     history: list[dict[str, float]] = []
-    if l1_iterations > 0:
-        R, h1 = l1_averaging(vg, R, max_iterations=l1_iterations, tol_rad=l1_tol_rad,
-                             admm_max_iterations=admm_max_iterations, solver=LaplacianSolver(vg.edges, vg.n_cameras,
-                                                                                             ref=ref))
+    if cfg.l1_iterations > 0:
+        R, h1 = l1_averaging(vg, R, max_iterations=cfg.l1_iterations, tol_rad=cfg.l1_tol_rad,
+                             admm_max_iterations=cfg.admm_max_iterations,
+                             solver=LaplacianSolver(vg.edges, vg.n_cameras, ref=ref))
         history.extend(h1)
     solver = BlockLaplacianSolver(vg.edges, vg.n_cameras, ref=ref)
+    scale = cfg.scale
     s2 = scale if scale is not None else _scale(_squared_norms(vg, R)[2])
-    R, it, converged = _steps(vg, R, solver, lossf, s2, max_iterations, tol_rad, "irls-h", t0, history)
+    R, it, converged = _steps(vg, R, solver, lossf, s2, cfg.max_iterations, cfg.tol_rad, "irls-h", t0, history)
     s2_refine, n_trimmed = None, 0
+    refine = cfg.refine
     if refine:
         s2_refine = scale if scale is not None else _scale(_squared_norms(vg, R)[2])
         tal = get_loss("talwar", float(np.rad2deg(TRIM_T)))
-        R, _, _ = _steps(vg, R, solver, tal, s2_refine, refine_iterations, tol_rad, "refine", t0, history)
+        R, _, _ = _steps(vg, R, solver, tal, s2_refine, cfg.refine_iterations, cfg.tol_rad, "refine", t0, history)
     r, W, q = _squared_norms(vg, R)
     s2_final = s2_refine if s2_refine is not None else s2
     t = np.sqrt(q / s2_final)
@@ -343,9 +355,9 @@ def irls_h(
         n_trimmed = int(np.sum(t > TRIM_T))
     phi = (tal if refine else lossf).phi(t)
     elapsed = time.perf_counter() - t0
-    if not converged and max_iterations > 0:
+    if not converged and cfg.max_iterations > 0:
         logger.warning("anisotropic IRLS-%s stopped at the iteration cap (%d) with mean step %.3g rad > %.3g rad",
-                       lossf.name, max_iterations, history[-1]["mean_step_rad"], tol_rad)
+                       lossf.name, cfg.max_iterations, history[-1]["mean_step_rad"], cfg.tol_rad)
     logger.info("IRLS-H-%s: %d cameras, %d edges, %d IRLS iterations, s² = %.3g, %d edges trimmed, %.3f s",
                 lossf.name, vg.n_cameras, vg.n_edges, it, s2_final, n_trimmed, elapsed)
     n_l1 = sum(1 for h in history if h.get("stage") == "l1")
@@ -361,7 +373,7 @@ def irls_h(
         history=history,
         stats={
             "loss": lossf.name,
-            "alpha": float(alpha),
+            "alpha": float(cfg.alpha_sigma),
             "scale_s2": float(s2),
             "scale_s2_refine": None if s2_refine is None else float(s2_refine),
             "normalized_residuals": t.tolist(),

@@ -1,16 +1,7 @@
-"""Initial ℓ1 relative rotation averaging (paper 1, Algorithm 2) and shared Lie-algebra helpers.
+"""ℓ1 relative rotation averaging (paper 1, Algorithm 2): the ℓ1 step, its iteration, and the ``l1`` method.
 
-Residual convention (``../shared/DESIGN.md``): for edge ``(i, j)`` carrying
-``R_ij ≈ R_j R_iᵀ``,
-
-    ΔR_ij = R_jᵀ R_ij R_i,    r_ij = log(ΔR_ij)            (paper 1, eq. 7)
-
-and every camera is updated on the right, ``R_i ← R_i exp([Δω_i]×)``. After the
-update ``ΔR_ij ← exp(−[Δω_j]×) ΔR_ij exp([Δω_i]×)``, whose log is, to first order
-(paper 1, eqs. 19 and 34), ``r_ij + Δω_i − Δω_j``. With the incidence matrix
-``A`` of :meth:`ViewGraph.incidence` (−1 at ``i``, +1 at ``j``) the stacked
-linearized residual is therefore ``r − A ΔΩ``: paper 1's ``A ΔΩ_V + ΔΩ_E`` with its
-``A`` (+I at ``i``, −I at ``j``) equal to minus ours. Algorithm 2 solves
+In the residual convention of :mod:`pipeline.averaging.kernel` (``r_ij = log(R_jᵀ
+R_ij R_i)``, linearized residual ``r − A ΔΩ``), Algorithm 2 solves
 
     ΔΩ = argmin ‖A ΔΩ − r‖₁
 
@@ -18,6 +9,9 @@ linearized residual is therefore ``r − A ΔΩ``: paper 1's ``A ΔΩ_V + ΔΩ_E
 cached sparse factorization of the gauge-fixed ``AᵀA``. The x-update of ADMM for
 least absolute deviations does not involve the penalty ρ, so ρ is adapted freely
 (residual balancing) without refactoring.
+
+:func:`l1_averaging` is the building block IRLS starts from; :func:`solve_l1` is
+the registered method ``l1``: Algorithm 2 alone, run to convergence.
 """
 
 from __future__ import annotations
@@ -25,157 +19,25 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
-from pipeline.core import so3
+from pipeline.averaging.init import StartConfig, initial_rotations
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.result import AveragingResult, method_config, start_of
+from pipeline.core.config import option
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = [
-    "edge_residuals",
-    "apply_update",
-    "LaplacianSolver",
-    "l1_step",
-    "l1_averaging",
-    "L1StepResult",
-]
+__all__ = ["L1Config", "L1StartConfig", "solve_l1", "l1_step", "l1_averaging", "L1StepResult"]
 
 logger = logging.getLogger(__name__)
-
-
-def edge_residuals(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Residual rotation vectors ``r_ij = log(R_jᵀ R_ij R_i)`` (paper 1, eq. 7).
-
-    Args:
-        edges: (M, 2) camera indices ``(i, j)``.
-        R_rel: (M, 3, 3) measured ``R_ij ≈ R_j R_iᵀ``.
-        R: (N, 3, 3) current cam_from_world rotations.
-
-    Returns:
-        (M, 3) residuals in radians.
-    """
-    Ri = R[edges[:, 0]]
-    Rj = R[edges[:, 1]]
-    return so3.log(np.swapaxes(Rj, 1, 2) @ R_rel @ Ri)
 
 
 def _norm(x: np.ndarray) -> float:
     """Frobenius norm without BLAS (``np.linalg.norm`` calls a threaded ``dot``
     that stalls for milliseconds on a loaded machine)."""
     return float(np.sqrt(np.square(x).sum()))
-
-
-def apply_update(R: np.ndarray, dw: np.ndarray) -> np.ndarray:
-    """``R_i exp([Δω_i]×)`` for every camera (right update, paper 1 Alg. 1 step 6).
-
-    Args:
-        R: (N, 3, 3) rotations.
-        dw: (N, 3) updates in radians.
-    """
-    return R @ so3.exp(dw)
-
-
-class LaplacianSolver:
-    """Factor and solve gauge-fixed weighted Laplacians ``Aᵀ diag(w) A`` on a fixed pattern.
-
-    The sparsity pattern and the map from edge weights to matrix entries are
-    built once; each :meth:`factor` only scatters the weights (``np.bincount``)
-    and calls SuperLU once, in symmetric mode with a minimum-degree ordering on
-    ``A + Aᵀ`` and no pivoting (the pinned Laplacian is positive definite). The
-    factor is shared by the three axes: :meth:`solve` takes an (N, 3) right-hand
-    side.
-
-    The gauge is fixed by pinning one camera per connected component of the
-    graph of positive-weight edges (its row and column are replaced by the
-    identity and its right-hand side by 0): with a single component this pins
-    ``ref`` only; redescending losses (Talwar, bisquare, Andrews) can cut the
-    weighted graph, and then each piece gets its own pinned camera, so the system
-    stays nonsingular and a camera whose edges all have weight 0 does not move.
-
-    Args:
-        edges: (M, 2) camera indices.
-        n: number of cameras N.
-        ref: the camera pinned when the weighted graph is connected.
-    """
-
-    def __init__(self, edges: np.ndarray, n: int, ref: int = 0) -> None:
-        edges = np.asarray(edges, dtype=np.int64)
-        self.edges = edges
-        self.n = int(n)
-        self.ref = int(ref)
-        M = edges.shape[0]
-        i, j = edges[:, 0], edges[:, 1]
-        # The 4 contributions of edge k: (i,i) +w, (j,j) +w, (i,j) −w, (j,i) −w.
-        rows = np.concatenate([i, j, i, j, np.arange(n)])
-        cols = np.concatenate([i, j, j, i, np.arange(n)])
-        keys = cols * n + rows  # CSC order: by column, then row
-        ukeys, inv = np.unique(keys, return_inverse=True)
-        self._pos = inv[: 4 * M]
-        self._sign = np.repeat([1.0, 1.0, -1.0, -1.0], M)
-        self._edge_of = np.tile(np.arange(M), 4)
-        self._row = ukeys % n
-        self._col = ukeys // n
-        self._diag = inv[4 * M :]
-        self._nnz = ukeys.size
-        self._indptr = np.searchsorted(self._col, np.arange(n + 1)).astype(np.int32)
-        self._indices = self._row.astype(np.int32)
-        A = sp.csr_matrix((np.tile([-1.0, 1.0], M), (np.repeat(np.arange(M), 2), edges.ravel())), shape=(M, n))
-        self.A = A
-        self.AT = A.T.tocsr()
-        self._lu: sla.SuperLU | None = None
-        self.pinned = np.zeros(n, dtype=bool)
-        self.n_factorizations = 0
-
-    def _pins(self, w: np.ndarray) -> np.ndarray:
-        pinned = np.zeros(self.n, dtype=bool)
-        pos = w > 0
-        if np.all(pos):
-            pinned[self.ref] = True
-            return pinned
-        from scipy.sparse.csgraph import connected_components
-
-        e = self.edges[pos]
-        G = sp.coo_matrix((np.ones(e.shape[0]), (e[:, 0], e[:, 1])), shape=(self.n, self.n))
-        ncomp, labels = connected_components(G, directed=False)
-        # Pin the reference camera in its own piece, the first camera elsewhere.
-        first = np.full(ncomp, -1, dtype=np.int64)
-        order = np.r_[self.ref, np.arange(self.n)]
-        lab = labels[order]
-        _, idx = np.unique(lab, return_index=True)
-        first[lab[idx]] = order[idx]
-        pinned[first] = True
-        return pinned
-
-    def matrix(self, w: np.ndarray) -> sp.csc_matrix:
-        """The gauge-fixed (N, N) Laplacian ``Aᵀ diag(w) A`` for edge weights ``w`` (M,)."""
-        w = np.asarray(w, dtype=np.float64)
-        self.pinned = self._pins(w)
-        data = np.bincount(self._pos, weights=self._sign * w[self._edge_of], minlength=self._nnz)
-        if self.pinned.any():
-            keep = ~(self.pinned[self._row] | self.pinned[self._col])
-            data *= keep
-            data[self._diag[self.pinned]] = 1.0
-        return sp.csc_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
-
-    def factor(self, w: np.ndarray) -> None:
-        """Factor the gauge-fixed Laplacian for edge weights ``w`` (M,)."""
-        L = self.matrix(w)
-        self._lu = sla.splu(
-            L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
-        )
-        self.n_factorizations += 1
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve with the current factor; ``b`` (N, 3) → (N, 3), 0 at pinned cameras."""
-        if self._lu is None:
-            raise RuntimeError("LaplacianSolver.solve called before factor()")
-        b = np.array(b, dtype=np.float64, order="F", copy=True)
-        b[self.pinned] = 0.0
-        x = self._lu.solve(b)
-        x[self.pinned] = 0.0
-        return x
 
 
 @dataclass
@@ -336,3 +198,50 @@ def l1_averaging(
         if step < tol_rad:
             break
     return R, history
+
+
+@dataclass(frozen=True, kw_only=True)
+class L1StartConfig(StartConfig):
+    """A spanning tree, then a few ℓ1 steps of Algorithm 2: the start of the IRLS methods."""
+
+    l1_iterations: int = option(20, "ℓ1 steps (paper 1, Algorithm 2) before IRLS; 0 skips them", ge=0)
+    l1_tol_rad: float = option(0.02, "early stop of the ℓ1 steps on their mean update (radians)", ge=0)
+    admm_max_iterations: int = option(10, "ADMM iterations per ℓ1 step", ge=1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class L1Config(StartConfig):
+    """Options of the ``l1`` method (paper 1, Algorithm 2 run to convergence)."""
+
+    SECTION = "averaging.l1"
+    max_iterations: int = option(100, "cap on ℓ1 steps", ge=0)
+    tol_rad: float = option(1e-3, "stop when the mean camera update is below this (radians)", ge=0)
+    admm_max_iterations: int = option(200, "ADMM iteration cap per ℓ1 step", ge=1)
+
+
+def solve_l1(vg: ViewGraph, config: L1Config | None = None, *, init: str | np.ndarray | None = None,
+             init_weights: np.ndarray | None = None, **options: Any) -> AveragingResult:
+    """Paper 1, Algorithm 2 run to convergence (the ``l1`` method).
+
+    Args:
+        vg: a connected view graph.
+        config: the options (:class:`L1Config`); ``options`` override its fields.
+        init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
+        init_weights: (M,) edge weights of the ``"mst"`` tree (default: inliers).
+
+    Returns:
+        :class:`AveragingResult` with the per-step ``history``, ``residuals_rad`` and
+        ``stats`` (``final_cost`` = Σ‖r_ij‖, ``converged``).
+    """
+    cfg = method_config(L1Config, config, options, init)
+    check_graph(vg)
+    t0 = time.perf_counter()
+    R0 = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
+    R, hist = l1_averaging(vg, R0, max_iterations=cfg.max_iterations, tol_rad=cfg.tol_rad,
+                           admm_max_iterations=cfg.admm_max_iterations)
+    theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
+    return AveragingResult(
+        method="l1", names=list(vg.names), R=R, time_s=time.perf_counter() - t0, iterations=len(hist),
+        edge_index=np.arange(vg.n_edges), residuals_rad=theta, weights=None, history=hist,
+        stats={"final_cost": float(theta.sum()), "converged": bool(hist and hist[-1]["mean_step_rad"] < cfg.tol_rad)},
+    )

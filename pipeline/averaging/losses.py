@@ -29,7 +29,7 @@ paper 1: the pure ℓ½ has local minima wherever some residuals are exactly 0
 (edges that lock as hard constraints under weights ε^(−3/2)), which costs it
 statistical efficiency (paper 1, Fig. 4(a); measured here: median error 1.4×
 the ℓ2 oracle on the kNN protocol versus ~1.01× with the quadratic core). Pass
-``eps_rad`` (CLI ``--floor-deg``) small, e.g. 1e-6, for the paper's pure ℓ½. This
+``eps_rad`` (CLI ``--eps-rad``) small, e.g. 1e-6, for the paper's pure ℓ½. This
 floor is what COLMAP's ℓ½ (``HALF_NORM``) lacks: on a noise-free edge its weight
 is infinite and its Cholesky factorization fails.
 """

@@ -1,11 +1,55 @@
-"""The result every averaging method returns."""
+"""What every averaging method takes (a typed config) and returns (:class:`AveragingResult`)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Mapping, TypeVar
 
 import numpy as np
+
+from pipeline.core.config import Config
+from pipeline.core.errors import ConfigError
+
+__all__ = ["AveragingResult", "method_config", "start_of"]
+
+C = TypeVar("C", bound=Config)
+
+
+def method_config(cls: type[C], config: C | None, options: Mapping[str, Any], init: Any = None,
+                  bare: Mapping[str, Any] | None = None) -> C:
+    """The typed config of one call of a method: ``config`` (or the defaults) with ``options`` applied.
+
+    Every method takes ``(vg, config=None, *, init=None, init_weights=None, **options)``;
+    ``options`` are fields of ``cls`` and are checked by it, so an unknown or
+    ill-typed option is a :class:`ConfigError` naming the allowed keys.
+
+    Args:
+        cls: the method's config class.
+        config: a config to start from, or None for the class defaults.
+        options: field overrides.
+        init: the ``init`` argument of the call: a string (``"mst"``, ``"random"``)
+            sets the config's ``init``; an array is the caller's business.
+        bare: overrides applied before ``options`` when ``config`` is None: the
+            defaults of the function called bare where they differ from the
+            product's (e.g. ``irls()`` alone is paper 1's Algorithm 3, no polish).
+    """
+    if config is not None and not isinstance(config, cls):
+        raise ConfigError(f"expected a {cls.__name__}, got {type(config).__name__}")
+    opts = dict(options)
+    if isinstance(init, str):
+        opts["init"] = init
+    if config is None:
+        return cls.from_dict({**(bare or {}), **opts})
+    if not opts:
+        return config
+    base = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    return cls.from_dict({**base, **opts})
+
+
+def start_of(init: Any, config: Config) -> Any:
+    """What a method starts from: the caller's (N, 3, 3) rotations, else the config's ``init`` tree kind."""
+    return config.init if init is None or isinstance(init, str) else init  # type: ignore[attr-defined]
 
 
 @dataclass

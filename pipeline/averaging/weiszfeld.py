@@ -20,17 +20,20 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 import scipy.sparse as sp
 
+from pipeline.averaging.init import StartConfig, initial_rotations
+from pipeline.averaging.kernel import check_graph, edge_residuals
+from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.core import so3
+from pipeline.core.config import option
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.irls import check_graph
-from pipeline.averaging.result import AveragingResult
 
-__all__ = ["weiszfeld", "independent_sets"]
+__all__ = ["WeiszfeldConfig", "weiszfeld", "independent_sets"]
 
 logger = logging.getLogger(__name__)
 
@@ -75,26 +78,29 @@ def _estimates(vg: ViewGraph, R: np.ndarray, cams: np.ndarray, inc: sp.csr_matri
     return rel @ R[other], owner
 
 
-def weiszfeld(
-    vg: ViewGraph,
-    init: str | np.ndarray = "mst",
-    max_sweeps: int = 1000,
-    tol_rad: float = 1e-3,
-    inner_iterations: int = 3,
-    inner_tol_rad: float = 1e-6,
-    order: np.ndarray | None = None,
-    seed: int | None = 0,
-    init_weights: np.ndarray | None = None,
-    eps_rad: float = 1e-12,
-    loss: str = "l1",
-    vardi_zhang: bool = True,
-) -> AveragingResult:
+@dataclass(frozen=True, kw_only=True)
+class WeiszfeldConfig(StartConfig):
+    """Options of :func:`weiszfeld` (the ``weiszfeld`` method); see :func:`weiszfeld`."""
+
+    SECTION = "averaging.weiszfeld"
+    max_iterations: int = option(1000, "cap on sweeps over all cameras", ge=1)
+    tol_rad: float = option(1e-3, "stop after a sweep whose largest camera update is below this (radians)", ge=0)
+    inner_iterations: int = option(3, "Weiszfeld steps per camera update (the median search)", ge=1)
+    inner_tol_rad: float = option(1e-6, "stop the median search when its step is below this (radians)", ge=0)
+    loss: Literal["l1", "l2"] = option("l1", "l1 (Weiszfeld) or l2 (distributed Karcher mean)")
+    vardi_zhang: bool = option(True, "Vardi–Zhang step at a camera that coincides with some estimates")
+
+
+def weiszfeld(vg: ViewGraph, config: WeiszfeldConfig | None = None, *, init: str | np.ndarray | None = None,
+              init_weights: np.ndarray | None = None, order: np.ndarray | None = None, eps_rad: float = 1e-12,
+              **options: Any) -> AveragingResult:
     """ℓ1 averaging one camera at a time (Hartley et al. 2011).
 
     Args:
         vg: a connected view graph.
+        config: the options; ``**options`` override its fields (:class:`WeiszfeldConfig`):
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
-        max_sweeps: cap on sweeps over all cameras.
+        max_iterations: cap on sweeps over all cameras.
         tol_rad: stop after a sweep whose largest camera update is below this.
         inner_iterations: Weiszfeld steps per camera update (the median search).
         inner_tol_rad: stop the median search when its step is below this.
@@ -117,12 +123,12 @@ def weiszfeld(
         record per sweep (``cost`` = Σ‖r_ij‖, ``mean_step_rad``,
         ``max_step_rad``, ``time_s``).
     """
+    cfg = method_config(WeiszfeldConfig, config, options, init)
+    loss, seed, tol_rad = cfg.loss, cfg.seed, cfg.tol_rad
     check_graph(vg)
-    if loss not in ("l1", "l2"):
-        raise ValueError(f"weiszfeld loss must be 'l1' or 'l2', got {loss!r}")
     t0 = time.perf_counter()
     N, M = vg.n_cameras, vg.n_edges
-    R = initial_rotations(vg, init, weights=init_weights, seed=seed)
+    R = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=seed)
     if order is not None:
         order = np.asarray(order, dtype=np.int64)
         sets = [np.array([c]) for c in order]
@@ -135,12 +141,12 @@ def weiszfeld(
     history: list[dict[str, float]] = []
     converged = False
     sweep = 0
-    for sweep in range(1, max_sweeps + 1):
+    for sweep in range(1, cfg.max_iterations + 1):
         steps = np.zeros(N)
         for cams in sets:
             S, owner = _estimates(vg, R, cams, inc)
             Rc = R[cams].copy()
-            for _ in range(inner_iterations):
+            for _ in range(cfg.inner_iterations):
                 v = so3.log(S @ np.swapaxes(Rc[owner], 1, 2))
                 nv = np.linalg.norm(v, axis=1)
                 # Estimates at the current point (e.g. the tree parent after a
@@ -157,15 +163,15 @@ def weiszfeld(
                 # beats the η coincident ones.
                 pull = np.linalg.norm(num, axis=1)
                 scale = np.where(eta > 0, np.clip(1.0 - eta / np.maximum(pull, 1e-300), 0.0, 1.0), 1.0)
-                if not vardi_zhang:
+                if not cfg.vardi_zhang:
                     scale = np.ones_like(scale)
                 d = T * scale[:, None]
                 Rc = so3.exp(d) @ Rc
-                if np.linalg.norm(d, axis=1).max() < inner_tol_rad:
+                if np.linalg.norm(d, axis=1).max() < cfg.inner_tol_rad:
                     break
             steps[cams] = so3.angle_between(Rc, R[cams])
             R[cams] = Rc
-        r = so3.log(np.swapaxes(R[vg.edges[:, 1]], 1, 2) @ vg.R_rel @ R[vg.edges[:, 0]])
+        r = edge_residuals(vg.edges, vg.R_rel, R)
         history.append(
             {
                 "stage": "weiszfeld",
@@ -178,11 +184,12 @@ def weiszfeld(
         if steps.max() < tol_rad:
             converged = True
             break
-    r = so3.log(np.swapaxes(R[vg.edges[:, 1]], 1, 2) @ vg.R_rel @ R[vg.edges[:, 0]])
+    r = edge_residuals(vg.edges, vg.R_rel, R)
     theta = np.linalg.norm(r, axis=1)
     elapsed = time.perf_counter() - t0
     if not converged:
-        logger.warning("Weiszfeld stopped at the sweep cap (%d); largest update %.3g rad", max_sweeps, history[-1]["max_step_rad"])
+        logger.warning("Weiszfeld stopped at the sweep cap (%d); largest update %.3g rad", cfg.max_iterations,
+                       history[-1]["max_step_rad"])
     return AveragingResult(
         method="weiszfeld" if loss == "l1" else "distributed-l2",
         names=list(vg.names),

@@ -9,7 +9,7 @@ eq. 11, summed once per edge) is
 
 and the isotropic cost is the same with ``M_ij = I``. All costs here are in these
 unscaled units (the solver works on a cost divided by a positive constant, see
-:mod:`pipeline.averaging.sdp`).
+:mod:`pipeline.averaging.sdp.solve`).
 """
 
 from __future__ import annotations

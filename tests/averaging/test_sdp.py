@@ -1,4 +1,4 @@
-"""Tests of the SDP rotation averaging (paper 2): pipeline.averaging.sdp / certificate / sdp_cvxpy."""
+"""Tests of the SDP rotation averaging (paper 2): pipeline.averaging.sdp (conic, solve, certificate, cvxpy_ref)."""
 
 from __future__ import annotations
 
@@ -8,22 +8,22 @@ import numpy as np
 import pytest
 
 from pipeline.core import so3
-from pipeline.averaging.certificate import (
+from pipeline.averaging.sdp.certificate import (
     edge_cost,
     numerical_rank,
     relative_gap,
     round_to_rotations,
     weight_matrices,
 )
-from pipeline.averaging.sdp import (
+from pipeline.averaging.sdp.conic import (
     VARIANTS,
     build_conic,
     conv_so3_lmi,
     edge_weights,
-    solve_sdp,
     svec_index,
     unsvec,
 )
+from pipeline.averaging.sdp.solve import solve_sdp
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
@@ -207,7 +207,7 @@ def test_o3_aniso_is_not_tight_and_says_so(caplog):
     Fig. 2's setting: inverse-Hessian eigenvalues in [0.1, 1].
     """
     vg, R = noisy_graph(12, 0.5, seed=0, eig=(0.1, 1.0), cov_eig=True)
-    with caplog.at_level(logging.WARNING, logger="pipeline.averaging.sdp"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.averaging.sdp.solve"):
         res = solve_sdp(vg, "o3-aniso", "scs")
     assert res.stats["rank"] > 3
     assert res.stats["certified"] is False
@@ -243,7 +243,7 @@ def test_primal_and_dual_forms_reach_the_same_optimum(noisy, form, solver):
 @pytest.mark.parametrize("solver", ["scs", "clarabel"])
 @pytest.mark.parametrize("variant", sorted(VARIANTS))
 def test_direct_build_matches_the_cvxpy_reference(noisy, variant, solver):
-    from pipeline.averaging.sdp_cvxpy import solve_sdp_cvxpy
+    from pipeline.averaging.sdp.cvxpy_ref import solve_sdp_cvxpy
 
     vg, _ = noisy
     ref = solve_sdp_cvxpy(vg, variant, solver)

@@ -41,7 +41,7 @@ def test_recovers_noise_free_from_perturbed_start():
     vg, R = _graph(15, 0.6, 0.0, 1)
     rng = np.random.default_rng(2)
     R0 = R @ so3.exp(np.deg2rad(5) * rng.standard_normal((15, 3)))
-    res = weiszfeld(vg, init=R0, tol_rad=1e-9, max_sweeps=2000)
+    res = weiszfeld(vg, init=R0, tol_rad=1e-9, max_iterations=2000)
     assert _err(res.R, R).max() < 1e-3
     assert res.stats["converged"]
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from pipeline.core import so3
-from pipeline.average import average, main, main_cli
+from pipeline.averaging.cli import main, main_cli
+from pipeline.averaging.solve import average
 from pipeline.io.rotations import read_rotations, write_rotations
 from pipeline.core.viewgraph import ViewGraph
 

@@ -7,7 +7,8 @@ import pytest
 from scipy.optimize import linprog
 
 from pipeline.core import so3
-from pipeline.averaging.l1 import LaplacianSolver, l1_averaging, l1_step
+from pipeline.averaging.kernel import LaplacianSolver
+from pipeline.averaging.l1 import l1_averaging, l1_step
 from pipeline.core.viewgraph import ViewGraph
 
 

@@ -8,8 +8,8 @@ import pytest
 from pipeline.core import so3
 from pipeline.averaging.init import initial_rotations, rotations_from_tree, spanning_tree
 from pipeline.averaging.irls import irls
-from pipeline.averaging.l1 import LaplacianSolver, apply_update, edge_residuals
-from pipeline.average import average
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, edge_residuals
+from pipeline.averaging.solve import average
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 

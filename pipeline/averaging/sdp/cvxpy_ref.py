@@ -9,7 +9,7 @@ SDP-cSO(3), §4.3), in the DESIGN.md convention ``X_ji = R_j R_iᵀ``:
 
 It builds the problem block by block, with a Python loop over edges, which is
 what makes it slow: cvxpy's per-block expression building dominates the wall
-time at N ≈ 100 (DESIGN.md). :func:`pipeline.averaging.sdp.solve_sdp` builds the same
+time at N ≈ 100 (DESIGN.md). :func:`pipeline.averaging.sdp.solve.solve_sdp` builds the same
 SDP directly; the tests check both reach the same optimum on small problems and
 ``benchmarks/sdp_lu_sphinx.py`` reports the speed-up.
 """
@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.viewgraph import ViewGraph
-from pipeline.averaging.certificate import edge_cost, numerical_rank, relative_gap, round_to_rotations
 from pipeline.averaging.result import AveragingResult
-from pipeline.averaging.sdp import _check_inputs, edge_weights
+from pipeline.averaging.sdp.certificate import edge_cost, numerical_rank, relative_gap, round_to_rotations
+from pipeline.averaging.sdp.conic import check_inputs, edge_weights
+from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["solve_sdp_cvxpy", "conv_so3_lmi_expr"]
 
@@ -67,7 +67,7 @@ def solve_sdp_cvxpy(
     """
     import cvxpy as cp
 
-    aniso, cso3 = _check_inputs(vg, variant, solver)
+    aniso, cso3 = check_inputs(vg, variant, solver)
     t0 = time.perf_counter()
     C, scale = edge_weights(vg, aniso)
     N = vg.n_cameras

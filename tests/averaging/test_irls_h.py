@@ -16,10 +16,11 @@ import pytest
 from scipy.optimize import least_squares
 
 from pipeline.core import so3
-from pipeline.average import average, main_cli
+from pipeline.averaging.cli import main_cli
 from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.irls_h import TRIM_T, BlockLaplacianSolver, _jl_inv, edge_metric, irls_h
-from pipeline.averaging.l1 import edge_residuals
+from pipeline.averaging.kernel import edge_residuals
+from pipeline.averaging.solve import average
 from pipeline.core.errors import ViewGraphError
 from pipeline.evaluate import rotation_errors_deg
 from pipeline.io.rotations import read_rotations
@@ -233,7 +234,7 @@ def test_l2_agrees_with_sdp_cso3():
     """SDP-cSO(3) (certified) minimizes −Σ⟨M R̃, R_j R_iᵀ⟩, which equals Σ Δωᵀ H Δω up to O(|Δω|⁴):
     at tiny noise the two minimizers agree to well below 1e-3 of the error (measured 4e-5–8e-5 at
     Clarabel 1e-12; Clarabel's default tolerance leaves ~0.1 of the error, solver accuracy)."""
-    from pipeline.averaging.sdp import solve_sdp
+    from pipeline.averaging.sdp.solve import solve_sdp
 
     g = paper2_graph(12, 0.5, eig_range=(1e4, 1e5), seed=2)
     res = irls_h(g.vg, loss="l2", refine=False, tol_rad=1e-12, max_iterations=100)
@@ -318,7 +319,7 @@ def test_graph_without_H_names_the_fix(small):
 @pytest.mark.parametrize("alpha", [0.0, -1.0, float("nan"), float("inf")])
 def test_bad_alpha(small, alpha):
     with pytest.raises(ValueError, match="alpha"):
-        irls_h(small.vg, alpha=alpha)
+        irls_h(small.vg, alpha_sigma=alpha)
 
 
 @pytest.mark.parametrize("scale", [0.0, -2.0, float("nan")])
@@ -399,7 +400,7 @@ def test_cli_irls_h_forwards_its_options(graph_file, tmp_path):
                    "--json", str(js), "-q"])
     assert rc == 0
     assert json.loads(js.read_text())["method"] == "irls-h-l2"
-    rc = main_cli([str(path), "--method", "irls-h", "--loss", "cauchy", "--alpha", "3", "--l1-iterations", "0",
+    rc = main_cli([str(path), "--method", "irls-h", "--loss", "cauchy", "--alpha-sigma", "3", "--l1-iterations", "0",
                    "--out", str(tmp_path / "r2.txt"), "--json", str(js), "-q"])
     assert rc == 0
     stats = json.loads(js.read_text())

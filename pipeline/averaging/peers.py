@@ -1,0 +1,106 @@
+"""Peer rotation-averaging implementations, measured against ours in the benchmarks.
+
+- :func:`run_colmap`: ``pycolmap.run_rotation_averaging`` (COLMAP's C++ L1 + IRLS);
+- :func:`shonan`: GTSAM's ``ShonanAveraging3`` (certifiable, isotropic);
+- :func:`lm_anisotropic`: GTSAM ``BetweenFactorRot3`` with ``Gaussian.Information(H)``
+  refined by Levenberg–Marquardt (local, anisotropic).
+
+GTSAM is optional (the ``bench`` extra): :func:`have_gtsam` tells whether it is there.
+GTSAM's Rot3 is world_from_cam, so camera i is ``X_i = R_iᵀ`` and its
+``between(X_i, X_j) = X_iᵀ X_j = R_i R_jᵀ``: the GTSAM measurement of our edge is
+``R̃_ijᵀ``. Its BetweenFactor error ``Log(measuredᵀ X_iᵀ X_j)`` equals ``−Δω`` of our
+left perturbation, so our precision ``H_ij`` is the factor's information matrix as is.
+Both peers take one object per edge: these loops are glue for the peers' APIs.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.viewgraph import ViewGraph
+
+__all__ = ["run_colmap", "have_gtsam", "shonan", "lm_anisotropic"]
+
+
+def run_colmap(vg: ViewGraph, **opts: Any) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """pycolmap rotation averaging (DESIGN.md recipe); ``opts`` set ``RotationEstimatorOptions`` fields.
+
+    Returns:
+        R: (N, 3, 3) cam_from_world rotations (identity where not registered).
+        registered: (N,) bool.
+        seconds: wall time of ``run_rotation_averaging``.
+        ok: its return value.
+    """
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 500.0, 640, 480))
+    for i in range(vg.n_cameras):
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=vg.names[i], camera_id=1, image_id=i + 1))
+    pg = pycolmap.PoseGraph()
+    inl = vg.inliers if vg.inliers is not None else np.full(vg.n_edges, 100)
+    for (a, b), Rr, n in zip(vg.edges, vg.R_rel, inl):
+        e = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(Rr), np.zeros(3)))
+        e.num_matches = int(n)
+        pg.add_edge(int(a) + 1, int(b) + 1, e)
+    o = pycolmap.RotationEstimatorOptions()
+    for k, v in opts.items():
+        setattr(o, k, v)
+    t = time.perf_counter()
+    ok = pycolmap.run_rotation_averaging(o, pg, rec, [])
+    dt = time.perf_counter() - t
+    R = np.tile(np.eye(3), (vg.n_cameras, 1, 1))
+    reg = np.zeros(vg.n_cameras, bool)
+    for iid, im in rec.images.items():
+        if im.has_pose:
+            R[iid - 1] = im.cam_from_world().rotation.matrix()
+            reg[iid - 1] = True
+    return R, reg, dt, bool(ok)
+
+
+def have_gtsam() -> bool:
+    try:
+        import gtsam  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def shonan(vg: ViewGraph, seed: int = 0) -> tuple[np.ndarray, float, float]:
+    """GTSAM ShonanAveraging3 (isotropic, certifiable). Returns (R (N,3,3), λ_min certificate, wall s)."""
+    import gtsam
+
+    t0 = time.perf_counter()
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 1.0)
+    meas = gtsam.BinaryMeasurementsRot3()
+    for (i, j), R in zip(vg.edges, vg.R_rel):
+        meas.append(gtsam.BinaryMeasurementRot3(int(i), int(j), gtsam.Rot3(R.T), noise))
+    params = gtsam.ShonanAveragingParameters3(gtsam.LevenbergMarquardtParams.CeresDefaults())
+    sa = gtsam.ShonanAveraging3(meas, params)
+    values, lam = sa.run(sa.initializeRandomly(), 3, 10)
+    R = np.array([values.atRot3(i).matrix().T for i in range(vg.n_cameras)])
+    return R, float(lam), time.perf_counter() - t0
+
+
+def lm_anisotropic(vg: ViewGraph, R0: np.ndarray) -> tuple[np.ndarray, float, int]:
+    """GTSAM BetweenFactorRot3 + Gaussian.Information(H) refined by Levenberg–Marquardt (local).
+
+    Returns (R (N,3,3), wall s, iterations).
+    """
+    import gtsam
+
+    t0 = time.perf_counter()
+    graph = gtsam.NonlinearFactorGraph()
+    for (i, j), R, H in zip(vg.edges, vg.R_rel, vg.H):
+        graph.add(gtsam.BetweenFactorRot3(int(i), int(j), gtsam.Rot3(R.T), gtsam.noiseModel.Gaussian.Information(H)))
+    graph.add(gtsam.PriorFactorRot3(0, gtsam.Rot3(R0[0].T), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    init = gtsam.Values()
+    for i in range(vg.n_cameras):
+        init.insert(i, gtsam.Rot3(R0[i].T))
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, init, gtsam.LevenbergMarquardtParams())
+    values = opt.optimize()
+    R = np.array([values.atRot3(i).matrix().T for i in range(vg.n_cameras)])
+    return R, time.perf_counter() - t0, int(opt.iterations())
