@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import multiprocessing
 import os
 import signal
 import sys
@@ -95,7 +96,10 @@ class ProcessExecutor:
 
     def __init__(self, workers: int) -> None:
         self.workers = max(1, int(workers))
-        self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_init_worker, initargs=(1,))
+        # spawn, not fork: a child forked from a process whose OpenCV thread pool has run
+        # (SIFT, FLANN) deadlocks in cv2.setNumThreads (measured: every worker, forever)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_init_worker, initargs=(1,))
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
         return self._pool.map(fn, items)

@@ -35,9 +35,9 @@ from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair
-from pipeline.geometry.stage_io import read_viewgraph, recorded_output, rerun_hint, stage_cli
+from pipeline.geometry.stage_io import PairStage, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.geometry.two_view_stage import NAME as TWO_VIEW, load_two_view
-from pipeline.stage import Stage, StageRecord
+from pipeline.stage import StageRecord
 
 __all__ = ["TwoViewBAStage", "load_ba_viewgraph", "main_cli", "OUTPUT_NAME"]
 
@@ -94,12 +94,13 @@ def load_ba_viewgraph(work: Path) -> ViewGraph:
     return vg
 
 
-class TwoViewBAStage(Stage[BAConfig]):
+class TwoViewBAStage(PairStage[BAConfig]):
     """Two-view BA of every pair of the two-view result in a WORK folder (folder = WORK)."""
 
     name = NAME
     title = "two-view BA"
     config_cls = BAConfig
+    store = STORE
 
     def inputs(self) -> dict[str, str]:
         if not self.folder.is_dir():
@@ -134,7 +135,7 @@ class TwoViewBAStage(Stage[BAConfig]):
             tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k]))
         fp = cfg.fingerprint()
         keys = [item_key(fp, *task) for task in tasks]
-        store = ItemStore(work / STORE)
+        store = ItemStore(work / self.store)
         done = store.done(keys)
         t0 = time.perf_counter()
         with tqdm(total=M, initial=sum(k in done for k in keys), desc="two-view BA", unit="pair",

@@ -9,19 +9,22 @@ never a ``BadZipFile``, ``KeyError`` or ``TypeError`` traceback.
 from __future__ import annotations
 
 import argparse
+import shutil
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence, TypeVar
 
 import numpy as np
 
 from pipeline.core.cli import add_config_args, config_from_args, run_cli
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.core.config import Config
 from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, read_record
 
-__all__ = ["read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
+__all__ = ["PairStage", "read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
 
 _ZIP_MAGIC = b"PK\x03\x04"
+C = TypeVar("C", bound=Config)
 
 
 def _why(exc: BaseException) -> str:
@@ -31,6 +34,16 @@ def _why(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {msg[:100]}" if msg else type(exc).__name__
 
 
+def _check_zip(path: Path, what: str) -> None:
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as exc:
+        raise CacheError(f"{path} cannot be read ({_why(exc)})") from None
+    if magic != _ZIP_MAGIC:
+        raise CacheError(f"{path} is not an .npz archive (damaged or not a {what})")
+
+
 def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
     """Every array of the ``.npz`` file ``path``; :class:`CacheError` naming it if unreadable.
 
@@ -38,26 +51,22 @@ def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
         path: the file.
         what: what it should hold, for the message (``"correspondences file"``).
     """
+    _check_zip(path, what)
     try:
-        with open(path, "rb") as f:
-            magic = f.read(4)
-        if magic != _ZIP_MAGIC:
-            raise CacheError(f"{path} is not an .npz archive (damaged or not a {what})")
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
-    except CacheError:
-        raise
     except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged file
         raise CacheError(f"{path} is not a readable {what} ({_why(exc)})") from None
 
 
 def read_viewgraph(path: Path) -> ViewGraph:
     """The view graph in ``path`` (cameras without edges allowed); :class:`CacheError` naming it if damaged."""
+    _check_zip(path, "view graph")
     try:
         return ViewGraph.load(path, allow_isolated=True)
     except Exception as exc:  # noqa: BLE001 - ViewGraphError, InputFileError, or a reader bug on odd arrays
         msg = " ".join(str(exc).split()).replace("; re-run the stage that wrote it", "")
-        if str(path) not in msg:
+        if str(path) not in msg or "pickle" in msg:
             msg = f"{path} is not a valid view graph ({_why(exc)})"
         raise CacheError(msg) from None
 
@@ -87,6 +96,21 @@ def recorded_output(work: Path, stage: str, name: str, command: str) -> tuple[St
         raise CacheError(f"{path} has {path.stat().st_size} bytes, not the {rec.outputs[name]} recorded (truncated "
                          f"or overwritten); {rerun_hint(command, work)}")
     return rec, path
+
+
+class PairStage(Stage[C]):
+    """A stage whose per-pair results live in the item store ``<folder>/<store>``.
+
+    ``run(overwrite=True)`` empties the store first, so that every pair is
+    computed again (a plain re-run reuses the pairs already done).
+    """
+
+    store: ClassVar[str]
+
+    def run(self, overwrite: bool = False) -> StageRecord:
+        if overwrite:
+            shutil.rmtree(self.folder / self.store, ignore_errors=True)
+        return super().run(overwrite)
 
 
 def stage_cli(stage_cls: type[Stage], prog: str, description: str, output: str,

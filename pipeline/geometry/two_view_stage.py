@@ -39,9 +39,9 @@ from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.features import load_features
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
-from pipeline.geometry.stage_io import read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
+from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.matching import load_matches
-from pipeline.stage import Stage, StageRecord
+from pipeline.stage import StageRecord
 
 __all__ = ["TwoViewStage", "TwoViewData", "load_two_view", "write_two_view", "main_cli", "VIEWGRAPH",
            "CORRESPONDENCES"]
@@ -187,12 +187,13 @@ def _geometry_from_item(item: dict[str, np.ndarray]) -> PairGeometry:
     return PairGeometry(**kw)
 
 
-class TwoViewStage(Stage[TwoViewConfig]):
+class TwoViewStage(PairStage[TwoViewConfig]):
     """Relative poses of the matched pairs of a WORK folder (folder = WORK)."""
 
     name = NAME
     title = "two-view geometry"
     config_cls = TwoViewConfig
+    store = STORE
 
     def inputs(self) -> dict[str, str]:
         return _frontend_inputs(self.folder)
@@ -225,7 +226,7 @@ class TwoViewStage(Stage[TwoViewConfig]):
 
         fp = config.fingerprint()
         keys = [item_key(fp, *task(p)) for p in range(len(ms.pairs))]
-        store = ItemStore(work / STORE)
+        store = ItemStore(work / self.store)
         done = store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
                   disable=not config.progress) as bar:

@@ -1,21 +1,25 @@
-"""Two-view geometry: accuracy on rendered pairs and synthetic points, degeneracy flags, ViewGraph output, resume."""
+"""The two-view stage: accuracy on rendered scenes, ViewGraph output, resume, healing, readers, command line."""
 
 from __future__ import annotations
 
-import json
+import logging
+import shutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from pipeline import features, matching, two_view
+from pipeline import features, matching
 from pipeline.core import so3
-from pipeline.core.errors import InputFileError
-from pipeline.synthetic.render import SceneConfig, essential_from_Rt, render_scene
-from pipeline.two_view import TwoViewConfig, estimate_pair, load_two_view
+from pipeline.core.errors import CacheError, InputFileError, PipelineError
+from pipeline.geometry.epipolar import essential_from_Rt
+from pipeline.geometry.ransac import TwoViewConfig
+from pipeline.geometry.two_view_stage import CORRESPONDENCES, VIEWGRAPH, TwoViewStage, load_two_view
+from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
+Q = TwoViewConfig(progress=False)
 
 
 def _deg(Ra, Rb):
@@ -28,28 +32,22 @@ def work(tmp_path_factory):
     w = tmp_path_factory.mktemp("work")
     features.main(scene.out, w, progress=False)
     matching.main(w, progress=False)
-    two_view.main(w, progress=False)
+    TwoViewStage(w, Q).run()
     return scene, w
 
 
-def _project(K, R, t, X, rng=None, sigma=0.0):
-    x = (X @ R.T + t) @ K.T
-    x = x[:, :2] / x[:, 2:]
-    return x + (rng.normal(0, sigma, x.shape) if rng is not None else 0)
+@pytest.fixture
+def work_copy(work, tmp_path):
+    """A copy of the module's WORK folder with the default two-view result, for tests that damage it."""
+    w = tmp_path / "w"
+    shutil.copytree(work[1], w)
+    TwoViewStage(w, Q).run()
+    return w
 
 
-def _random_pair(rng, n=300, baseline=1.0, planar=False, K_i=None, K_j=None):
-    K_i = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]) if K_i is None else K_i
-    K_j = K_i if K_j is None else K_j
-    X = rng.uniform([-2, -1.5, 4], [2, 1.5, 8], (n, 3))
-    if planar:
-        X[:, 2] = 6 + 0.1 * X[:, 0]
-    R_j = so3.exp(np.deg2rad(np.array([3.0, -12.0, 4.0])))
-    c_j = np.array([baseline, 0.1 * baseline, 0.0])
-    t_j = -R_j @ c_j
-    x_i = _project(K_i, np.eye(3), np.zeros(3), X, rng, 0.3)
-    x_j = _project(K_j, R_j, t_j, X, rng, 0.3)
-    return x_i, x_j, K_i, K_j, R_j, t_j
+def _snapshot(w):
+    d = load_two_view(w)
+    return [d.vg.R_rel, d.vg.stats["t"], d.vg.inliers, d.x_i, d.x_j, d.kp_i, d.offsets, d.K]
 
 
 def test_rendered_pair_essential_matrix_agrees_with_truth(work):
@@ -80,7 +78,7 @@ def test_rendered_12_view_ring_median_error(tmp_path):
     w = tmp_path / "w"
     features.main(scene.out, w, progress=False)
     matching.main(w, progress=False)
-    two_view.main(w, progress=False)
+    TwoViewStage(w, Q).run()
     d = load_two_view(w)
     vg = d.vg
     assert vg.n_edges >= 60  # nearly all 66 pairs of the ring overlap and are accepted
@@ -109,94 +107,98 @@ def test_viewgraph_convention_and_contents(work):
 
 def test_resume_skips_finished_work(work):
     _, w = work
-    p1 = two_view.main(w, progress=False)
-    assert json.loads((w / "two_view.json").read_text())["n_computed"] == 0
-    p2 = two_view.main(w, overwrite=True, progress=False)
-    assert json.loads((w / "two_view.json").read_text())["n_computed"] == 6 and p1 == p2
-    p3 = two_view.main(w, TwoViewConfig(threshold_px=2.0), progress=False)
-    assert p3 != p1 and json.loads((w / "two_view.json").read_text())["n_computed"] == 6
+    rec1 = TwoViewStage(w, Q).run()
+    assert rec1.reused
+    rec2 = TwoViewStage(w, Q).run(overwrite=True)
+    assert not rec2.reused and rec2.summary["n_computed"] == 6 and rec2.fingerprint == rec1.fingerprint
+    rec3 = TwoViewStage(w, TwoViewConfig(threshold_px=2.0, progress=False)).run()
+    assert rec3.fingerprint != rec1.fingerprint and rec3.summary["n_computed"] == 6
+    rec4 = TwoViewStage(w, Q).run()  # back to the default options: recomputed, same result as before
+    assert not rec4.reused and rec4.fingerprint == rec1.fingerprint
 
 
-@pytest.mark.parametrize("method", ["magsac", "ransac"])
-def test_synthetic_points_accuracy(method):
-    rng = np.random.default_rng(0)
-    x_i, x_j, K_i, K_j, R_j, t_j = _random_pair(rng)
-    g = estimate_pair(x_i, x_j, K_i, K_j, TwoViewConfig(method=method))
-    assert g.ok and _deg(g.R, R_j) < 0.2
-    assert np.degrees(np.arccos(g.t @ (t_j / np.linalg.norm(t_j)))) < 2.0
-    assert not g.small_baseline and not g.planar
+def test_workers_recompute_nothing_and_change_no_result(work_copy):
+    before = _snapshot(work_copy)
+    assert TwoViewStage(work_copy, TwoViewConfig(workers=1, chunk_size=1, progress=False)).run().reused
+    # every pair again in a pool of 2 processes, 2 pairs per chunk: the same arrays, bit for bit
+    rec = TwoViewStage(work_copy, TwoViewConfig(workers=2, chunk_size=2, progress=False)).run(overwrite=True)
+    assert rec.summary["n_computed"] == 6
+    for a, b in zip(before, _snapshot(work_copy)):
+        np.testing.assert_array_equal(a, b)
 
 
-def test_different_intrinsics_per_image():
-    rng = np.random.default_rng(1)
-    K_j = np.array([[900.0, 0, 500], [0, 880, 380], [0, 0, 1]])
-    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, K_j=K_j)
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert g.ok and _deg(g.R, R_j) < 0.2
-    # the same matches with the wrong K for image j give a visibly worse rotation
-    g_wrong = estimate_pair(x_i, x_j, K_i, K_i)
-    assert not g_wrong.ok or _deg(g_wrong.R, R_j) > 1.0
+@pytest.mark.parametrize("damage", ["truncate", "garble"])
+@pytest.mark.parametrize("name", [VIEWGRAPH, CORRESPONDENCES, "two_view.record.json"])
+def test_damaged_result_is_healed_by_a_plain_rerun(work_copy, name, damage, caplog):
+    before = _snapshot(work_copy)
+    path = work_copy / name
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        del data[len(data) // 2:]
+    else:  # same size: only the arrays (or the JSON) can tell
+        mid = len(data) // 2
+        data[mid:mid + 16] = bytes(b ^ 0x5A for b in data[mid:mid + 16])
+    path.write_bytes(bytes(data))
+    with caplog.at_level(logging.WARNING):
+        rec = TwoViewStage(work_copy, Q).run()
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and name in warnings[0] and "\n" not in warnings[0], warnings
+    assert not rec.reused and rec.summary["n_computed"] == 0  # every pair came from the item store
+    for a, b in zip(before, _snapshot(work_copy)):
+        np.testing.assert_array_equal(a, b)
+    caplog.clear()
+    assert TwoViewStage(work_copy, Q).run().reused and not caplog.records
 
 
-def test_outliers_are_rejected():
-    rng = np.random.default_rng(2)
-    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, n=400)
-    bad = rng.random(400) < 0.4
-    x_j[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert g.ok and _deg(g.R, R_j) < 0.3
-    assert np.mean(g.inlier_mask[bad]) < 0.05 and np.mean(g.inlier_mask[~bad]) > 0.9
+def test_readers_fail_in_one_line_naming_the_file(work_copy):
+    for name in (VIEWGRAPH, CORRESPONDENCES):
+        path = work_copy / name
+        data = path.read_bytes()
+        for bad, what in ((data[: len(data) // 3], "bytes, not the"), (b"x" * len(data), "is not an .npz archive"),
+                          (b"PK\x03\x04" + bytes(len(data) - 4), "is not a")):
+            path.write_bytes(bad)
+            with pytest.raises(CacheError) as e:
+                load_two_view(work_copy)
+            msg = str(e.value)
+            assert str(path) in msg and what in msg and "\n" not in msg and "re-run" in msg, msg
+            assert "pickle" not in msg
+        path.write_bytes(data)
+    (work_copy / "two_view.record.json").write_text("{not json")
+    with pytest.raises(CacheError, match="two_view.record.json is damaged"):
+        load_two_view(work_copy)
 
 
-def test_zero_baseline_is_flagged_and_rotation_recovered():
-    rng = np.random.default_rng(3)
-    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, baseline=0.0)
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert g.ok and g.small_baseline and _deg(g.R, R_j) < 0.2
-    np.testing.assert_array_equal(g.t, 0)
-
-
-def test_small_baseline_is_flagged():
-    rng = np.random.default_rng(4)
-    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, baseline=0.05)
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert g.ok and g.small_baseline and g.median_triangulation_deg < 1.0
-
-
-def test_dominant_plane_is_flagged():
-    rng = np.random.default_rng(5)
-    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, planar=True)
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert g.planar
-    g2 = estimate_pair(*_random_pair(np.random.default_rng(5))[:4])
-    assert not g2.planar
-
-
-def test_too_few_matches_rejected_with_reason():
-    rng = np.random.default_rng(6)
-    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=12)
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert not g.ok and "too few matches (12 < min_matches=20)" in g.reason
-    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=60)
-    x_j = rng.uniform([0, 0], [640, 480], x_j.shape)  # pure noise
-    g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert not g.ok and "too few" in g.reason
-
-
-def test_config_and_input_validation():
-    with pytest.raises(ValueError, match="method"):
-        TwoViewConfig(method="lmeds")
-    with pytest.raises(ValueError, match="threshold_px"):
-        TwoViewConfig(threshold_px=0)
-    with pytest.raises(ValueError, match="confidence"):
-        TwoViewConfig(confidence=1.0)
-    with pytest.raises(ValueError, match="two \\(n, 2\\) arrays"):
-        estimate_pair(np.zeros((30, 2)), np.zeros((29, 2)), np.eye(3), np.eye(3))
+def test_readers_survive_a_fuzzer(work_copy):
+    """200 mutations of each file: the reader gives the same arrays or one project error, nothing else."""
+    before = _snapshot(work_copy)
+    rng = np.random.default_rng(12)
+    for name in (VIEWGRAPH, CORRESPONDENCES):
+        path = work_copy / name
+        data = path.read_bytes()
+        for _ in range(200):
+            b = bytearray(data)
+            kind = rng.integers(0, 10)
+            if kind == 0:
+                b = b[: rng.integers(0, len(b))]
+            elif kind == 1:
+                b += bytes(rng.integers(0, 256, rng.integers(1, 64), dtype=np.uint8))
+            else:
+                for pos in rng.integers(0, len(b), rng.integers(1, 5)):
+                    b[pos] = int(rng.integers(0, 256))
+            path.write_bytes(bytes(b))
+            try:
+                after = _snapshot(work_copy)
+            except PipelineError as exc:
+                assert "\n" not in str(exc)
+                continue
+            for x, y in zip(before, after):
+                np.testing.assert_array_equal(x, y)
+        path.write_bytes(data)
 
 
 def test_two_view_without_matches(tmp_path):
     with pytest.raises(InputFileError, match="pipeline.features"):
-        two_view.main(tmp_path, progress=False)
+        TwoViewStage(tmp_path, Q).run()
     with pytest.raises(InputFileError, match="pipeline.two_view"):
         load_two_view(tmp_path)
 
@@ -204,3 +206,13 @@ def test_two_view_without_matches(tmp_path):
 def test_cli_help():
     r = subprocess.run([sys.executable, "-m", "pipeline.two_view", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "--threshold" in r.stdout
+
+
+def test_cli_prints_the_view_graph_and_damage_is_one_line(work_copy):
+    r = subprocess.run([sys.executable, "-m", "pipeline.two_view", "--work", str(work_copy), "-q"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip() == str(work_copy / VIEWGRAPH), r.stderr
+    r = subprocess.run([sys.executable, "-m", "pipeline.two_view", "--work", str(work_copy), "--threshold-px", "abc"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip().startswith("error:") and len(r.stderr.strip().splitlines()) == 1
+    assert "threshold_px='abc' but expected a number" in r.stderr
