@@ -19,7 +19,7 @@ Stages (load, call the kernels per pair, save; resumable per pair):
 - :mod:`pipeline.geometry.two_view_stage`: ``python -m pipeline.two_view``;
 - :mod:`pipeline.geometry.ba_stage`: ``python -m pipeline.two_view_ba``.
 
-Convention (``docs``/DESIGN.md): ``R_ij = R_j R_iᵀ`` is pycolmap's
+Convention (DESIGN.md): ``R_ij = R_j R_iᵀ`` is pycolmap's
 ``cam2_from_cam1`` rotation, ``x_j = R_ij x_i + t_ij`` with unit ``t_ij``; ``H_ij``
 is the precision (1/rad²) of ``Δω`` in ``R_true = exp([Δω]×) R̂_ij``.
 """

@@ -34,6 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.core.atomic import save_npz
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
@@ -101,8 +102,6 @@ def write_two_view(work: Path, vg: ViewGraph, K: np.ndarray, sizes: np.ndarray, 
                    x_i: np.ndarray, x_j: np.ndarray, kp_i: np.ndarray, kp_j: np.ndarray) -> list[Path]:
     """Write the view graph and the correspondences files atomically; returns their paths."""
     corr_path = Path(work) / CORRESPONDENCES
-    from pipeline.core.atomic import save_npz  # noqa: PLC0415
-
     save_npz(corr_path, K=K, sizes=sizes, offsets=offsets, x_i=x_i, x_j=x_j, kp_i=kp_i, kp_j=kp_j)
     return [vg.save(Path(work) / VIEWGRAPH), corr_path]
 

@@ -113,6 +113,14 @@ def test_workers_recompute_nothing_and_change_no_result(tmp_path: Path) -> None:
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_changed_two_view_result_recomputes_the_ba(tmp_path: Path) -> None:
+    work, _ = _fake_work(tmp_path, n_cams=3)
+    first = TwoViewBAStage(work, Q).run()
+    FakeTwoViewStage(work, n_cams=3, n_points=40).run()  # other pairs upstream
+    second = TwoViewBAStage(work, Q).run()
+    assert not second.reused and second.fingerprint != first.fingerprint and second.summary["n_computed"] == 3
+
+
 def test_interrupted_run_resumes_per_pair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     work, _ = _fake_work(tmp_path)
     real = ba_stage._refine_chunk
