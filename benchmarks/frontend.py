@@ -45,11 +45,12 @@ sys.path.insert(0, str(REPO))
 
 import pycolmap  # noqa: E402
 
-from pipeline import features, matching, two_view  # noqa: E402
+from pipeline import features, matching  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.evaluate import edge_stats, match_reference  # noqa: E402
 from pipeline.io.references import read_reference  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
+from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 MAX_SIZE = 1600
@@ -97,10 +98,10 @@ def run_ours(ds: dict, work: Path) -> dict:
     matching.main(work, overwrite=True, progress=False)
     t["matching_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    vg_path = two_view.main(work, overwrite=True, progress=False)
+    TwoViewStage(work, TwoViewConfig(progress=False)).run(overwrite=True)
     t["two_view_s"] = time.perf_counter() - t0
     t["total_s"] = t["features_s"] + t["matching_s"] + t["two_view_s"]
-    t["vg"] = ViewGraph.load(vg_path, allow_isolated=True)
+    t["vg"] = load_two_view(work).vg
     return t
 
 

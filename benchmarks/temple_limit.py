@@ -41,7 +41,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
-import json  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -185,11 +184,12 @@ def pose_bound(work: Path, sub: ViewGraph, R: np.ndarray, truth, s2: float, mask
     the same R and H as the run, to rounding). Calibrated with the rotations' ``s2``, which
     trusts the translation directions more than their own NEES would: an optimistic bound.
     """
-    from pipeline.two_view import load_two_view  # noqa: PLC0415
-    from pipeline.two_view_ba import BAConfig, refine_pair  # noqa: PLC0415
+    from pipeline.geometry.ba_solver import BAConfig, refine_pair  # noqa: PLC0415
+    from pipeline.geometry.two_view_stage import load_two_view  # noqa: PLC0415
+    from pipeline.stage import read_record  # noqa: PLC0415
 
     data = load_two_view(work)
-    cfg = BAConfig(**json.loads((work / "viewgraph.json").read_text())["config"])
+    cfg = BAConfig.from_dict(read_record(work, "two_view_ba").config)
     index = {(data.vg.names[a], data.vg.names[b]): k for k, (a, b) in enumerate(data.vg.edges)}
     t_in = np.asarray(data.vg.stats["t"], dtype=np.float64)
     S, B = [], []

@@ -34,8 +34,6 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# benchmarks/pipeline.py would shadow the package: drop this folder from the path.
-sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import numpy as np  # noqa: E402
 import scipy.sparse as sps  # noqa: E402
@@ -44,8 +42,11 @@ from scipy.optimize._numdiff import approx_derivative  # noqa: E402
 from scipy.sparse.linalg import splu  # noqa: E402
 
 from pipeline.core import so3  # noqa: E402
-from pipeline import two_view_ba as tb  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
+from pipeline.geometry.ba_model import project, tangent_basis, triangulate  # noqa: E402
+from pipeline.geometry.ba_solver import BAConfig, refine_pair  # noqa: E402
+from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
+from pipeline.synthetic.pairs import synthetic_pair  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "two_view_ba.json"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -78,7 +79,7 @@ class ScipyPair:
         self.sparsity = sps.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(4 * n, 5 + 3 * n))
 
     def rebase(self, R, t):
-        self.R_b, self.t_b, self.B = R.copy(), t / np.linalg.norm(t), tb.tangent_basis(t / np.linalg.norm(t))
+        self.R_b, self.t_b, self.B = R.copy(), t / np.linalg.norm(t), tangent_basis(t / np.linalg.norm(t))
 
     def pose(self, x):
         t = self.t_b + self.B @ x[3:5]
@@ -87,7 +88,7 @@ class ScipyPair:
     def fun(self, x):
         R, t = self.pose(x)
         P = x[5:].reshape(-1, 3).T
-        r, _, _ = tb._project(R, t, P, self.xi, self.xj, self.Ki, self.Kj)
+        r, _, _ = project(R, t, P, self.xi, self.xj, self.Ki, self.Kj)
         return r.T.ravel()
 
     def hessian(self, x, sigma2):
@@ -106,7 +107,7 @@ class ScipyPair:
 
 
 def speed_section(quick: bool) -> dict:
-    sp = tb.synthetic_pair(1000, sigma_px=1.0, seed=1)
+    sp = synthetic_pair(1000, sigma_px=1.0, seed=1)
     reps = 10 if quick else 30
     out: dict = {"n_points": 1000}
 
@@ -122,12 +123,12 @@ def speed_section(quick: bool) -> dict:
 
     mins: dict = {}
 
-    cfgs = {"ours default (cauchy + refit)": tb.BAConfig(), "ours least squares": tb.BAConfig(loss="none", refit_inliers=False)}
+    cfgs = {"ours default (cauchy + refit)": BAConfig(), "ours least squares": BAConfig(loss="none", refit_inliers=False)}
     for name, cfg in cfgs.items():
-        w, c, res = timed(lambda: tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0, cfg), reps)
+        w, c, res = timed(lambda: refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0, cfg), reps)
         out[name] = {"wall_ms": 1e3 * w, "cpu_ms": 1e3 * c, "min_wall_ms": 1e3 * mins["last"], "iterations": res.iterations,
                      "rot_err_deg": float(np.rad2deg(so3.angle_between(res.R, sp.R)))}
-    P0 = tb._triangulate(sp.R0, sp.t0, np.ascontiguousarray(sp.x_i.T), np.ascontiguousarray(sp.x_j.T), sp.K_i, sp.K_j)
+    P0 = triangulate(sp.R0, sp.t0, np.ascontiguousarray(sp.x_i.T), np.ascontiguousarray(sp.x_j.T), sp.K_i, sp.K_j)
     x0 = np.concatenate([np.zeros(5), P0.T.ravel()])
 
     def run_scipy(loss: str = "linear", tol: float = 1e-8):
@@ -146,12 +147,12 @@ def speed_section(quick: bool) -> dict:
     out["ratio_wall_scipy_cauchy_over_ours_default"] = out["scipy cauchy"]["wall_ms"] / out["ours default (cauchy + refit)"]["wall_ms"]
     out["ratio_cpu_scipy_cauchy_over_ours_default"] = out["scipy cauchy"]["cpu_ms"] / out["ours default (cauchy + refit)"]["cpu_ms"]
     # Same Hessian: both converged tightly on the same least-squares problem, σ = 1 px.
-    ours = tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0,
-                          tb.BAConfig(loss="none", refit_inliers=False, sigma_px=1.0, tol=1e-15, max_iterations=100))
+    ours = refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0,
+                          BAConfig(loss="none", refit_inliers=False, sigma_px=1.0, tol=1e-15, max_iterations=100))
     prob, res = run_scipy("linear", 1e-15)
     H_s, R_s, _ = prob.hessian(res.x, 1.0)
-    ours_default_tol = tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0,
-                                      tb.BAConfig(loss="none", refit_inliers=False, sigma_px=1.0))
+    ours_default_tol = refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0,
+                                      BAConfig(loss="none", refit_inliers=False, sigma_px=1.0))
     rel = lambda A, B: float(np.linalg.norm(A - B) / np.linalg.norm(B))  # noqa: E731
     out["hessian"] = {
         "rel_diff_ours_tight_vs_scipy": rel(ours.H, H_s),
@@ -174,9 +175,16 @@ def speed_section(quick: bool) -> dict:
 
 
 # ------------------------------------------------------------- real WORK folders
+def run_ba(work: Path, cfg: BAConfig) -> Path:
+    """The BA stage on ``work`` from scratch; the path of its view graph."""
+    TwoViewBAStage(work, cfg.replace(progress=False)).run(overwrite=True)
+    return work / "viewgraph.npz"
+
+
 def build_work(name: str, root: Path) -> tuple[Path, Path]:
     """WORK folder and reference of a dataset, running the front end if needed."""
-    from pipeline import features, matching, two_view
+    from pipeline import features, matching
+    from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage
 
     images, ref = DATASETS[name]
     base = root / name
@@ -188,10 +196,10 @@ def build_work(name: str, root: Path) -> tuple[Path, Path]:
             render.render_scene(12, 0, images)
         ref = images / "cameras.txt"
     work = base / "work"
-    if not (work / "two_view.json").is_file():
+    if not (work / "two_view.record.json").is_file():
         features.main(images, work, progress=False)
         matching.main(work, progress=False)
-        two_view.main(work, progress=False)
+        TwoViewStage(work, TwoViewConfig(progress=False)).run()
     return work, ref
 
 
@@ -214,7 +222,7 @@ def true_pairs(data, ref) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
     from pipeline.evaluate import edge_stats, match_reference
     from pipeline.io.references import read_reference
-    from pipeline.two_view import load_two_view
+    from pipeline.geometry.two_view_stage import load_two_view
     from pipeline.core.viewgraph import ViewGraph
 
     out: dict = {}
@@ -232,14 +240,14 @@ def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
         data = load_two_view(work)
         R_ref, mask = match_reference(data.vg.names, ref.names, ref.R)
         t0 = time.perf_counter()
-        vg_path = tb.main(work, tb.BAConfig(), overwrite=True, progress=False)
+        vg_path = run_ba(work, BAConfig())
         t_ba = time.perf_counter() - t0
         vg = ViewGraph.load(vg_path, allow_isolated=True)
         # The RANSAC graph restricted to the same (kept) edges, for a like-for-like comparison.
         vg_ransac = ViewGraph(vg.names, vg.edges, vg.stats["R_ransac"], allow_isolated=True)
-        off = tb.main(work, tb.BAConfig(enabled=False), overwrite=True, progress=False)
+        off = run_ba(work, BAConfig(enabled=False))
         vg_off = ViewGraph.load(off, allow_isolated=True)
-        tb.main(work, tb.BAConfig(), overwrite=True, progress=False)  # leave the default result in WORK
+        run_ba(work, BAConfig())  # leave the default result in WORK
         s_r, s_b, s_o = edge_stats(vg_ransac, R_ref, mask), edge_stats(vg, R_ref, mask), edge_stats(vg_off, R_ref, mask)
         cond = vg.stats["ba_cond_H"]
         r = {
@@ -281,7 +289,7 @@ def rendered_monte_carlo(data, ref, vg, quick: bool, n_pairs: int = 6, draws: in
         xi, xj = data.correspondences(k)
         Ki, Kj = data.K[i], data.K[j]
         # Exact correspondences: triangulate with the true pose, re-project.
-        P = tb._triangulate(R_ij[k], t_ij[k], np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T), Ki, Kj)
+        P = triangulate(R_ij[k], t_ij[k], np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T), Ki, Kj)
         keep = P[2] > 0
         P = P[:, keep]
         m = np.vstack([P[:2], np.ones(P.shape[1])])
@@ -290,8 +298,8 @@ def rendered_monte_carlo(data, ref, vg, quick: bool, n_pairs: int = 6, draws: in
         xj0 = ((Kj @ pj)[:2] / pj[2]).T
         dws, Hs = [], []
         for _ in range(draws):
-            res = tb.refine_pair(xi0 + rng.standard_normal(xi0.shape), xj0 + rng.standard_normal(xj0.shape),
-                                 Ki, Kj, data.vg.R_rel[k], data.vg.stats["t"][k], tb.BAConfig())
+            res = refine_pair(xi0 + rng.standard_normal(xi0.shape), xj0 + rng.standard_normal(xj0.shape),
+                                 Ki, Kj, data.vg.R_rel[k], data.vg.stats["t"][k], BAConfig())
             dws.append(so3.log(R_ij[k] @ res.R.T))
             Hs.append(res.H)
         dws, Hs = np.array(dws), np.array(Hs)

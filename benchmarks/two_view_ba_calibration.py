@@ -1,6 +1,6 @@
 """Calibration of the two-view rotation Hessian H_ij (issue 6, acceptance item 2; item 5 on synthetic pairs).
 
-Monte-Carlo over pixel-noise draws on fixed synthetic scenes (``pipeline.two_view_ba.synthetic_pair``):
+Monte-Carlo over pixel-noise draws on fixed synthetic scenes (``pipeline.synthetic.pairs.synthetic_pair``):
 
 * mean NEES ``Δωᵀ H Δω`` with ``R_true = exp([Δω]×) R̂`` (target [2.8, 3.2]);
 * ratio of the sample covariance of Δω to ``mean(H)⁻¹`` along each eigen-direction of
@@ -27,27 +27,26 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# benchmarks/pipeline.py would shadow the package: drop this folder from the path.
-sys.path = [p for p in sys.path if Path(p or ".").resolve() != Path(__file__).resolve().parent]
 
 import numpy as np  # noqa: E402
 
 from pipeline.core import so3  # noqa: E402
-from pipeline import two_view_ba as tb  # noqa: E402
+from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair  # noqa: E402
+from pipeline.synthetic.pairs import synthetic_pair  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "two_view_ba_calibration.json"
 
 
-def monte_carlo(scene_seed: int, draws: int, cfg: tb.BAConfig, n_points: int = 200, sigma: float = 1.0,
+def monte_carlo(scene_seed: int, draws: int, cfg: BAConfig, n_points: int = 200, sigma: float = 1.0,
                 outlier_frac: float = 0.0, seed0: int = 10_000) -> dict:
     dws, Hs, s2, fails, iters = [], [], [], 0, []
     t0 = time.perf_counter()
     for d in range(draws):
-        sp = tb.synthetic_pair(n_points, sigma_px=sigma, outlier_frac=outlier_frac, seed=seed0 + d, scene_seed=scene_seed)
+        sp = synthetic_pair(n_points, sigma_px=sigma, outlier_frac=outlier_frac, seed=seed0 + d, scene_seed=scene_seed)
         try:
-            res = tb.refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0, cfg)
-        except tb.TwoViewBAError:
+            res = refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0, cfg)
+        except TwoViewBAError:
             fails += 1
             continue
         dws.append(so3.log(sp.R @ res.R.T))
@@ -100,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'case':44s} {'NEES':>6s} {'ratios along eig(mean H)^-1':>30s} {'gen. ratios':>22s} {'ok':>5s}")
     for scene in range(n_scenes):
         for known in (True, False):
-            cfg = tb.BAConfig(sigma_px=1.0 if known else None)
+            cfg = BAConfig(sigma_px=1.0 if known else None)
             r = monte_carlo(scene, draws, cfg)
             r["sigma"] = "known" if known else "estimated"
             out["clean"].append(r)
@@ -111,13 +110,13 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(r)
     # 10% outlier matches: how each loss (and the inlier refit) keeps the NEES near 3.
     variants = [
-        ("none, no refit", tb.BAConfig(loss="none", refit_inliers=False)),
-        ("huber, no refit", tb.BAConfig(loss="huber", refit_inliers=False)),
-        ("cauchy, no refit", tb.BAConfig(loss="cauchy", refit_inliers=False)),
-        ("none + refit", tb.BAConfig(loss="none", refit_inliers=True)),
-        ("huber + refit", tb.BAConfig(loss="huber", refit_inliers=True)),
-        ("cauchy + refit (default)", tb.BAConfig(loss="cauchy", refit_inliers=True)),
-        ("cauchy + refit, σ known", tb.BAConfig(loss="cauchy", refit_inliers=True, sigma_px=1.0)),
+        ("none, no refit", BAConfig(loss="none", refit_inliers=False)),
+        ("huber, no refit", BAConfig(loss="huber", refit_inliers=False)),
+        ("cauchy, no refit", BAConfig(loss="cauchy", refit_inliers=False)),
+        ("none + refit", BAConfig(loss="none", refit_inliers=True)),
+        ("huber + refit", BAConfig(loss="huber", refit_inliers=True)),
+        ("cauchy + refit (default)", BAConfig(loss="cauchy", refit_inliers=True)),
+        ("cauchy + refit, σ known", BAConfig(loss="cauchy", refit_inliers=True, sigma_px=1.0)),
     ]
     print(f"\n{'10% outliers, scene 0':30s} {'mean NEES':>9s} {'median':>7s} {'ratios':>24s} {'rms err °':>9s} {'σ̂²':>7s}")
     for name, cfg in variants:

@@ -12,7 +12,7 @@ same files):
 
 1. features          ``pipeline.features``      → OUT/work/features.json (+ per-image cache)
 2. matching          ``pipeline.matching``      → OUT/work/...
-3. two-view          ``pipeline.two_view``      → OUT/work/... (RANSAC view graph)
+3. two-view          ``pipeline.two_view``      → OUT/work/two_view.npz (RANSAC view graph)
 4. two-view BA       ``pipeline.two_view_ba``   → OUT/work/viewgraph.npz (with H)
 5. view graph        largest connected component → OUT/viewgraph.npz (the rest named)
 6. averaging         ``pipeline.average``       → OUT/rotations/<method>.txt + .json
@@ -345,8 +345,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     """Run the whole pipeline; returns the path of ``OUT/metrics.json``."""
     from pipeline import features as st_features  # noqa: PLC0415
     from pipeline import matching as st_matching  # noqa: PLC0415
-    from pipeline import two_view as st_two_view  # noqa: PLC0415
-    from pipeline import two_view_ba as st_ba  # noqa: PLC0415
+    from pipeline.geometry.ba_stage import BAConfig, TwoViewBAStage  # noqa: PLC0415
+    from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: PLC0415
     from pipeline import reference as st_reference  # noqa: PLC0415
     from pipeline import report as st_report  # noqa: PLC0415
 
@@ -397,14 +397,14 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     runner("matching", "matching", lambda: st_matching.main(
         work, _cfg(st_matching, ("MatchingConfig",), yaml_data, "matching"), overwrite=overwrite, progress=progress),
         lambda: [work / "matching.record.json"])
-    runner("two_view", "two-view geometry", lambda: st_two_view.main(
-        work, _cfg(st_two_view, ("TwoViewConfig",), yaml_data, "two_view"), overwrite=overwrite, progress=progress),
-        lambda: sorted(work.glob("two_view-*.npz")))
-    runner("two_view_ba", "two-view BA", lambda: st_ba.main(
-        work, _cfg(st_ba, ("BAConfig",), yaml_data, "two_view_ba"), overwrite=overwrite, progress=progress),
+    runner("two_view", "two-view geometry", lambda: TwoViewStage(
+        work, stage_config(TwoViewConfig, yaml_data, "two_view", progress=progress)).run(overwrite),
+        lambda: [work / "two_view.npz", work / "two_view_corr.npz"])
+    runner("two_view_ba", "two-view BA", lambda: TwoViewBAStage(
+        work, stage_config(BAConfig, yaml_data, "two_view_ba", progress=progress)).run(overwrite),
         lambda: [work / "viewgraph.npz"])
     try:
-        tv = st_two_view.load_two_view(work)
+        tv = load_two_view(work)
         rejected, ransac_vg = list(tv.rejected), tv.vg
     except (PipelineError, OSError, AttributeError):
         rejected, ransac_vg = [], None

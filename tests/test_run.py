@@ -96,9 +96,9 @@ def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
 def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
     import pycolmap
 
-    from pipeline import two_view_ba
     from pipeline.averaging import solve as average
     from pipeline.frontend import feature_stage
+    from pipeline.geometry.ba_stage import TwoViewBAStage
 
     calls = {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
 
@@ -109,7 +109,7 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
         return wrapped
 
     monkeypatch.setattr(feature_stage, "extract_sift", count("sift", feature_stage.extract_sift))
-    monkeypatch.setattr(two_view_ba, "refine_pairs", count("ba", two_view_ba.refine_pairs))
+    monkeypatch.setattr(TwoViewBAStage, "compute", count("ba", TwoViewBAStage.compute))
     monkeypatch.setattr(average, "average", count("avg", average.average))
     monkeypatch.setattr(pycolmap, "extract_features", count("colmap", pycolmap.extract_features))
     monkeypatch.setattr(pycolmap, "incremental_mapping", count("colmap", pycolmap.incremental_mapping))
@@ -125,8 +125,8 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
 @pytest.mark.slow
 @pytest.mark.parametrize("where", ["features", "two_view_ba"])
 def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_config, tmp_path, monkeypatch, where):
-    from pipeline import two_view_ba
     from pipeline.frontend import feature_stage
+    from pipeline.geometry.ba_stage import TwoViewBAStage
 
     out = tmp_path / "out"
     if where == "features":
@@ -144,7 +144,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
         def interrupted(*a, **k):
             raise KeyboardInterrupt
 
-        monkeypatch.setattr(two_view_ba, "refine_pairs", interrupted)
+        monkeypatch.setattr(TwoViewBAStage, "compute", interrupted)
     with pytest.raises(KeyboardInterrupt):
         run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
     monkeypatch.undo()

@@ -84,7 +84,7 @@ def _pose_measurement(R, C, edges):
 
 
 def test_pose_jacobian_matches_finite_differences(bench):
-    from pipeline.two_view_ba import tangent_basis
+    from pipeline.geometry.ba_model import tangent_basis
 
     rng = np.random.default_rng(4)
     g = paper2_graph(6, 0.7, seed=2)
@@ -114,7 +114,7 @@ def test_pose_jacobian_matches_finite_differences(bench):
 
 
 def test_pose_information_has_the_similarity_gauge(bench):
-    from pipeline.two_view_ba import tangent_basis
+    from pipeline.geometry.ba_model import tangent_basis
 
     rng = np.random.default_rng(5)
     g = paper2_graph(8, 0.6, seed=4)

@@ -71,7 +71,7 @@ def add_config_args(parser: argparse.ArgumentParser, cls: type[Config], *, exclu
         if f.name in exclude:
             continue
         tp = hints[f.name]
-        help_ = f.metadata.get("help", "")
+        help_ = f.metadata.get("help", "").replace("%", "%%")  # argparse formats help with %
         default = f.default if f.default is not dataclasses.MISSING else "…"
         kw: dict[str, Any] = {"default": None, "dest": f"cfg__{f.name}"}
         if tp is bool:

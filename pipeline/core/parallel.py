@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import multiprocessing
 import os
 import signal
 import sys
@@ -88,8 +89,15 @@ def _watch_parent(ppid: int) -> None:
         time.sleep(0.5)
 
 
-def die_with_parent() -> None:
-    """Make this (worker) process exit when its parent dies, even by SIGKILL."""
+def die_with_parent(parent_pid: int | None = None) -> None:
+    """Make this (worker) process exit when its parent dies, even by SIGKILL.
+
+    Args:
+        parent_pid: the pid of the process that started this one. A parent that
+            died while this worker was still starting (before this call) ends the
+            worker at once; without it that worker would watch its new parent, init.
+    """
+    expected = os.getppid() if parent_pid is None else parent_pid
     if sys.platform.startswith("linux"):
         try:
             libc = ctypes.CDLL("libc.so.6", use_errno=True)
@@ -97,11 +105,13 @@ def die_with_parent() -> None:
             libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
         except OSError:  # pragma: no cover - no libc: the watchdog below still works
             pass
-    threading.Thread(target=_watch_parent, args=(os.getppid(),), daemon=True).start()
+    if os.getppid() != expected:
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(expected,), daemon=True).start()
 
 
-def _init_worker(threads: int) -> None:
-    die_with_parent()
+def _init_worker(threads: int, parent_pid: int | None = None) -> None:
+    die_with_parent(parent_pid)
     # one pool worker per core: keep each worker's own libraries to one thread
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
@@ -117,7 +127,10 @@ class ProcessExecutor:
 
     def __init__(self, workers: int) -> None:
         self.workers = max(1, int(workers))
-        self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_init_worker, initargs=(1,))
+        # spawn, not fork: a child forked from a process whose OpenCV thread pool has run
+        # (SIFT, FLANN) deadlocks in cv2.setNumThreads (measured: every worker, forever)
+        self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                         initializer=_init_worker, initargs=(1, os.getpid()))
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
         return self._pool.map(fn, items)

@@ -24,14 +24,14 @@ import json
 import logging
 import os
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError
 
-__all__ = ["ItemStore", "item_key"]
+__all__ = ["ItemStore", "item_key", "compute_missing"]
 
 logger = logging.getLogger(__name__)
 
@@ -159,3 +159,45 @@ class ItemStore:
 
     def keys(self) -> list[str]:
         return list((self._where if self._where is not None else self.load_index()).keys())
+
+
+def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[int], Any],
+                    work: Callable[[list[Any]], list[Mapping[str, Any]]], *, workers: int = 1, chunk_size: int = 8,
+                    on_chunk: Callable[[int], None] | None = None) -> int:
+    """Compute the items of ``keys`` that ``store`` lacks, chunk by chunk, writing each finished chunk at once.
+
+    Args:
+        store: the stage's item store.
+        keys: the key of every item (duplicates are computed once).
+        make_task: ``make_task(k)`` is the picklable input of item ``k`` (built only for missing items).
+        work: ``work(tasks)`` returns the results of a chunk of tasks, in order; a
+            module-level function (or a ``functools.partial`` of one), run on the
+            executor of :func:`pipeline.core.parallel.make_executor`.
+        workers: workers of the executor (1, or a single chunk, runs in this process).
+        chunk_size: items per chunk (a chunk is the unit of work and of resumption).
+        on_chunk: called with the number of items of each finished chunk (progress).
+
+    Returns:
+        The number of items computed.
+    """
+    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - parallel imports nothing of ours
+
+    done = store.done(keys)
+    todo: list[int] = []
+    seen: set[str] = set()
+    for k, key in enumerate(keys):
+        if key not in done and key not in seen:
+            seen.add(key)
+            todo.append(k)
+    chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
+    if not chunks:
+        return 0
+    executor = make_executor(min(workers, len(chunks)))
+    try:
+        for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
+            store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
+            if on_chunk is not None:
+                on_chunk(len(idx))
+    finally:
+        executor.close()
+    return len(todo)

@@ -42,6 +42,7 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_open, atomic_path
 from pipeline.core.errors import PipelineError
+from pipeline.geometry.epipolar import essential_from_Rt, normalize, sampson_distance  # noqa: F401 - essential_from_Rt: old import path
 
 logger = logging.getLogger(__name__)
 
@@ -166,10 +167,8 @@ class RenderedScene:
 
     def epipolar_distance_px(self, i: int, j: int, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
         """|Sampson distance| in pixels (view i's focal) of matches ``x_i ↔ x_j`` (n, 2) from the true geometry."""
-        from pipeline.two_view import _normalize, sampson_distance  # noqa: PLC0415
-
         R, t = self.relative_pose(i, j)
-        y_i, y_j = _normalize(x_i, self.K[i]), _normalize(x_j, self.K[j])
+        y_i, y_j = normalize(x_i, self.K[i]), normalize(x_j, self.K[j])
         return np.abs(sampson_distance(R, t, y_i, y_j)) * self.K[i][0, 0]
 
     def project(self, i: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -395,12 +394,6 @@ def render_view(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np.ndarray
         best = best[s // 2::s, s // 2::s][:height, :width]
     depth = np.where(best > 0, 1.0 / np.maximum(best, 1e-12), np.inf).astype(np.float32)
     return image, depth
-
-
-def essential_from_Rt(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``E = [t]× R`` for ``x_j = R x_i + t`` (normalized so that ‖E‖_F = √2 for unit t)."""
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return tx @ R
 
 
 def _sample_points(planes: list[Plane], scene_K, scene_R, scene_t, depths, rng, n_per_plane: int = 400) -> np.ndarray:

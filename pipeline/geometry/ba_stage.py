@@ -1,0 +1,203 @@
+"""The two-view BA stage: every accepted pair refined, with its rotation precision ``H_ij`` (``python -m pipeline.two_view_ba``).
+
+It reads the two-view result (:func:`pipeline.geometry.two_view_stage.load_two_view`),
+refines each pair with :func:`pipeline.geometry.ba_solver.refine_pair` in chunks
+on an executor whose workers die with this process (:mod:`pipeline.core.parallel`),
+keeps every finished chunk in an item store (an interrupted run resumes per pair)
+and writes::
+
+    WORK/viewgraph.npz             a ViewGraph with H, BA inlier counts and per-edge stats
+                                   (allow_isolated=True), read by the averaging stage
+    WORK/two_view_ba.record.json   the stage record: options, counts, timings and the
+                                   pairs that were dropped, with reasons
+    WORK/two_view_ba_pairs/        the per-pair results (chunks)
+
+Per-edge stats written: ``t`` (M, 3) refined unit translation, ``t_ransac``,
+``R_ransac`` (M, 3, 3), ``ba_sigma2`` (px²), ``ba_rms_px``, ``ba_iterations``,
+``ba_n_points``, ``ba_n_inliers``, ``ba_converged``, ``ba_rotation_change_deg``
+(angle between the RANSAC and the refined rotation), ``ba_cond_H``, plus every
+stat of the input graph that is not overwritten.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.core import so3
+from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.store import ItemStore, compute_missing, item_key
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair
+from pipeline.geometry.stage_io import PairStage, read_viewgraph, recorded_output, rerun_hint, stage_cli
+from pipeline.geometry.two_view_stage import NAME as TWO_VIEW, load_two_view
+from pipeline.stage import StageRecord
+
+__all__ = ["TwoViewBAStage", "load_ba_viewgraph", "main_cli", "OUTPUT_NAME"]
+
+logger = logging.getLogger(__name__)
+
+NAME = "two_view_ba"
+COMMAND = "pipeline.two_view_ba"
+OUTPUT_NAME = "viewgraph.npz"
+STORE = "two_view_ba_pairs"
+_STATS = ("t", "t_ransac", "R_ransac", "ba_sigma2", "ba_rms_px", "ba_iterations", "ba_n_points", "ba_n_inliers",
+          "ba_converged", "ba_rotation_change_deg", "ba_cond_H")
+
+Task = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _refine_chunk(tasks: list[Task], config: BAConfig) -> list[dict[str, Any]]:
+    """Worker: refine a chunk of pairs given as arrays; failures become records with a reason."""
+    out = []
+    for xi, xj, Ki, Kj, R0, t0 in tasks:
+        t_start, c_start = time.perf_counter(), time.thread_time()
+        try:
+            res = refine_pair(xi, xj, Ki, Kj, R0, t0, config)
+        except (TwoViewBAError, ValueError, np.linalg.LinAlgError) as exc:
+            out.append({"ok": False, "reason": " ".join(str(exc).split()), "n_points": int(len(xi))})
+            continue
+        out.append({
+            "ok": True,
+            "R": res.R, "t": res.t, "H": res.H, "sigma2": res.sigma2, "iterations": res.iterations,
+            "n_points": int(len(xi)), "n_inliers": res.n_inliers, "converged": res.converged,
+            "rms_px": res.rms_px, "time_s": time.perf_counter() - t_start, "cpu_s": time.thread_time() - c_start,
+        })
+    return out
+
+
+def _result(item: dict[str, np.ndarray]) -> dict[str, Any]:
+    """A stored result with its scalars back as Python values."""
+    return {k: (v.item() if v.ndim == 0 else v) for k, v in item.items()}
+
+
+def load_ba_viewgraph(work: Path) -> ViewGraph:
+    """The view graph with ``H`` that :class:`TwoViewBAStage` wrote in ``work``.
+
+    Raises:
+        InputFileError: the stage has not run in ``work``.
+        CacheError: the file is damaged (one line naming it; a re-run of the stage heals it).
+    """
+    _, path = recorded_output(Path(work), NAME, OUTPUT_NAME, COMMAND)
+    try:
+        vg = read_viewgraph(path)
+    except CacheError as exc:
+        raise CacheError(f"{exc}; {rerun_hint(COMMAND, work)}") from None
+    if vg.H is None:
+        raise CacheError(f"{path} has no H; {rerun_hint(COMMAND, work)}")
+    return vg
+
+
+class TwoViewBAStage(PairStage[BAConfig]):
+    """Two-view BA of every pair of the two-view result in a WORK folder (folder = WORK)."""
+
+    name = NAME
+    title = "two-view BA"
+    config_cls = BAConfig
+    store = STORE
+
+    def inputs(self) -> dict[str, str]:
+        if not self.folder.is_dir():
+            raise InputFileError(f"WORK folder {self.folder} does not exist; run the front end "
+                                 "(features, matching, two_view) first")
+        return {TWO_VIEW: self.upstream(TWO_VIEW).fingerprint}
+
+    def verify(self, record: StageRecord) -> None:
+        path = self.folder / OUTPUT_NAME
+        vg = read_viewgraph(path)
+        n_images = self.upstream(TWO_VIEW).summary.get("n_images")
+        if vg.n_cameras != n_images:
+            raise CacheError(f"{path} has {vg.n_cameras} cameras but the two-view result {n_images}")
+        if vg.n_edges != record.summary.get("n_pairs_out"):
+            raise CacheError(f"{path} has {vg.n_edges} edges but its record says {record.summary.get('n_pairs_out')}")
+        missing = [k for k in _STATS if k not in vg.stats]
+        if vg.H is None or missing:
+            raise CacheError(f"{path} lacks {'H' if vg.H is None else 'the per-edge stats ' + str(missing)}")
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        cfg, work = self.config, self.folder
+        data = load_two_view(work)
+        vg_in = data.vg
+        K = np.asarray(data.K, dtype=np.float64)
+        logger.info("two-view BA config: %s", cfg.as_dict())
+        M = vg_in.n_edges
+        t_in = np.asarray(vg_in.stats["t"], dtype=np.float64).reshape(M, 3)
+        tasks: list[Task] = []
+        for k in range(M):  # gathering the per-edge arrays: I/O, not the hot path
+            xi, xj = data.correspondences(k)
+            i, j = vg_in.edges[k]
+            tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k]))
+        fp = cfg.fingerprint()
+        keys = [item_key(fp, *task) for task in tasks]
+        store = ItemStore(work / self.store)
+        done = store.done(keys)
+        t0 = time.perf_counter()
+        with tqdm(total=M, initial=sum(k in done for k in keys), desc="two-view BA", unit="pair",
+                  disable=not cfg.progress) as bar:
+            n_computed = compute_missing(store, keys, tasks.__getitem__, functools.partial(_refine_chunk, config=cfg),
+                                         workers=cfg.workers, chunk_size=cfg.chunk_size, on_chunk=bar.update)
+        elapsed = time.perf_counter() - t0
+        results = [_result(store.get(k)) for k in keys]
+        vg, summary = _assemble(vg_in, t_in, results)
+        out = vg.save(work / OUTPUT_NAME)
+        summary.update(n_computed=n_computed, ba_time_s=elapsed)
+        logger.info(
+            "two-view BA: %d/%d pairs refined (%d computed, %d reused) in %.1f s (median %.1f ms/pair, %s iterations), "
+            "%d dropped; wrote %s", summary["n_pairs_out"], M, n_computed, M - n_computed, elapsed,
+            summary["median_pair_time_ms"] or float("nan"), summary["median_iterations"], len(summary["dropped"]), out,
+        )
+        return [out] + store.write_index(keys), summary
+
+
+def _assemble(vg_in: ViewGraph, t_in: np.ndarray, results: list[dict[str, Any]]) -> tuple[ViewGraph, dict[str, Any]]:
+    """The refined view graph of the pairs that succeeded and the summary of the run."""
+    ok = np.array([r["ok"] for r in results], dtype=bool)
+    kept = np.flatnonzero(ok)
+    dropped = [
+        {"edge": int(k), "pair": [vg_in.names[vg_in.edges[k, 0]], vg_in.names[vg_in.edges[k, 1]]], "reason": results[k]["reason"]}
+        for k in np.flatnonzero(~ok)
+    ]
+    for d in dropped:
+        logger.warning("two-view BA dropped pair %s–%s: %s", d["pair"][0], d["pair"][1], d["reason"])
+    good = [results[k] for k in kept]
+    R = np.array([r["R"] for r in good]).reshape(-1, 3, 3)
+    H = np.array([r["H"] for r in good]).reshape(-1, 3, 3)
+    stats = {name: np.asarray(v)[kept] for name, v in vg_in.stats.items()}
+    stats["t_ransac"] = t_in[kept]
+    stats["t"] = np.array([r["t"] for r in good]).reshape(-1, 3)
+    stats["R_ransac"] = vg_in.R_rel[kept]
+    stats["ba_sigma2"] = np.array([r["sigma2"] for r in good], dtype=np.float64)
+    stats["ba_rms_px"] = np.array([r["rms_px"] for r in good], dtype=np.float64)
+    stats["ba_iterations"] = np.array([r["iterations"] for r in good], dtype=np.int64)
+    stats["ba_n_points"] = np.array([r["n_points"] for r in good], dtype=np.int64)
+    stats["ba_n_inliers"] = np.array([r["n_inliers"] for r in good], dtype=np.int64)
+    stats["ba_converged"] = np.array([r["converged"] for r in good], dtype=bool)
+    stats["ba_rotation_change_deg"] = np.rad2deg(so3.angle_between(R, vg_in.R_rel[kept])) if len(kept) else np.zeros(0)
+    lamH = np.linalg.eigvalsh(H) if len(kept) else np.zeros((0, 3))
+    stats["ba_cond_H"] = lamH[:, -1] / lamH[:, 0] if len(kept) else np.zeros(0)
+    vg = ViewGraph(vg_in.names, vg_in.edges[kept], R, H=H, inliers=stats["ba_n_inliers"], stats=stats, allow_isolated=True)
+    times = np.array([r["time_s"] for r in good])
+    summary = {
+        "n_images": vg.n_cameras,
+        "n_pairs_in": vg_in.n_edges,
+        "n_pairs_out": int(len(kept)),
+        "dropped": dropped,
+        "median_pair_time_ms": float(np.median(times) * 1e3) if times.size else None,
+        "median_pair_cpu_ms": float(np.median([r["cpu_s"] for r in good]) * 1e3) if good else None,
+        "median_iterations": float(np.median(stats["ba_iterations"])) if len(kept) else None,
+        "median_rotation_change_deg": float(np.median(stats["ba_rotation_change_deg"])) if len(kept) else None,
+        "median_cond_H": float(np.median(stats["ba_cond_H"])) if len(kept) else None,
+    }
+    return vg, summary
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    return stage_cli(TwoViewBAStage, "python -m pipeline.two_view_ba",
+                     "Two-view bundle adjustment of every accepted pair in WORK and the marginalized 3×3 rotation "
+                     "Hessian H_ij; writes WORK/viewgraph.npz for the averaging stage.", OUTPUT_NAME, argv)

@@ -1,0 +1,196 @@
+"""Relative pose of one matched pair: 5-point RANSAC on E, cheirality, refinement, degeneracy flags.
+
+For a pair ``(i, j)``, ``i < j`` (:func:`estimate_pair`):
+
+1. Keypoints are normalized with each image's own K (``x̂ = K⁻¹ x``), so images
+   with different intrinsics are handled; the pixel threshold becomes
+   ``threshold_px / f`` with f the mean focal length of the two cameras.
+2. ``cv2.findEssentialMat`` (5-point solver inside USAC-MAGSAC++ or RANSAC)
+   estimates E with the configured confidence.
+3. The cheirality check picks, of E's four decompositions, the (R, t) that puts
+   the most inliers in front of both cameras (as ``cv2.recoverPose`` does, but
+   without its 50-baseline depth cut, which rejects every match of a
+   small-baseline pair). ``x_j = R_ij x_i + t_ij``, i.e. ``R_ij = R_j R_iᵀ``
+   (pycolmap's ``cam2_from_cam1``), the view graph's convention. (R, t) is then
+   polished on the inliers by minimizing the robust Sampson error (``refine``).
+4. Pairs are rejected, with the reason and counts recorded, when they have too
+   few matches, when E cannot be estimated, or when fewer than ``min_inliers``
+   inliers survive the cheirality check.
+5. Near-degenerate pairs are kept but flagged:
+
+   - *small baseline*: the median triangulation angle of the inliers is below
+     ``min_triangulation_deg``, or a rotation-only homography ``K_j R K_i⁻¹``
+     explains the matches as well as E does. The rotation is still well defined,
+     the translation direction is not: for a rotation-only pair R comes from the
+     rotation-only fit (Kabsch on the bearing vectors) and ``t`` is stored as zeros;
+   - *dominant plane*: a homography (RANSAC, same threshold) explains at least
+     ``planar_ratio`` of the E inliers; E from a plane has a two-fold ambiguity.
+
+The threshold is in pixels of the image *at the feature-extraction size*: with
+``max_image_size = 1600`` and a 3072-pixel image, 1 px becomes 1.92 full-size px.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from pipeline.core.config import Config, option
+from pipeline.geometry.epipolar import (normalize, pose_from_essential, refine_pose, rotation_from_bearings,
+                                        rotation_only_residual_px, sampson_distance, triangulation_depths)
+
+__all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "METHODS"]
+
+METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+
+
+@dataclass(frozen=True, kw_only=True)
+class TwoViewConfig(Config):
+    """Relative-pose estimation options (YAML section ``two_view``)."""
+
+    SECTION = "two_view"
+
+    method: Literal["magsac", "ransac"] = option(
+        "magsac", "robust estimator around the 5-point solver: USAC-MAGSAC++ or OpenCV's classic RANSAC")
+    threshold_px: float = option(1.0, "inlier threshold in pixels at the feature-extraction image size", gt=0)
+    confidence: float = option(0.999, "RANSAC confidence", gt=0, lt=1)
+    max_iterations: int = option(2000, "RANSAC iteration cap", ge=1)
+    min_matches: int = option(20, "pairs with fewer matches are rejected without RANSAC (the 5-point solver "
+                                  "needs >= 5)", ge=5)
+    min_inliers: int = option(20, "pairs with fewer inliers after the cheirality check are rejected (the "
+                                  "5-point solver needs >= 5)", ge=5)
+    min_triangulation_deg: float = option(1.0, "a median triangulation angle below this flags a small baseline",
+                                          ge=0)
+    planar_ratio: float = option(0.9, "homography inliers / E inliers at or above this flags a dominant plane",
+                                 ge=0)
+    rotation_only_ratio: float = option(
+        0.9, "when a pure rotation K_j R K_i⁻¹ explains this fraction of the E inliers, the pair has zero "
+             "baseline: R from the rotation-only fit, t stored as zeros, flagged small_baseline", ge=0)
+    refine: bool = option(True, "polish (R, t) on the inliers by minimizing the robust (soft-ℓ1) Sampson error; "
+                                "RANSAC's best minimal-sample model is off by tenths of a degree")
+    seed: int = option(0, "RANSAC random seed (set before each pair: reproducible results)")
+    workers: int = option(2, "processes estimating pairs (1 = in this process)", ge=1, runtime=True)
+    chunk_size: int = option(8, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
+    progress: bool = option(True, "show a progress bar", runtime=True)
+
+
+@dataclass
+class PairGeometry:
+    """Result of :func:`estimate_pair`.
+
+    Attributes:
+        ok: accepted.
+        reason: why it was rejected ("" if accepted).
+        R: (3, 3) ``R_ij`` (cam2_from_cam1) with ``x_j = R_ij x_i + t_ij``.
+        t: (3,) unit ``t_ij``.
+        inlier_mask: (n,) bool over the input matches (RANSAC inlier and in front of both cameras).
+        n_matches, n_inliers_E (RANSAC inliers), n_inliers (after cheirality), n_inliers_H: counts.
+        median_triangulation_deg: median angle between the two rays of the inliers.
+        median_parallax_px: median distance, in image j, between x_j and x_i mapped by the
+            rotation-only homography ``K_j R_ij K_i⁻¹`` (pixels at extraction size).
+        small_baseline, planar: degeneracy flags.
+    """
+
+    ok: bool
+    reason: str = ""
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    inlier_mask: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    n_matches: int = 0
+    n_inliers_E: int = 0
+    n_inliers: int = 0
+    n_inliers_H: int = 0
+    median_triangulation_deg: float = float("nan")
+    median_parallax_px: float = float("nan")
+    small_baseline: bool = False
+    planar: bool = False
+
+
+def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray,
+                  config: TwoViewConfig | None = None, pixel_scale: float = 1.0) -> PairGeometry:
+    """Relative pose of one pair from matched pixels (pure function).
+
+    Args:
+        x_i, x_j: (n, 2) matched pixel coordinates in images i and j.
+        K_i, K_j: (3, 3) intrinsics.
+        config: options.
+        pixel_scale: full-resolution pixels per extraction-size pixel (threshold scaling).
+    Returns:
+        :class:`PairGeometry`.
+    """
+    config = config or TwoViewConfig()
+    n = len(x_i)
+    if x_i.shape != (n, 2) or x_j.shape != (n, 2):
+        raise ValueError(f"x_i.shape={x_i.shape}, x_j.shape={x_j.shape} but expected two (n, 2) arrays")
+    if n < config.min_matches:
+        return PairGeometry(False, f"too few matches ({n} < min_matches={config.min_matches})", n_matches=n)
+    y_i = normalize(x_i.astype(np.float64), K_i)
+    y_j = normalize(x_j.astype(np.float64), K_j)
+    f = 0.25 * (K_i[0, 0] + K_i[1, 1] + K_j[0, 0] + K_j[1, 1])
+    thr_px = config.threshold_px * pixel_scale
+    cv2.setRNGSeed(config.seed)
+    E, mask = cv2.findEssentialMat(y_i, y_j, np.eye(3), method=METHODS[config.method], prob=config.confidence,
+                                   threshold=thr_px / f, maxIters=config.max_iterations)
+    if E is None or mask is None or E.shape[0] < 3:
+        return PairGeometry(False, "essential matrix estimation failed (no model found)", n_matches=n)
+    E = E[:3]  # several solutions may be stacked; the first is the best scoring
+    mask = mask.ravel().astype(bool)
+    n_E = int(mask.sum())
+    if n_E < config.min_inliers:
+        return PairGeometry(False, f"too few RANSAC inliers ({n_E} < min_inliers={config.min_inliers})", n_matches=n,
+                            n_inliers_E=n_E)
+    # rotation-only model (zero baseline): if it explains the E inliers as well, the
+    # translation is undefined and E's decomposition is unstable, but R is not
+    R_rot = rotation_from_bearings(y_i[mask], y_j[mask])
+    for _ in range(3):  # re-fit on the matches it explains
+        ok_rot = mask & (rotation_only_residual_px(R_rot, x_i, x_j, K_i, K_j) < thr_px)
+        if ok_rot.sum() < 3:
+            break
+        R_rot = rotation_from_bearings(y_i[ok_rot], y_j[ok_rot])
+    ok_rot = mask & (rotation_only_residual_px(R_rot, x_i, x_j, K_i, K_j) < thr_px)
+    if ok_rot.sum() >= config.rotation_only_ratio * n_E:
+        par = rotation_only_residual_px(R_rot, x_i[ok_rot], x_j[ok_rot], K_i, K_j) / pixel_scale
+        geom = PairGeometry(True, "", R_rot, np.zeros(3), ok_rot, n, n_E, int(ok_rot.sum()), 0, 0.0,
+                            float(np.median(par)), small_baseline=True, planar=False)
+        if geom.n_inliers < config.min_inliers:
+            geom.ok = False
+            geom.reason = f"too few inliers of the rotation-only model ({geom.n_inliers} < min_inliers={config.min_inliers})"
+        return geom
+    R, t, inl = pose_from_essential(E, y_i, y_j, mask)
+    if config.refine and inl.sum() >= 5:
+        R_r, t_r = refine_pose(R, t, y_i[inl], y_j[inl], thr_px / f)
+        # re-select the inliers under the refined model, then re-check cheirality
+        in_r = mask & (np.abs(sampson_distance(R_r, t_r, y_i, y_j)) * f < thr_px)
+        zi, zj = triangulation_depths(R_r, t_r, y_i, y_j)
+        front = in_r & (zi > 0) & (zj > 0)
+        # keep the refinement unless it lost the cheirality consensus (a flipped solution)
+        if front.sum() >= 0.9 * inl.sum():
+            R, t, inl = R_r, t_r, front
+    n_in = int(inl.sum())
+    # ray angles of the inliers: rays b_i = R_ij ŷ_i and b_j = ŷ_j in camera j's frame
+    bi = np.column_stack([y_i[inl], np.ones(n_in)]) @ R.T
+    bj = np.column_stack([y_j[inl], np.ones(n_in)])
+    cosang = np.sum(bi * bj, 1) / (np.linalg.norm(bi, axis=1) * np.linalg.norm(bj, axis=1))
+    tri = float(np.degrees(np.median(np.arccos(np.clip(cosang, -1, 1))))) if n_in else float("nan")
+    # parallax left after removing the rotation (infinite homography), in extraction pixels
+    Hinf = K_j @ R @ np.linalg.inv(K_i)
+    p = np.column_stack([x_i[inl], np.ones(n_in)]) @ Hinf.T
+    par = np.linalg.norm(p[:, :2] / p[:, 2:3] - x_j[inl], axis=1) / pixel_scale
+    parallax = float(np.median(par)) if n_in else float("nan")
+    n_H = 0
+    if n_E >= 4:
+        # the transfer error |x_j − H x_i| carries the noise of both images in 2-D,
+        # about twice the Sampson distance E is judged by: threshold 2·thr
+        Hm, hmask = cv2.findHomography(x_i[mask].astype(np.float64), x_j[mask].astype(np.float64), cv2.RANSAC,
+                                       2.0 * thr_px, maxIters=2000, confidence=0.999)
+        n_H = int(hmask.sum()) if hmask is not None else 0
+    geom = PairGeometry(True, "", R, t, inl, n, n_E, n_in, n_H, tri, parallax,
+                        small_baseline=bool(tri < config.min_triangulation_deg),
+                        planar=bool(n_H >= config.planar_ratio * max(n_E, 1)))
+    if n_in < config.min_inliers:
+        geom.ok = False
+        geom.reason = f"too few inliers in front of both cameras ({n_in} < min_inliers={config.min_inliers})"
+    return geom

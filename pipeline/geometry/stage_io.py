@@ -1,0 +1,135 @@
+"""What the two stages of this room share: readers of their files that fail in one line, and the command line.
+
+Every reader here turns a missing, truncated or malformed file into one
+:class:`~pipeline.core.errors.CacheError` (or, for a stage that has not run,
+:class:`~pipeline.core.errors.InputFileError`) whose message names the file:
+never a ``BadZipFile``, ``KeyError`` or ``TypeError`` traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+from pathlib import Path
+from typing import Any, ClassVar, Sequence, TypeVar
+
+import numpy as np
+
+from pipeline.core.cli import add_config_args, config_from_args, run_cli
+from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.core.config import Config
+from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, read_record
+
+__all__ = ["PairStage", "read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
+
+_ZIP_MAGIC = b"PK\x03\x04"
+C = TypeVar("C", bound=Config)
+
+
+def _why(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split())
+    if "pickle" in msg:  # numpy's advice about trusting pickled data does not apply to a damaged cache
+        msg = "it holds Python objects, not plain arrays"
+    return f"{type(exc).__name__}: {msg[:100]}" if msg else type(exc).__name__
+
+
+def _check_zip(path: Path, what: str) -> None:
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as exc:
+        raise CacheError(f"{path} cannot be read ({_why(exc)})") from None
+    if magic != _ZIP_MAGIC:
+        raise CacheError(f"{path} is not an .npz archive (damaged or not a {what})")
+
+
+def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file ``path``; :class:`CacheError` naming it if unreadable.
+
+    Args:
+        path: the file.
+        what: what it should hold, for the message (``"correspondences file"``).
+    """
+    _check_zip(path, what)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged file
+        raise CacheError(f"{path} is not a readable {what} ({_why(exc)})") from None
+
+
+def read_viewgraph(path: Path) -> ViewGraph:
+    """The view graph in ``path`` (cameras without edges allowed); :class:`CacheError` naming it if damaged."""
+    _check_zip(path, "view graph")
+    try:
+        return ViewGraph.load(path, allow_isolated=True)
+    except Exception as exc:  # noqa: BLE001 - ViewGraphError, InputFileError, or a reader bug on odd arrays
+        msg = " ".join(str(exc).split()).replace("; re-run the stage that wrote it", "")
+        if str(path) not in msg or "pickle" in msg:
+            msg = f"{path} is not a valid view graph ({_why(exc)})"
+        raise CacheError(msg) from None
+
+
+def rerun_hint(command: str, work: Path) -> str:
+    return f"re-run `python -m {command} --work {work}` (it recomputes a damaged result)"
+
+
+def recorded_output(work: Path, stage: str, name: str, command: str) -> tuple[StageRecord, Path]:
+    """The record of ``stage`` in ``work`` and its output ``name``, checked against the recorded size.
+
+    Raises:
+        InputFileError: the stage has not run in ``work``.
+        CacheError: the record or the output is damaged or missing.
+    """
+    work = Path(work)
+    rec = read_record(work, stage)
+    if rec is None:
+        raise InputFileError(f"{work / (stage + RECORD_SUFFIX)} not found: run `python -m {command} --work {work}` "
+                             "first")
+    path = work / name
+    if name not in rec.outputs:
+        raise CacheError(f"the record of {stage} in {work} does not list {name}; {rerun_hint(command, work)}")
+    if not path.is_file():
+        raise CacheError(f"{path} is missing; {rerun_hint(command, work)}")
+    if path.stat().st_size != rec.outputs[name]:
+        raise CacheError(f"{path} has {path.stat().st_size} bytes, not the {rec.outputs[name]} recorded (truncated "
+                         f"or overwritten); {rerun_hint(command, work)}")
+    return rec, path
+
+
+class PairStage(Stage[C]):
+    """A stage whose per-pair results live in the item store ``<folder>/<store>``.
+
+    ``run(overwrite=True)`` empties the store first, so that every pair is
+    computed again (a plain re-run reuses the pairs already done).
+    """
+
+    store: ClassVar[str]
+
+    def run(self, overwrite: bool = False) -> StageRecord:
+        if overwrite:
+            shutil.rmtree(self.folder / self.store, ignore_errors=True)
+        return super().run(overwrite)
+
+
+def stage_cli(stage_cls: type[Stage], prog: str, description: str, output: str,
+              argv: Sequence[str] | None = None) -> int:
+    """``python -m <prog> --work WORK [--config YAML] [options of the config] [--overwrite]``.
+
+    Runs the stage in WORK and prints the path of its ``output``.
+    """
+    cfg_cls: Any = stage_cls.config_cls
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--work", type=Path, required=True, help="the WORK folder of the front end")
+    p.add_argument("--config", type=Path, default=None, help=f"YAML config; its '{cfg_cls.SECTION}' section is used")
+    add_config_args(p, cfg_cls, exclude=("progress",))
+    p.add_argument("--overwrite", action="store_true", help="recompute even if an intact, up-to-date result exists")
+
+    def body(a: argparse.Namespace) -> int:
+        cfg = config_from_args(cfg_cls, a, a.config, progress=False if a.quiet else None)
+        stage_cls(a.work, cfg).run(overwrite=a.overwrite)
+        print(Path(a.work) / output)
+        return 0
+
+    return run_cli(body, p, argv)

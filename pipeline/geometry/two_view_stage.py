@@ -1,0 +1,308 @@
+"""The two-view stage: the relative pose of every matched pair of a WORK folder (``python -m pipeline.two_view``).
+
+It reads the front end's features and matches, estimates each pair with
+:func:`pipeline.geometry.ransac.estimate_pair` in chunks on an executor
+(:mod:`pipeline.core.parallel`), keeps every finished chunk in an item store (an
+interrupted run resumes per pair; a changed option recomputes), and writes::
+
+    WORK/two_view.npz          the ViewGraph (allow_isolated=True): edges, R_rel = R_j R_iᵀ (cam2_from_cam1),
+                               inliers, stats "t" (M, 3) unit translation (x_j = R_ij x_i + t),
+                               "n_matches", "n_inliers_E", "n_inliers_H", "h_ratio",
+                               "median_triangulation_deg", "median_parallax_px",
+                               "small_baseline", "planar", "degenerate" (M,) bool
+    WORK/two_view_corr.npz     K (N, 3, 3), sizes (N, 2), offsets (M+1,), inlier pixel
+                               coordinates x_i (total, 2), x_j (total, 2), keypoint indices kp_i, kp_j (total,)
+    WORK/two_view.record.json  the stage record; its summary lists the rejected pairs
+                               ({pair, names, n_matches, n_inliers, reason}) and the counts
+    WORK/two_view_pairs/       the per-pair results (chunks)
+
+:func:`load_two_view` reads them back. Command line::
+
+    python -m pipeline.two_view --work WORK [--method magsac|ransac] [--threshold-px 1.0] ...
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.core.atomic import save_npz
+from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.store import ItemStore, compute_missing, item_key
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.features import load_features
+from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
+from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
+from pipeline.matching import load_matches
+from pipeline.stage import StageRecord
+
+__all__ = ["TwoViewStage", "TwoViewData", "load_two_view", "write_two_view", "main_cli", "VIEWGRAPH",
+           "CORRESPONDENCES"]
+
+logger = logging.getLogger(__name__)
+
+NAME = "two_view"
+COMMAND = "pipeline.two_view"
+VIEWGRAPH = "two_view.npz"
+CORRESPONDENCES = "two_view_corr.npz"
+STORE = "two_view_pairs"
+_CORR_ARRAYS = {"K": "f", "sizes": "iu", "offsets": "iu", "x_i": "f", "x_j": "f", "kp_i": "iu", "kp_j": "iu"}
+
+
+def _frontend_inputs(work: Path) -> dict[str, str]:
+    """Fingerprints of the front-end results this stage reads (the one place to switch to upstream records)."""
+    return {"features": load_features(work).digest, "matching": load_matches(work).digest}
+
+
+def _frontend_image_count(work: Path) -> int:
+    """Number of images of the front end (the camera count of a two-view result)."""
+    return len(load_features(work).names)
+
+
+@dataclass
+class TwoViewData:
+    """What the two-view stage wrote (see :func:`load_two_view`).
+
+    Attributes:
+        vg: ViewGraph (allow_isolated=True) with R_rel, inliers and per-edge stats.
+        K: (N, 3, 3) intrinsics; sizes: (N, 2) image sizes (w, h).
+        rejected: list of ``{pair, names, n_matches, n_inliers, reason}``.
+        offsets: (M+1,) start of each edge's correspondences.
+        x_i, x_j: (total, 2) inlier pixel coordinates (full resolution).
+        kp_i, kp_j: (total,) keypoint indices of the inliers in the features.
+    """
+
+    vg: ViewGraph
+    K: np.ndarray
+    sizes: np.ndarray
+    rejected: list[dict]
+    offsets: np.ndarray
+    x_i: np.ndarray
+    x_j: np.ndarray
+    kp_i: np.ndarray
+    kp_j: np.ndarray
+
+    def correspondences(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Inlier pixel coordinates ``(x_i (n, 2), x_j (n, 2))`` of edge k (i = edges[k, 0])."""
+        if not 0 <= k < self.vg.n_edges:
+            raise IndexError(f"edge index {k} out of range for {self.vg.n_edges} edges")
+        s, e = int(self.offsets[k]), int(self.offsets[k + 1])
+        return self.x_i[s:e], self.x_j[s:e]
+
+
+def write_two_view(work: Path, vg: ViewGraph, K: np.ndarray, sizes: np.ndarray, offsets: np.ndarray,
+                   x_i: np.ndarray, x_j: np.ndarray, kp_i: np.ndarray, kp_j: np.ndarray) -> list[Path]:
+    """Write the view graph and the correspondences files atomically; returns their paths."""
+    corr_path = Path(work) / CORRESPONDENCES
+    save_npz(corr_path, K=K, sizes=sizes, offsets=offsets, x_i=x_i, x_j=x_j, kp_i=kp_i, kp_j=kp_j)
+    return [vg.save(Path(work) / VIEWGRAPH), corr_path]
+
+
+def _check_corr(path: Path, arr: dict[str, np.ndarray], vg: ViewGraph) -> None:
+    missing = [k for k in _CORR_ARRAYS if k not in arr]
+    if missing:
+        raise CacheError(f"{path} lacks the array(s) {missing}")
+    for k, kinds in _CORR_ARRAYS.items():
+        if arr[k].dtype.kind not in kinds:
+            raise CacheError(f"{path}: {k} has dtype {arr[k].dtype}, expected {'float' if kinds == 'f' else 'integer'}")
+    N, M, T = vg.n_cameras, vg.n_edges, len(arr["x_i"]) if arr["x_i"].ndim else -1
+    off = arr["offsets"]
+    expected = {"K": (N, 3, 3), "sizes": (N, 2), "offsets": (M + 1,), "x_i": (T, 2), "x_j": (T, 2), "kp_i": (T,),
+                "kp_j": (T,)}
+    for k, shape in expected.items():
+        if arr[k].shape != shape:
+            raise CacheError(f"{path}: {k}.shape={arr[k].shape} but expected {shape} for {N} cameras, {M} edges")
+    if off[0] != 0 or np.any(np.diff(off) < 0) or off[-1] != T:
+        raise CacheError(f"{path}: offsets are not increasing from 0 to the {T} correspondences")
+    if vg.inliers is None or not np.array_equal(np.diff(off), vg.inliers):
+        raise CacheError(f"{path}: the correspondences per edge differ from the inlier counts of the view graph")
+    if not (np.isfinite(arr["K"]).all() and np.isfinite(arr["x_i"]).all() and np.isfinite(arr["x_j"]).all()):
+        raise CacheError(f"{path}: K or the pixel coordinates hold NaN or inf")
+    if T and min(arr["kp_i"].min(), arr["kp_j"].min()) < 0:
+        raise CacheError(f"{path}: negative keypoint indices")
+
+
+def _read_two_view(work: Path, rec: StageRecord) -> TwoViewData:
+    """The files of the record ``rec`` in ``work``, checked; :class:`CacheError` naming the bad file."""
+    vg_path, corr_path = Path(work) / VIEWGRAPH, Path(work) / CORRESPONDENCES
+    vg = read_viewgraph(vg_path)
+    t = vg.stats.get("t")
+    if t is None or t.shape != (vg.n_edges, 3) or t.dtype.kind != "f":
+        raise CacheError(f"{vg_path} has no per-edge 't' statistic (M, 3): the translations of the pairs")
+    if rec.summary.get("n_accepted") != vg.n_edges:
+        raise CacheError(f"{vg_path} has {vg.n_edges} edges but its record says {rec.summary.get('n_accepted')}")
+    rejected = rec.summary.get("rejected")
+    if not isinstance(rejected, list) or not all(isinstance(r, dict) for r in rejected):
+        raise CacheError(f"the record of {NAME} in {work} has no list of rejected pairs")
+    arr = read_npz(corr_path, "correspondences file")
+    _check_corr(corr_path, arr, vg)
+    return TwoViewData(vg, arr["K"], arr["sizes"], rejected, arr["offsets"], arr["x_i"], arr["x_j"], arr["kp_i"],
+                       arr["kp_j"])
+
+
+def load_two_view(work: Path) -> TwoViewData:
+    """Read the result of :class:`TwoViewStage`: ViewGraph, K, sizes, rejected pairs and correspondences.
+
+    Raises:
+        InputFileError: the stage has not run in ``work``.
+        CacheError: a file is damaged (one line naming it; a re-run of the stage heals it).
+    """
+    work = Path(work)
+    rec, _ = recorded_output(work, NAME, VIEWGRAPH, COMMAND)
+    recorded_output(work, NAME, CORRESPONDENCES, COMMAND)
+    try:
+        return _read_two_view(work, rec)
+    except CacheError as exc:
+        raise CacheError(f"{exc}; {rerun_hint(COMMAND, work)}") from None
+
+
+# ----------------------------------------------------------------- per pair
+def _estimate_chunk(tasks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]],
+                    config: TwoViewConfig) -> list[dict[str, Any]]:
+    """Worker: estimate a chunk of pairs; each result as arrays (see :func:`_geometry_from_item`)."""
+    out = []
+    for x_i, x_j, K_i, K_j, pixel_scale in tasks:
+        g = estimate_pair(x_i, x_j, K_i, K_j, config, pixel_scale=pixel_scale)
+        out.append({f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)})
+    return out
+
+
+_SCALARS = {"bool": bool, "int": int, "float": float, "str": str}
+
+
+def _geometry_from_item(item: dict[str, np.ndarray]) -> PairGeometry:
+    kw = {}
+    for f in dataclasses.fields(PairGeometry):
+        v = item[f.name]
+        kw[f.name] = _SCALARS[f.type](v.item()) if f.type in _SCALARS else v
+    return PairGeometry(**kw)
+
+
+class TwoViewStage(PairStage[TwoViewConfig]):
+    """Relative poses of the matched pairs of a WORK folder (folder = WORK)."""
+
+    name = NAME
+    title = "two-view geometry"
+    config_cls = TwoViewConfig
+    store = STORE
+
+    def inputs(self) -> dict[str, str]:
+        return _frontend_inputs(self.folder)
+
+    def verify(self, record: StageRecord) -> None:
+        data = _read_two_view(self.folder, record)
+        n = _frontend_image_count(self.folder)
+        if data.vg.n_cameras != n:
+            raise CacheError(f"{self.folder / VIEWGRAPH} has {data.vg.n_cameras} cameras but the features {n} images")
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        config, work = self.config, self.folder
+        t_start = time.perf_counter()
+        logger.info("two_view: %s", config)
+        fs = load_features(work)
+        ms = load_matches(work)
+        if ms.names != fs.names:
+            raise InputFileError(f"{work}: the matches were computed for other images than the current features; "
+                                 f"re-run `python -m pipeline.matching --work {work}`")
+        max_size = fs.config.max_image_size if fs.config is not None else 0
+        scale = np.ones(len(fs.names))
+        if max_size > 0:
+            scale = np.maximum(fs.sizes.max(axis=1) / max_size, 1.0)
+
+        def task(p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+            a, b = ms.pairs[p]
+            m = ms.matches[p]
+            return (fs.keypoints[a][m[:, 0]], fs.keypoints[b][m[:, 1]], fs.K[a], fs.K[b],
+                    float(0.5 * (scale[a] + scale[b])))
+
+        fp = config.fingerprint()
+        keys = [item_key(fp, *task(p)) for p in range(len(ms.pairs))]
+        store = ItemStore(work / self.store)
+        done = store.done(keys)
+        with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
+                  disable=not config.progress) as bar:
+            n_computed = compute_missing(store, keys, task, functools.partial(_estimate_chunk, config=config),
+                                         workers=config.workers, chunk_size=config.chunk_size, on_chunk=bar.update)
+        geoms = [_geometry_from_item(store.get(k)) for k in keys]
+        paths, summary = self._write(fs, ms, geoms)
+        summary["n_computed"] = n_computed
+        paths += store.write_index(keys)
+        vg_iso = summary["isolated"]
+        logger.info("two_view: %d of %d pairs accepted (%d flagged near-degenerate), %d rejected %s; %d computed, "
+                    "%d reused, in %.1f s", summary["n_accepted"], len(keys), summary["n_degenerate"],
+                    summary["n_rejected"], summary["rejected_reasons"] or "", n_computed, len(keys) - n_computed,
+                    time.perf_counter() - t_start)
+        if vg_iso:
+            logger.warning("%d camera(s) have no accepted pair: %s", len(vg_iso), ", ".join(vg_iso[:5]))
+        return paths, summary
+
+    def _write(self, fs: Any, ms: Any, geoms: Sequence[PairGeometry]) -> tuple[list[Path], dict[str, Any]]:
+        """Assemble and write the view graph and correspondences; returns the paths and the summary."""
+        acc = [p for p, g in enumerate(geoms) if g.ok]
+        rejected = [
+            {"pair": [int(ms.pairs[p][0]), int(ms.pairs[p][1])], "names": [fs.names[ms.pairs[p][0]], fs.names[ms.pairs[p][1]]],
+             "n_matches": g.n_matches, "n_inliers": g.n_inliers if g.n_inliers else g.n_inliers_E, "reason": g.reason}
+            for p, g in enumerate(geoms) if not g.ok
+        ]
+        edges = ms.pairs[acc].reshape(-1, 2)
+        G = [geoms[p] for p in acc]
+        stats = {
+            "t": np.array([g.t for g in G]).reshape(-1, 3),
+            "n_matches": np.array([g.n_matches for g in G], np.int64),
+            "n_inliers_E": np.array([g.n_inliers_E for g in G], np.int64),
+            "n_inliers_H": np.array([g.n_inliers_H for g in G], np.int64),
+            "h_ratio": np.array([g.n_inliers_H / max(g.n_inliers_E, 1) for g in G], float),
+            "median_triangulation_deg": np.array([g.median_triangulation_deg for g in G], float),
+            "median_parallax_px": np.array([g.median_parallax_px for g in G], float),
+            "small_baseline": np.array([g.small_baseline for g in G], bool),
+            "planar": np.array([g.planar for g in G], bool),
+        }
+        stats["degenerate"] = stats["small_baseline"] | stats["planar"]
+        vg = ViewGraph(list(fs.names), edges, np.array([g.R for g in G]).reshape(-1, 3, 3),
+                       inliers=np.array([g.n_inliers for g in G], np.int64), stats=stats, allow_isolated=True)
+        kp_i, kp_j, xi, xj = [], [], [], []
+        for p, g in zip(acc, G):
+            a, b = ms.pairs[p]
+            m = ms.matches[p][g.inlier_mask]
+            kp_i.append(m[:, 0])
+            kp_j.append(m[:, 1])
+            xi.append(fs.keypoints[a][m[:, 0]])
+            xj.append(fs.keypoints[b][m[:, 1]])
+        counts = np.array([len(k) for k in kp_i], np.int64)
+
+        def cat(arrs: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
+
+        paths = write_two_view(self.folder, vg, fs.K, fs.sizes, np.concatenate([[0], np.cumsum(counts)]),
+                               cat(xi, (0, 2), np.float64), cat(xj, (0, 2), np.float64), cat(kp_i, (0,), np.int32),
+                               cat(kp_j, (0,), np.int32))
+        reasons: dict[str, int] = {}
+        for r in rejected:
+            key = r["reason"].split(" (")[0]
+            reasons[key] = reasons.get(key, 0) + 1
+        summary = {
+            "n_images": vg.n_cameras,
+            "n_pairs": int(len(ms.pairs)),
+            "n_accepted": int(len(acc)),
+            "n_rejected": len(rejected),
+            "n_degenerate": int(stats["degenerate"].sum()),
+            "n_small_baseline": int(stats["small_baseline"].sum()),
+            "n_planar": int(stats["planar"].sum()),
+            "isolated": [fs.names[k] for k in np.flatnonzero(vg.degrees() == 0)],
+            "rejected_reasons": reasons,
+            "rejected": rejected,
+        }
+        return paths, summary
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    return stage_cli(TwoViewStage, "python -m pipeline.two_view",
+                     "5-point RANSAC relative poses of the matched pairs of WORK.", VIEWGRAPH, argv)

@@ -1,0 +1,116 @@
+"""5-point RANSAC of one pair (estimate_pair): accuracy on synthetic points, degeneracy flags, rejects."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.core.errors import ConfigError
+from pipeline.geometry.ransac import TwoViewConfig, estimate_pair
+
+
+def _deg(Ra, Rb):
+    return float(np.degrees(so3.angle_between(Ra, Rb)))
+
+
+def _project(K, R, t, X, rng=None, sigma=0.0):
+    x = (X @ R.T + t) @ K.T
+    x = x[:, :2] / x[:, 2:]
+    return x + (rng.normal(0, sigma, x.shape) if rng is not None else 0)
+
+
+def _random_pair(rng, n=300, baseline=1.0, planar=False, K_i=None, K_j=None):
+    K_i = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]) if K_i is None else K_i
+    K_j = K_i if K_j is None else K_j
+    X = rng.uniform([-2, -1.5, 4], [2, 1.5, 8], (n, 3))
+    if planar:
+        X[:, 2] = 6 + 0.1 * X[:, 0]
+    R_j = so3.exp(np.deg2rad(np.array([3.0, -12.0, 4.0])))
+    c_j = np.array([baseline, 0.1 * baseline, 0.0])
+    t_j = -R_j @ c_j
+    x_i = _project(K_i, np.eye(3), np.zeros(3), X, rng, 0.3)
+    x_j = _project(K_j, R_j, t_j, X, rng, 0.3)
+    return x_i, x_j, K_i, K_j, R_j, t_j
+
+
+@pytest.mark.parametrize("method", ["magsac", "ransac"])
+def test_synthetic_points_accuracy(method):
+    rng = np.random.default_rng(0)
+    x_i, x_j, K_i, K_j, R_j, t_j = _random_pair(rng)
+    g = estimate_pair(x_i, x_j, K_i, K_j, TwoViewConfig(method=method))
+    assert g.ok and _deg(g.R, R_j) < 0.2
+    assert np.degrees(np.arccos(g.t @ (t_j / np.linalg.norm(t_j)))) < 2.0
+    assert not g.small_baseline and not g.planar
+
+
+def test_different_intrinsics_per_image():
+    rng = np.random.default_rng(1)
+    K_j = np.array([[900.0, 0, 500], [0, 880, 380], [0, 0, 1]])
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, K_j=K_j)
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.ok and _deg(g.R, R_j) < 0.2
+    # the same matches with the wrong K for image j give a visibly worse rotation
+    g_wrong = estimate_pair(x_i, x_j, K_i, K_i)
+    assert not g_wrong.ok or _deg(g_wrong.R, R_j) > 1.0
+
+
+def test_outliers_are_rejected():
+    rng = np.random.default_rng(2)
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, n=400)
+    bad = rng.random(400) < 0.4
+    x_j[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.ok and _deg(g.R, R_j) < 0.3
+    assert np.mean(g.inlier_mask[bad]) < 0.05 and np.mean(g.inlier_mask[~bad]) > 0.9
+
+
+def test_zero_baseline_is_flagged_and_rotation_recovered():
+    rng = np.random.default_rng(3)
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, baseline=0.0)
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.ok and g.small_baseline and _deg(g.R, R_j) < 0.2
+    np.testing.assert_array_equal(g.t, 0)
+
+
+def test_small_baseline_is_flagged():
+    rng = np.random.default_rng(4)
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, baseline=0.05)
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.ok and g.small_baseline and g.median_triangulation_deg < 1.0
+
+
+def test_dominant_plane_is_flagged():
+    rng = np.random.default_rng(5)
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, planar=True)
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.planar
+    g2 = estimate_pair(*_random_pair(np.random.default_rng(5))[:4])
+    assert not g2.planar
+
+
+def test_too_few_matches_rejected_with_reason():
+    rng = np.random.default_rng(6)
+    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=12)
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert not g.ok and "too few matches (12 < min_matches=20)" in g.reason
+    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=60)
+    x_j = rng.uniform([0, 0], [640, 480], x_j.shape)  # pure noise
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert not g.ok and "too few" in g.reason
+
+
+def test_config_and_input_validation():
+    with pytest.raises(ConfigError, match="method"):
+        TwoViewConfig(method="lmeds")
+    with pytest.raises(ConfigError, match="threshold_px"):
+        TwoViewConfig(threshold_px=0)
+    with pytest.raises(ConfigError, match="confidence"):
+        TwoViewConfig(confidence=1.0)
+    with pytest.raises(ConfigError, match="min_inliers=4 but expected >= 5"):
+        TwoViewConfig(min_inliers=4)
+    with pytest.raises(ConfigError, match="refine='no'"):
+        TwoViewConfig(refine="no")
+    assert TwoViewConfig(workers=1, chunk_size=1, progress=False).fingerprint() == TwoViewConfig().fingerprint()
+    with pytest.raises(ValueError, match="two \\(n, 2\\) arrays"):
+        estimate_pair(np.zeros((30, 2)), np.zeros((29, 2)), np.eye(3), np.eye(3))
