@@ -63,7 +63,7 @@ from pipeline.core import so3  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.average import average  # noqa: E402
 from pipeline.averaging.irls import irls  # noqa: E402
-from pipeline.evaluate import rotation_errors_deg  # noqa: E402
+from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise, with_outliers  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 

@@ -29,7 +29,7 @@ import numpy as np  # noqa: E402
 
 from pipeline.core.atomic import save_figure, write_json  # noqa: E402
 from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.evaluate import frobenius_error  # noqa: E402
+from pipeline.evaluation.metrics import frobenius_error  # noqa: E402
 from pipeline.synthetic.graphs import paper2_graph  # noqa: E402
 
 OUT = sdp_common.RESULTS / "sdp_fig3.json"

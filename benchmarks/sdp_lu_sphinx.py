@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging.sdp import solve_sdp  # noqa: E402
-from pipeline.evaluate import summarize  # noqa: E402
+from pipeline.evaluation.metrics import summarize  # noqa: E402
 from pipeline.io.mat import read_lu_sphinx  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lu_sphinx" / "lu_sphinx.mat"

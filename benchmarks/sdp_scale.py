@@ -36,7 +36,7 @@ import numpy as np  # noqa: E402
 
 from pipeline.core import so3  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.evaluate import frobenius_error, rotation_errors_deg  # noqa: E402
+from pipeline.evaluation.metrics import frobenius_error, rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 
@@ -64,7 +64,7 @@ resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
 sys.path.insert(0, sys.argv[6])
 import sdp_common  # drops the benchmarks folder from sys.path after importing pipeline
 sys.path.append(sys.argv[6])
-from pipeline.evaluate import frobenius_error, rotation_errors_deg
+from pipeline.evaluation.metrics import frobenius_error, rotation_errors_deg
 import sdp_scale
 import numpy as np
 from pipeline.averaging.sdp import solve_sdp

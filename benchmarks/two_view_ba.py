@@ -197,7 +197,7 @@ def build_work(name: str, root: Path) -> tuple[Path, Path]:
 
 def true_pairs(data, ref) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True R_ij, unit t_ij (NaN where unknown) and a mask, per edge."""
-    from pipeline.evaluate import match_reference
+    from pipeline.evaluation.compare import match_reference
 
     R_ref, mask = match_reference(data.vg.names, ref.names, ref.R)
     i, j = data.vg.edges.T
@@ -212,8 +212,9 @@ def true_pairs(data, ref) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
-    from pipeline.evaluate import edge_stats, match_reference
-    from pipeline.io.references import read_reference
+    from pipeline.evaluation.metrics import edge_stats
+    from pipeline.evaluation.compare import match_reference
+    from pipeline.reference.truth import read_reference
     from pipeline.two_view import load_two_view
     from pipeline.core.viewgraph import ViewGraph
 

@@ -56,16 +56,20 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.core.config import load_yaml, stage_config  # noqa: E402
-from pipeline.core.errors import InputFileError, PipelineError  # noqa: E402
+from pipeline.core.config import Config, load_yaml, stage_config  # noqa: E402
+from pipeline.core.errors import ConfigError, InputFileError, PipelineError  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
+from pipeline.evaluation.compare import SUBSET_PREFIX, evaluate_all, match_reference, truth_on_registered  # noqa: E402,F401
+from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
+from pipeline.evaluation.report import report_data, summary_table  # noqa: E402
+from pipeline.reference.types import Reference  # noqa: E402
 
 logger = logging.getLogger("run")
 
@@ -77,8 +81,8 @@ STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "avera
 
 
 @dataclass(frozen=True, kw_only=True)
-class RunConfig:
-    """Options of run.py itself (YAML section ``run``).
+class RunConfig(Config):
+    """Options of run.py itself (YAML section ``run``), typed: ``reference: "false"`` is an error.
 
     Attributes:
         methods: averaging methods; empty = IRLS-ℓ½ plus SDP-cSO(3) when N ≤ sdp_max_n.
@@ -102,12 +106,13 @@ class RunConfig:
     scene_noise: float = 0.0
     plots: bool = True
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "methods", tuple(self.methods or ()))
+    SECTION = "run"
+
+    def check(self) -> None:
         if self.align not in ("l2", "l1"):
-            raise InputFileError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
+            raise ConfigError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
         if self.sdp_max_n < 0:
-            raise InputFileError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
+            raise ConfigError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
 
 
 @dataclass
@@ -272,23 +277,8 @@ def run_averaging(vg_path: Path, out_dir: Path, spec: MethodSpec, extra: dict[st
     return json.loads(js.read_text())
 
 
-def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, vg: ViewGraph | None = None
-          ) -> tuple[dict[str, Any], np.ndarray]:
-    R_ref, mask = evaluate.match_reference(names, ref.names, ref.R)
-    if not mask.any():
-        return {"n_cameras": len(names), "n_evaluated": 0, "note": "no camera in common with the reference"}, \
-            np.full(len(names), np.nan)
-    use_vg = vg if (vg is not None and vg.H is not None and list(vg.names) == list(names)) else None
-    s = evaluate.summarize(R, R_ref, mask, align=align, vg=use_vg)
-    errs = evaluate.rotation_errors_deg(R, R_ref, mask, align=align)
-    missing = [n for n, m in zip(names, mask) if not m]
-    if missing:
-        s["not_in_reference"] = missing
-    return s, errs
-
-
 def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any], R_final: np.ndarray,
-                  ref: "RefSet", align: str, max_n: int = 300) -> list[dict[str, float]]:
+                  ref: Reference, align: str, max_n: int = 300) -> list[dict[str, float]]:
     """Median error against ``ref`` after each iteration of an IRLS run (paper 1, Fig. 5c).
 
     The solver keeps no per-iteration rotations, so the run is repeated (same
@@ -299,10 +289,9 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
     """
     if options.get("method") not in ("irls", "irls-h") or vg.n_cameras > max_n:
         return []
-    from pipeline import evaluate  # noqa: PLC0415
     from pipeline.averaging import irls, irls_h  # noqa: PLC0415
 
-    R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
+    R_ref, mask = match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
         return []
     kw = {k: v for k, v in options.items() if k != "method"}
@@ -323,98 +312,17 @@ def error_vs_time(vg: ViewGraph, options: dict[str, Any], stats: dict[str, Any],
                 r = solve(vg, l1_iterations=l, max_iterations=k, **kw)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue
-            e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
+            e = rotation_errors_deg(r.R, R_ref, mask, align=align)
             t = hist[n_done]["time_s"] if n_done < len(hist) and "time_s" in hist[n_done] else r.time_s
             curve.append({"time_s": float(t), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
                           "irls_iterations": k})
     finally:
         for lg, lv in zip(quiet, levels):
             lg.setLevel(lv)
-    e = evaluate.rotation_errors_deg(R_final, R_ref, mask, align=align)
+    e = rotation_errors_deg(R_final, R_ref, mask, align=align)
     curve.append({"time_s": float(stats.get("time_s", curve[-1]["time_s"] if curve else 0.0)),
                   "median_deg": float(np.nanmedian(e)), "l1_iterations": L, "irls_iterations": K, "final": True})
     return curve
-
-
-@dataclass
-class RefSet:
-    name: str
-    names: list[str]
-    R: np.ndarray
-    centers: np.ndarray | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-
-SUBSET_PREFIX = "truth, pycolmap's"
-
-
-def truth_on_registered(truth: "RefSet | None", pyc: "RefSet", vg: ViewGraph) -> "RefSet | None":
-    """The truth restricted to the images pycolmap registered, when it left out some of ours.
-
-    pycolmap's errors are over the images it registers; ours over every image of the
-    view graph. Scoring our methods on pycolmap's images too (aligned on them) is the
-    like-for-like comparison; None when pycolmap registered all of ours or there is no truth.
-    """
-    if truth is None:
-        return None
-    from pipeline import evaluate  # noqa: PLC0415
-
-    _, in_pyc = evaluate.match_reference(list(vg.names), pyc.names, pyc.R)
-    if in_pyc.all():
-        return None
-    R_t, mask = evaluate.match_reference(list(pyc.names), truth.names, truth.R)
-    if mask.sum() < 2:
-        return None
-    names = [n for n, m in zip(pyc.names, mask) if m]
-    return RefSet(f"{SUBSET_PREFIX} {len(names)} images", names, np.asarray(R_t)[mask])
-
-
-def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, dict], refs: list[RefSet],
-                 pyc: RefSet | None, align: str) -> tuple[dict, dict, dict]:
-    """Stage 8: every method against every reference; the view graph's edges; pycolmap against the truth."""
-    from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
-
-    methods: dict[str, Any] = {}
-    cam_errors: dict[str, dict[str, np.ndarray]] = {r.name: {} for r in refs}
-    for label, res in results.items():
-        names, R = read_rotations(res["rotations"])
-        entry: dict[str, Any] = {k: v for k, v in res["stats"].items() if k not in ("history",)}
-        if "certified" in entry:
-            entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "gap_residual", "lower_bound",
-                                                               "primal_cost", "cost_offset", "status", "solver",
-                                                               "fallback") if k in entry}
-        entry["references"] = {}
-        for r in refs:
-            s, e = _summ(evaluate, list(names), np.asarray(R), r, align, vg)
-            entry["references"][r.name] = s
-            cam_errors[r.name][label] = e
-        if refs:
-            entry.update({k: v for k, v in entry["references"][refs[0].name].items()})
-            entry["reference"] = refs[0].name
-        methods[label] = entry
-    edges: dict[str, Any] = {}
-    edge_err: dict[str, dict[str, np.ndarray]] = {}
-    for r in refs:
-        edge_err[r.name] = {}
-        for tag, g in (("ransac", ransac_vg), ("ba", vg)):
-            if g is None:
-                continue
-            R_ref, mask = evaluate.match_reference(list(g.names), r.names, r.R)
-            if r is refs[0]:
-                edges[tag] = {**evaluate.edge_stats(g, R_ref, mask), "reference": r.name}
-            edge_err[r.name][tag] = evaluate.edge_errors_deg(g, R_ref, mask)
-    pyc_metrics: dict[str, Any] = {}
-    if pyc is not None:
-        pyc_metrics = {"time_s": pyc.info.get("time_s"), "n_images": pyc.info.get("n_images"),
-                       "n_registered": pyc.info.get("n_registered"), "unregistered": pyc.info.get("unregistered", {}),
-                       "n_models": pyc.info.get("n_models")}
-        truth = [r for r in refs if r.name == "truth"]
-        if truth and len(pyc.names):
-            s, e = _summ(evaluate, pyc.names, pyc.R, truth[0], align)
-            pyc_metrics.update(s)
-            cam_errors["truth"]["pycolmap"] = e
-    return {"methods": methods, "edges": edges, "pycolmap": pyc_metrics}, cam_errors, edge_err
 
 
 # ----------------------------------------------------------------------- driver
@@ -456,7 +364,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     from pipeline import two_view as st_two_view  # noqa: PLC0415
     from pipeline import two_view_ba as st_ba  # noqa: PLC0415
     from pipeline import reference as st_reference  # noqa: PLC0415
-    from pipeline import report as st_report  # noqa: PLC0415
+    from pipeline.evaluation import report as st_report  # noqa: PLC0415
 
     t_start = time.perf_counter()
     yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
@@ -465,6 +373,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     if unknown:
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
+    rc = stage_config(st_reference.ReferenceConfig, yaml_data, "reference")  # checked before any work
     given = parse_methods(methods or rcfg.methods, rcfg.sdp_solver)  # checked before any work
     out = Path(out) if out is not None else default_out(images)
     check_writable(out)
@@ -489,7 +398,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
     truth = None
     if gt is not None:
-        from pipeline.io.references import read_reference  # noqa: PLC0415
+        from pipeline.reference.truth import read_reference  # noqa: PLC0415
 
         truth = read_reference(gt)  # read early: a bad --gt fails before hours of work
     work = out / "work"
@@ -553,13 +462,12 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     pyc = None
     if rcfg.reference if reference is None else reference:
-        rc = _cfg(st_reference, ("ReferenceConfig",), yaml_data, "reference")
         try:
             ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
                 images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
                 progress=progress),
                 lambda: [out / "reference" / "reference.json"])
-            rr = st_reference.load_reference_result(ref_json)
+            rr = st_reference.load_reference(ref_json)
         except (PipelineError, RuntimeError, ValueError, OSError) as exc:
             # the reference only scores our result: its failure must not throw our rotations away
             msg = " ".join(str(exc).split())
@@ -567,18 +475,17 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             notes.append(f"pycolmap reference failed: {msg}")
             rr = None
         if rr is not None:
-            pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)
+            pyc = rr
             if not rr.names:
                 notes.append("pycolmap registered no image")
-            for nm, why in rr.summary.get("unregistered", {}).items():
+            for nm, why in rr.unregistered.items():
                 notes.append(f"pycolmap did not register {nm}: {why}")
     else:
         runner.times["reference"] = 0.0
         runner.k += 1
 
-    truth_ref = None if truth is None else RefSet(
-        "truth", list(truth.names), np.asarray(truth.R), None if truth.centers is None else np.asarray(truth.centers))
-    refs: list[RefSet] = [truth_ref] if truth_ref is not None else []
+    truth_ref = None if truth is None else truth.replace(label="truth")
+    refs: list[Reference] = [truth_ref] if truth_ref is not None else []
     if pyc is not None and len(pyc.names) >= 2:
         sub = truth_on_registered(truth_ref, pyc, vg)
         refs += ([sub] if sub is not None else []) + [pyc]
@@ -602,28 +509,9 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                     if c:
                         histories[spec.label] = c
                         metrics["methods"][spec.label]["error_vs_time"] = c
-        table = {r.name: {k: m["references"][r.name] | {kk: m.get(kk) for kk in ("time_s", "certified", "rank", "gap")
-                                                            if kk in m}
-                          for k, m in metrics["methods"].items()} for r in refs}
-        if pyc is not None and "truth" in table and "median_deg" in metrics["pycolmap"]:
-            for r in refs:
-                if r.name == "truth" or r.name.startswith(SUBSET_PREFIX):
-                    table[r.name]["pycolmap (incremental)"] = metrics["pycolmap"]
-        edge_vals: dict[str, np.ndarray] = {}
-        if refs and refs[0].name in edge_err and "ba" in edge_err[refs[0].name]:
-            edge_vals[f"error_vs_{refs[0].name}"] = edge_err[refs[0].name]["ba"]
-        if vg.inliers is not None:
-            edge_vals["inliers"] = np.asarray(vg.inliers, float)
-        pos = None
-        if refs and refs[0].centers is not None:
-            pos = _rows_by_name(list(vg.names), refs[0].names, np.asarray(refs[0].centers))
-        data = st_report.ReportData(
-            metrics=table, camera_errors=cam_err, edge_errors=edge_err, histories=histories,
-            vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if rcfg.plots else {}, positions=pos,
-            notes=notes, stages={k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
-            title=f"Rotations of {images}")
-        if not rcfg.plots:
-            data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
+        data = report_data(metrics, refs, cam_err, edge_err, histories, vg, notes,
+                           {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
+                           f"Rotations of {images}", rcfg.plots)
         return st_report.write_report(out, data)
 
     runner("report", "report", do_report)
@@ -639,48 +527,9 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     metrics["notes"] = notes
     path = write_json(out / "metrics.json", metrics)
     if not quiet:
-        print(summary_table(metrics, refs), flush=True)
+        print(summary_table(metrics), flush=True)
         print(f"report: {out / 'report.md'}\nmetrics: {path}", flush=True)
     return path
-
-
-def _rows_by_name(names: list[str], ref_names: list[str], arr: np.ndarray) -> np.ndarray | None:
-    """Rows of ``arr`` (one per ``ref_names``) for ``names``, matched by name then stem; None if any is missing."""
-    by = {n: k for k, n in enumerate(ref_names)}
-    by_stem = {Path(n).stem: k for k, n in enumerate(ref_names)}
-    idx = [by.get(n, by_stem.get(Path(n).stem)) for n in names]
-    if any(i is None for i in idx):
-        return None
-    return arr[np.array(idx, dtype=int)]
-
-
-def summary_table(metrics: dict, refs: list[RefSet]) -> str:
-    """The final console table: one row per method and reference."""
-    rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
-    for label, m in metrics["methods"].items():
-        note = ""
-        if "certified" in m:
-            note = "certified" if m["certified"] else "NOT certified"
-        for rname, s in m.get("references", {}).items():
-            rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),
-                         _f(s.get("max_deg")), _f(m.get("time_s"), 2), note))
-        if not m.get("references"):
-            rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
-    p = metrics.get("pycolmap") or {}
-    if "median_deg" in p:
-        rows.append(("pycolmap", "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
-                     _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
-    w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
-    lines.insert(1, "  ".join("-" * x for x in w))
-    return "\n".join(lines)
-
-
-def _f(v: Any, nd: int = 3) -> str:
-    try:
-        return f"{float(v):.{nd}f}"
-    except (TypeError, ValueError):
-        return "–"
 
 
 def build_parser() -> argparse.ArgumentParser:
