@@ -253,7 +253,7 @@ class IncrementalReferenceStage(Stage[ReferenceConfig]):
                 shutil.rmtree(p, ignore_errors=True)
 
     def verify(self, record: StageRecord) -> None:
-        rm.verify_result(_pycolmap(), self.folder)
+        rm.verify_result(self.folder)
 
     def run(self, overwrite: bool = False) -> StageRecord:
         """As :meth:`Stage.run`; an interrupted run's temporaries are removed even when the result is reused."""

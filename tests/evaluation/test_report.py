@@ -1,11 +1,12 @@
-"""Tests of pipeline.report: the markdown tables and the PNG plots."""
+"""pipeline.evaluation.report and .plots: the markdown tables, the PNG plots, the console table."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.report import ReportData, metrics_table, spectral_layout, write_report
+from pipeline.evaluation.plots import spectral_layout
+from pipeline.evaluation.report import ReportData, metrics_table, write_report
 
 
 def _summary(med: float, **extra) -> dict:
