@@ -17,8 +17,8 @@ same files):
 5. view graph        largest connected component → OUT/viewgraph.npz (the rest named)
 6. averaging         ``pipeline.average``       → OUT/rotations/<method>.txt + .json
 7. pycolmap          ``pipeline.reference``     → OUT/reference/ (rotations.txt, reference.json)
-8. evaluation        ``pipeline.evaluate``      → OUT/metrics.json
-9. report            ``pipeline.report``        → OUT/report.md + PNGs
+8. evaluation        ``pipeline.evaluation``    → OUT/metrics.json
+9. report            ``pipeline.evaluation.report`` → OUT/report.md + PNGs
 
 Averaging methods (``--methods``; default IRLS-ℓ½, plus, when the view graph has
 H, IRLS-H-ℓ½ and SDP-cSO(3), the latter when it has at most ``run.sdp_max_n``

@@ -35,14 +35,17 @@ from pipeline.core.errors import CacheError, ConfigError, PipelineError
 logger = logging.getLogger(__name__)
 
 __all__ = ["DatabaseConfig", "DatabaseProgress", "COLMAP_PIXEL_OFFSET", "pinhole_params", "build_database",
-           "ensure_database", "check_database", "remove_database", "verified_degree", "split_pair_id"]
+           "ensure_database", "check_database", "remove_database", "tidy_databases", "verified_degree",
+           "split_pair_id"]
 
 # Our K files and keypoints put pixel centres at integer coordinates (OpenCV); COLMAP puts
 # them at +0.5 (the image's top-left corner is (0, 0)), so principal points and keypoints
 # are shifted by half a pixel on the way in.
 COLMAP_PIXEL_OFFSET = 0.5
 CAMERA_MODELS = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV",
-                        "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE"]
+                        "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE", "OPENCV_FISHEYE", "FOV", "THIN_PRISM_FISHEYE",
+                        "RAD_TAN_THIN_PRISM_FISHEYE", "SIMPLE_DIVISION", "DIVISION", "SIMPLE_FISHEYE", "FISHEYE",
+                        "EUCM", "EQUIRECTANGULAR"]  # COLMAP's camera models (pycolmap.CameraModelId)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -289,6 +292,17 @@ def check_database(db_path: Path, names: list[str]) -> None:
     other = sorted(set(in_db) - set(names))
     if other or not in_db:
         raise CacheError(f"the database {db_path} holds other images ({other[:3] or 'none of ours'})")
+
+
+def tidy_databases(folder: Path) -> None:
+    """Fold the ``-wal``/``-shm`` files a killed pycolmap left beside a finished database into it; remove orphans."""
+    for p in folder.glob("database-*.db-*"):
+        db = p.with_name(p.name.rsplit("-", 1)[0])
+        if not db.is_file():
+            p.unlink(missing_ok=True)
+        elif p.exists():
+            with contextlib.suppress(sqlite3.Error):
+                _checkpoint(db)  # SQLite removes the side files when its last connection closes
 
 
 def remove_database(db_path: Path) -> None:

@@ -55,7 +55,8 @@ from pipeline.core.atomic import remove_stale_temporaries
 from pipeline.core.config import option
 from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.reference import models as rm
-from pipeline.reference.database import DatabaseConfig, build_database, ensure_database, remove_database
+from pipeline.reference.database import (DatabaseConfig, build_database, ensure_database, remove_database,
+                                         tidy_databases)
 from pipeline.stage import Stage, StageRecord, fingerprint_of
 
 logger = logging.getLogger(__name__)
@@ -256,9 +257,11 @@ class IncrementalReferenceStage(Stage[ReferenceConfig]):
         rm.verify_result(self.folder)
 
     def run(self, overwrite: bool = False) -> StageRecord:
-        """As :meth:`Stage.run`; an interrupted run's temporaries are removed even when the result is reused."""
+        """As :meth:`Stage.run`; what a killed run left is removed even when the result is reused."""
         remove_stale_temporaries(self.folder)
-        if self.folder.is_dir():  # the untagged temporaries of earlier versions
+        if self.folder.is_dir():
+            tidy_databases(self.folder)
+            # the untagged temporaries of earlier versions
             for p in [*self.folder.glob(".models-*"), *self.folder.glob(".model.*"), *self.folder.glob(".times-*.json")]:
                 shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
         return super().run(overwrite)

@@ -71,18 +71,6 @@ class Reference:
         """(N, 3, 3) cam_from_world rotations (the same array as :attr:`cam_from_world`)."""
         return self.cam_from_world
 
-    def __len__(self) -> int:
-        return len(self.names)
-
     def replace(self, **changes: Any) -> "Reference":
         """A copy with ``changes`` applied (e.g. ``label="truth"``)."""
         return dataclasses.replace(self, **changes)
-
-    def subset(self, keep: np.ndarray, label: str | None = None) -> "Reference":
-        """The cameras where the (N,) bool mask ``keep`` holds, with a new label if given."""
-        keep = np.asarray(keep, dtype=bool)
-        return Reference(
-            [n for n, k in zip(self.names, keep) if k], self.cam_from_world[keep],
-            centers=None if self.centers is None else self.centers[keep],
-            K=None if self.K is None else (self.K if self.K.ndim == 2 else self.K[keep]),
-            source=self.source, label=self.label if label is None else label)
