@@ -44,9 +44,8 @@ DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results" / "end_to_end.json"
 METHODS = ["irls", "irls-h", "sdp-cso3", "sdp-o3-iso"]
 
-sys.path.insert(0, str(REPO))
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.run import SUBSET_PREFIX  # noqa: E402
+from pipeline.evaluation.compare import SUBSET_PREFIX  # noqa: E402
 
 
 
@@ -105,8 +104,9 @@ def without_degenerate(name: str, out: Path, gt: Path) -> dict | None:
     import numpy as np
 
     from pipeline.average import average
-    from pipeline.evaluate import match_reference, summarize
-    from pipeline.io.references import read_reference
+    from pipeline.evaluation.metrics import summarize
+    from pipeline.evaluation.compare import match_reference
+    from pipeline.reference.truth import read_reference
     from pipeline.core.viewgraph import ViewGraph
 
     vg = ViewGraph.load(out / "viewgraph.npz")

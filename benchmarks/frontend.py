@@ -41,14 +41,14 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 import pycolmap  # noqa: E402
 
 from pipeline import features, matching  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.evaluate import edge_stats, match_reference  # noqa: E402
-from pipeline.io.references import read_reference  # noqa: E402
+from pipeline.evaluation.metrics import edge_stats  # noqa: E402
+from pipeline.evaluation.compare import match_reference  # noqa: E402
+from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: E402
 

@@ -44,7 +44,7 @@ from pipeline.core.atomic import write_json
 from pipeline.averaging.init import rotations_from_tree, spanning_tree
 from pipeline.averaging.irls import irls
 from pipeline.averaging.weiszfeld import weiszfeld
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.core.viewgraph import ViewGraph
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -30,7 +30,7 @@ import numpy as np
 from pipeline.core.atomic import save_figure, write_json
 from pipeline.averaging.irls import irls
 from pipeline.averaging.weiszfeld import weiszfeld
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.synthetic.graphs import paper1_graph
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -61,7 +61,7 @@ from pipeline.averaging.peers import have_gtsam, lm_anisotropic, run_colmap  # n
 from pipeline.core import so3  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-from pipeline.evaluate import rotation_errors_deg  # noqa: E402
+from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise, with_outliers  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"

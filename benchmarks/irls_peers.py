@@ -42,7 +42,7 @@ from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging import average  # noqa: E402
 from pipeline.averaging.irls import irls  # noqa: E402
 from pipeline.averaging.peers import run_colmap  # noqa: E402
-from pipeline.evaluate import rotation_errors_deg  # noqa: E402
+from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 

@@ -35,7 +35,7 @@ import numpy as np
 logging.disable(logging.WARNING)
 from pipeline.synthetic.graphs import knn_graph
 from pipeline.averaging import average
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 n, k, seed = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 g = knn_graph(n, k=k, sigma_deg=2.0, outlier_frac=0.15, seed=seed)
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         row = json.loads(out.stdout.strip().splitlines()[-1])
         if not a.no_colmap:
             from pipeline.averaging.peers import run_colmap
-            from pipeline.evaluate import rotation_errors_deg
+            from pipeline.evaluation.metrics import rotation_errors_deg
             from pipeline.synthetic.graphs import knn_graph
 
             g = knn_graph(n, k=a.k, sigma_deg=2.0, outlier_frac=0.15, seed=seed)

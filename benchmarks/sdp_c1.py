@@ -23,7 +23,7 @@ from pipeline.averaging.sdp import solve_sdp
 from pipeline.core import so3
 from pipeline.core.atomic import save_figure, write_json
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.evaluate import frobenius_error
+from pipeline.evaluation.metrics import frobenius_error
 
 RESULTS = Path(__file__).resolve().parent / "results"
 OUT = RESULTS / "sdp_c1.json"

@@ -26,7 +26,7 @@ import numpy as np
 
 from pipeline.averaging.sdp import solve_sdp
 from pipeline.core.atomic import save_figure, write_json
-from pipeline.evaluate import frobenius_error
+from pipeline.evaluation.metrics import frobenius_error
 from pipeline.synthetic.graphs import paper2_graph
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.averaging.peers import have_gtsam, lm_anisotropic, shonan
 from pipeline.averaging.sdp import solve_sdp
 from pipeline.core.atomic import write_json
-from pipeline.evaluate import summarize
+from pipeline.evaluation.metrics import summarize
 from pipeline.io.mat import read_lu_sphinx
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "lu_sphinx" / "lu_sphinx.mat"

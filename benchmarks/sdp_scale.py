@@ -35,7 +35,7 @@ from pipeline.averaging.peers import have_gtsam, lm_anisotropic, shonan
 from pipeline.core import so3
 from pipeline.core.atomic import write_json
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.evaluate import frobenius_error, rotation_errors_deg
+from pipeline.evaluation.metrics import frobenius_error, rotation_errors_deg
 from pipeline.synthetic.graphs import knn_graph, paper2_graph, random_precisions, sample_left_noise
 
 OUT = Path(__file__).resolve().parent / "results" / "sdp_scale.json"
@@ -60,7 +60,7 @@ logging.disable(logging.WARNING)
 cap = int(float(sys.argv[5]) * 2**30)
 resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
 import runpy
-from pipeline.evaluate import frobenius_error, rotation_errors_deg
+from pipeline.evaluation.metrics import frobenius_error, rotation_errors_deg
 import numpy as np
 from pipeline.averaging.sdp import solve_sdp
 make_graph = runpy.run_path(sys.argv[6])["make_graph"]  # this benchmark's graphs, without touching sys.path

@@ -205,7 +205,7 @@ def build_work(name: str, root: Path) -> tuple[Path, Path]:
 
 def true_pairs(data, ref) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """True R_ij, unit t_ij (NaN where unknown) and a mask, per edge."""
-    from pipeline.evaluate import match_reference
+    from pipeline.evaluation.compare import match_reference
 
     R_ref, mask = match_reference(data.vg.names, ref.names, ref.R)
     i, j = data.vg.edges.T
@@ -220,9 +220,10 @@ def true_pairs(data, ref) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def real_section(root: Path, quick: bool, datasets: list[str]) -> dict:
-    from pipeline.evaluate import edge_stats, match_reference
-    from pipeline.io.references import read_reference
+    from pipeline.evaluation.compare import match_reference
+    from pipeline.evaluation.metrics import edge_stats
     from pipeline.geometry.two_view_stage import load_two_view
+    from pipeline.reference.truth import read_reference
     from pipeline.core.viewgraph import ViewGraph
 
     out: dict = {}

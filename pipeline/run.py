@@ -17,8 +17,8 @@ same files):
 5. view graph        largest connected component → OUT/viewgraph.npz (the rest named)
 6. averaging         ``pipeline.average``       → OUT/rotations/<method>.txt + .json
 7. pycolmap          ``pipeline.reference``     → OUT/reference/ (rotations.txt, reference.json)
-8. evaluation        ``pipeline.evaluate``      → OUT/metrics.json
-9. report            ``pipeline.report``        → OUT/report.md + PNGs
+8. evaluation        ``pipeline.evaluation``    → OUT/metrics.json
+9. report            ``pipeline.evaluation.report`` → OUT/report.md + PNGs
 
 Averaging methods (``--methods``; default IRLS-ℓ½, plus, when the view graph has
 H, IRLS-H-ℓ½ and SDP-cSO(3), the latter when it has at most ``run.sdp_max_n``
@@ -55,7 +55,7 @@ import dataclasses  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
@@ -66,9 +66,12 @@ from pipeline.averaging.convergence import error_vs_time_curves  # noqa: E402
 from pipeline.averaging.registry import parse_methods  # noqa: E402
 from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.core.config import load_yaml, stage_config  # noqa: E402
-from pipeline.core.errors import InputFileError, PipelineError  # noqa: E402
+from pipeline.core.config import Config, load_yaml, stage_config  # noqa: E402
+from pipeline.core.errors import ConfigError, InputFileError, PipelineError  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
+from pipeline.evaluation.compare import SUBSET_PREFIX, evaluate_all, match_reference, truth_on_registered  # noqa: E402,F401
+from pipeline.evaluation.report import report_data, summary_table  # noqa: E402
+from pipeline.reference.types import Reference  # noqa: E402
 
 logger = logging.getLogger("run")
 
@@ -79,8 +82,8 @@ STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "avera
 
 
 @dataclass(frozen=True, kw_only=True)
-class RunConfig:
-    """Options of run.py itself (YAML section ``run``).
+class RunConfig(Config):
+    """Options of run.py itself (YAML section ``run``), typed: ``reference: "false"`` is an error.
 
     Attributes:
         methods: averaging methods; empty = IRLS-ℓ½ plus SDP-cSO(3) when N ≤ sdp_max_n.
@@ -104,13 +107,13 @@ class RunConfig:
     scene_noise: float = 0.0
     plots: bool = True
 
-    def __post_init__(self) -> None:
-        m = self.methods  # a YAML scalar (methods: irls) is one entry, not its characters
-        object.__setattr__(self, "methods", (m,) if isinstance(m, str) else tuple(m or ()))
+    SECTION = "run"
+
+    def check(self) -> None:
         if self.align not in ("l2", "l1"):
-            raise InputFileError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
+            raise ConfigError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
         if self.sdp_max_n < 0:
-            raise InputFileError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
+            raise ConfigError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
 
 
 def _mtimes(paths: list[Path]) -> list[int | None]:
@@ -213,100 +216,6 @@ def stage_viewgraph(work: Path, out: Path, rejected: list[dict] | None = None) -
     return sub, left_out, path
 
 
-def _summ(evaluate: Any, names: list[str], R: np.ndarray, ref: Any, align: str, vg: ViewGraph | None = None
-          ) -> tuple[dict[str, Any], np.ndarray]:
-    R_ref, mask = evaluate.match_reference(names, ref.names, ref.R)
-    if not mask.any():
-        return {"n_cameras": len(names), "n_evaluated": 0, "note": "no camera in common with the reference"}, \
-            np.full(len(names), np.nan)
-    use_vg = vg if (vg is not None and vg.H is not None and list(vg.names) == list(names)) else None
-    s = evaluate.summarize(R, R_ref, mask, align=align, vg=use_vg)
-    errs = evaluate.rotation_errors_deg(R, R_ref, mask, align=align)
-    missing = [n for n, m in zip(names, mask) if not m]
-    if missing:
-        s["not_in_reference"] = missing
-    return s, errs
-
-
-@dataclass
-class RefSet:
-    name: str
-    names: list[str]
-    R: np.ndarray
-    centers: np.ndarray | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-
-SUBSET_PREFIX = "truth, pycolmap's"
-
-
-def truth_on_registered(truth: "RefSet | None", pyc: "RefSet", vg: ViewGraph) -> "RefSet | None":
-    """The truth restricted to the images pycolmap registered, when it left out some of ours.
-
-    pycolmap's errors are over the images it registers; ours over every image of the
-    view graph. Scoring our methods on pycolmap's images too (aligned on them) is the
-    like-for-like comparison; None when pycolmap registered all of ours or there is no truth.
-    """
-    if truth is None:
-        return None
-    from pipeline import evaluate  # noqa: PLC0415
-
-    _, in_pyc = evaluate.match_reference(list(vg.names), pyc.names, pyc.R)
-    if in_pyc.all():
-        return None
-    R_t, mask = evaluate.match_reference(list(pyc.names), truth.names, truth.R)
-    if mask.sum() < 2:
-        return None
-    names = [n for n, m in zip(pyc.names, mask) if m]
-    return RefSet(f"{SUBSET_PREFIX} {len(names)} images", names, np.asarray(R_t)[mask])
-
-
-def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, dict], refs: list[RefSet],
-                 pyc: RefSet | None, align: str) -> tuple[dict, dict, dict]:
-    """Stage 8: every method against every reference; the view graph's edges; pycolmap against the truth."""
-    from pipeline import evaluate  # noqa: PLC0415
-    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
-
-    methods: dict[str, Any] = {}
-    cam_errors: dict[str, dict[str, np.ndarray]] = {r.name: {} for r in refs}
-    for label, res in results.items():
-        names, R = read_rotations(res["rotations"])
-        entry: dict[str, Any] = {k: v for k, v in res["stats"].items() if k not in ("history",)}
-        if "certified" in entry:
-            entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "gap_residual", "lower_bound",
-                                                               "primal_cost", "cost_offset", "status", "solver",
-                                                               "fallback") if k in entry}
-        entry["references"] = {}
-        for r in refs:
-            s, e = _summ(evaluate, list(names), np.asarray(R), r, align, vg)
-            entry["references"][r.name] = s
-            cam_errors[r.name][label] = e
-        if refs:
-            entry.update({k: v for k, v in entry["references"][refs[0].name].items()})
-            entry["reference"] = refs[0].name
-        methods[label] = entry
-    edges: dict[str, Any] = {}
-    edge_err: dict[str, dict[str, np.ndarray]] = {}
-    for r in refs:
-        edge_err[r.name] = {}
-        for tag, g in (("ransac", ransac_vg), ("ba", vg)):
-            if g is None:
-                continue
-            R_ref, mask = evaluate.match_reference(list(g.names), r.names, r.R)
-            if r is refs[0]:
-                edges[tag] = {**evaluate.edge_stats(g, R_ref, mask), "reference": r.name}
-            edge_err[r.name][tag] = evaluate.edge_errors_deg(g, R_ref, mask)
-    pyc_metrics: dict[str, Any] = {}
-    if pyc is not None:
-        pyc_metrics = {"time_s": pyc.info.get("time_s"), "n_images": pyc.info.get("n_images"),
-                       "n_registered": pyc.info.get("n_registered"), "unregistered": pyc.info.get("unregistered", {}),
-                       "n_models": pyc.info.get("n_models")}
-        truth = [r for r in refs if r.name == "truth"]
-        if truth and len(pyc.names):
-            s, e = _summ(evaluate, pyc.names, pyc.R, truth[0], align)
-            pyc_metrics.update(s)
-            cam_errors["truth"]["pycolmap"] = e
-    return {"methods": methods, "edges": edges, "pycolmap": pyc_metrics}, cam_errors, edge_err
 
 
 # ----------------------------------------------------------------------- driver
@@ -348,7 +257,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     from pipeline.geometry.ba_stage import BAConfig, TwoViewBAStage  # noqa: PLC0415
     from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: PLC0415
     from pipeline import reference as st_reference  # noqa: PLC0415
-    from pipeline import report as st_report  # noqa: PLC0415
+    from pipeline.evaluation import report as st_report  # noqa: PLC0415
 
     t_start = time.perf_counter()
     yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
@@ -357,6 +266,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     if unknown:
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
+    rc = stage_config(st_reference.ReferenceConfig, yaml_data, "reference")  # checked before any work
     overrides = {"sdp": {"solver": rcfg.sdp_solver}}
     given = parse_methods(methods or rcfg.methods, yaml_data, overrides)  # checked before any work
     out = Path(out) if out is not None else default_out(images)
@@ -382,7 +292,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
     truth = None
     if gt is not None:
-        from pipeline.io.references import read_reference  # noqa: PLC0415
+        from pipeline.reference.truth import read_reference  # noqa: PLC0415
 
         truth = read_reference(gt)  # read early: a bad --gt fails before hours of work
     work = out / "work"
@@ -432,13 +342,12 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     pyc = None
     if rcfg.reference if reference is None else reference:
-        rc = _cfg(st_reference, ("ReferenceConfig",), yaml_data, "reference")
         try:
             ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
                 images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
                 progress=progress),
                 lambda: [out / "reference" / "reference.json"])
-            rr = st_reference.load_reference_result(ref_json)
+            rr = st_reference.load_reference(ref_json)
         except (PipelineError, RuntimeError, ValueError, OSError) as exc:
             # the reference only scores our result: its failure must not throw our rotations away
             msg = " ".join(str(exc).split())
@@ -446,18 +355,17 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             notes.append(f"pycolmap reference failed: {msg}")
             rr = None
         if rr is not None:
-            pyc = RefSet("pycolmap", rr.names, rr.R, info=rr.summary)
+            pyc = rr
             if not rr.names:
                 notes.append("pycolmap registered no image")
-            for nm, why in rr.summary.get("unregistered", {}).items():
+            for nm, why in rr.unregistered.items():
                 notes.append(f"pycolmap did not register {nm}: {why}")
     else:
         runner.times["reference"] = 0.0
         runner.k += 1
 
-    truth_ref = None if truth is None else RefSet(
-        "truth", list(truth.names), np.asarray(truth.R), None if truth.centers is None else np.asarray(truth.centers))
-    refs: list[RefSet] = [truth_ref] if truth_ref is not None else []
+    truth_ref = None if truth is None else truth.replace(label="truth")
+    refs: list[Reference] = [truth_ref] if truth_ref is not None else []
     if pyc is not None and len(pyc.names) >= 2:
         sub = truth_on_registered(truth_ref, pyc, vg)
         refs += ([sub] if sub is not None else []) + [pyc]
@@ -470,28 +378,9 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         histories = error_vs_time_curves(vg, specs, results, refs[0], rcfg.align) if refs else {}
         for label, c in histories.items():
             metrics["methods"][label]["error_vs_time"] = c
-        table = {r.name: {k: m["references"][r.name] | {kk: m.get(kk) for kk in ("time_s", "certified", "rank", "gap")
-                                                            if kk in m}
-                          for k, m in metrics["methods"].items()} for r in refs}
-        if pyc is not None and "truth" in table and "median_deg" in metrics["pycolmap"]:
-            for r in refs:
-                if r.name == "truth" or r.name.startswith(SUBSET_PREFIX):
-                    table[r.name]["pycolmap (incremental)"] = metrics["pycolmap"]
-        edge_vals: dict[str, np.ndarray] = {}
-        if refs and refs[0].name in edge_err and "ba" in edge_err[refs[0].name]:
-            edge_vals[f"error_vs_{refs[0].name}"] = edge_err[refs[0].name]["ba"]
-        if vg.inliers is not None:
-            edge_vals["inliers"] = np.asarray(vg.inliers, float)
-        pos = None
-        if refs and refs[0].centers is not None:
-            pos = _rows_by_name(list(vg.names), refs[0].names, np.asarray(refs[0].centers))
-        data = st_report.ReportData(
-            metrics=table, camera_errors=cam_err, edge_errors=edge_err, histories=histories,
-            vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if rcfg.plots else {}, positions=pos,
-            notes=notes, stages={k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
-            title=f"Rotations of {images}")
-        if not rcfg.plots:
-            data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
+        data = report_data(metrics, refs, cam_err, edge_err, histories, vg, notes,
+                           {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
+                           f"Rotations of {images}", rcfg.plots)
         return st_report.write_report(out, data)
 
     runner("report", "report", do_report)
@@ -507,48 +396,9 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     metrics["notes"] = notes
     path = write_json(out / "metrics.json", metrics)
     if not quiet:
-        print(summary_table(metrics, refs), flush=True)
+        print(summary_table(metrics), flush=True)
         print(f"report: {out / 'report.md'}\nmetrics: {path}", flush=True)
     return path
-
-
-def _rows_by_name(names: list[str], ref_names: list[str], arr: np.ndarray) -> np.ndarray | None:
-    """Rows of ``arr`` (one per ``ref_names``) for ``names``, matched by name then stem; None if any is missing."""
-    by = {n: k for k, n in enumerate(ref_names)}
-    by_stem = {Path(n).stem: k for k, n in enumerate(ref_names)}
-    idx = [by.get(n, by_stem.get(Path(n).stem)) for n in names]
-    if any(i is None for i in idx):
-        return None
-    return arr[np.array(idx, dtype=int)]
-
-
-def summary_table(metrics: dict, refs: list[RefSet]) -> str:
-    """The final console table: one row per method and reference."""
-    rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
-    for label, m in metrics["methods"].items():
-        note = ""
-        if "certified" in m:
-            note = "certified" if m["certified"] else "NOT certified"
-        for rname, s in m.get("references", {}).items():
-            rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),
-                         _f(s.get("max_deg")), _f(m.get("time_s"), 2), note))
-        if not m.get("references"):
-            rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
-    p = metrics.get("pycolmap") or {}
-    if "median_deg" in p:
-        rows.append(("pycolmap", "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
-                     _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
-    w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
-    lines.insert(1, "  ".join("-" * x for x in w))
-    return "\n".join(lines)
-
-
-def _f(v: Any, nd: int = 3) -> str:
-    try:
-        return f"{float(v):.{nd}f}"
-    except (TypeError, ValueError):
-        return "–"
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -197,22 +197,3 @@ def test_help():
 def test_stage_help(module):
     r = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "usage" in r.stdout.lower()
-
-
-def test_truth_on_pycolmap_images_is_the_like_for_like_reference():
-    from pipeline.core import so3
-    from pipeline.core.viewgraph import ViewGraph
-
-    rng = np.random.default_rng(0)
-    names = [f"im{k}.png" for k in range(5)]
-    R = so3.random_rotations(5, rng)
-    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
-    vg = ViewGraph.from_absolute(names, R, edges)
-    truth = run.RefSet("truth", names, R)
-    pyc_all = run.RefSet("pycolmap", names, R)
-    assert run.truth_on_registered(truth, pyc_all, vg) is None  # pycolmap registered every image
-    pyc = run.RefSet("pycolmap", names[1:4], R[1:4])  # it left out im0 and im4
-    sub = run.truth_on_registered(truth, pyc, vg)
-    assert sub.name == "truth, pycolmap's 3 images" and sub.names == names[1:4]
-    np.testing.assert_array_equal(sub.R, R[1:4])
-    assert run.truth_on_registered(None, pyc, vg) is None

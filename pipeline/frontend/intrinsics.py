@@ -123,7 +123,7 @@ def read_intrinsics(source: str | os.PathLike) -> np.ndarray | dict[str, np.ndar
         raise InputFileError(f"intrinsics file {path} does not exist; pass a K.txt (3x3) or a cameras file")
     if path.is_file():
         return parse_intrinsics_file(path)
-    from pipeline.io.references import read_reference  # noqa: PLC0415 - a folder of true cameras
+    from pipeline.reference.truth import read_reference  # noqa: PLC0415 - a folder of true cameras
 
     ref = read_reference(path)
     if getattr(ref, "K", None) is None:

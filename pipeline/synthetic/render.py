@@ -421,7 +421,7 @@ def _sample_points(planes: list[Plane], scene_K, scene_R, scene_t, depths, rng, 
 
 def write_cameras_txt(path: Path, names: list[str], K: np.ndarray, R: np.ndarray, t: np.ndarray) -> Path:
     """Write ``name fx fy cx cy r11 .. r33 t1 t2 t3`` per line (cam_from_world), atomically."""
-    from pipeline.io.references import write_cameras_file
+    from pipeline.reference.truth import write_cameras_file
 
     return Path(write_cameras_file(path, names, K, R, t))
 

@@ -1,11 +1,12 @@
-"""Tests of pipeline.report: the markdown tables and the PNG plots."""
+"""pipeline.evaluation.report and .plots: the markdown tables, the PNG plots, the console table."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pipeline.report import ReportData, metrics_table, spectral_layout, write_report
+from pipeline.evaluation.plots import spectral_layout
+from pipeline.evaluation.report import ReportData, metrics_table, write_report
 
 
 def _summary(med: float, **extra) -> dict:
@@ -66,3 +67,30 @@ def test_spectral_layout_shape_and_separation():
     # distinct cameras get distinct positions on a cycle
     d = np.linalg.norm(P[:, None] - P[None], axis=-1) + np.eye(5)
     assert d.min() > 1e-3
+
+
+def test_report_data_and_console_table():
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.report import report_data, summary_table
+    from pipeline.reference import Reference
+
+    names = [f"v{k}.png" for k in range(4)]
+    R = np.broadcast_to(np.eye(3), (4, 3, 3))
+    vg = ViewGraph.from_absolute(names, R, np.array([[0, 1], [1, 2], [2, 3], [0, 3]]))
+    truth = Reference(names, R, centers=np.arange(12.0).reshape(4, 3), label="truth")
+    pyc = Reference(names[:3], R[:3], label="pycolmap")
+    sub = Reference(names[:3], R[:3], label="truth, pycolmap's 3 images")
+    s = _summary(0.1)
+    metrics = {"methods": {"irls-l0.5": {**s, "time_s": 0.5, "references": {"truth": s, sub.label: s, "pycolmap": s}}},
+               "pycolmap": {**_summary(0.2), "n_registered": 3, "n_images": 4, "time_s": 3.0}}
+    d = report_data(metrics, [truth, sub, pyc], {}, {"truth": {"ba": np.ones(4)}}, {}, vg, ["a note"], {"x": 1.0},
+                    "title")
+    assert list(d.metrics) == ["truth", sub.label, "pycolmap"]
+    assert "pycolmap (incremental)" in d.metrics["truth"] and "pycolmap (incremental)" in d.metrics[sub.label]
+    assert "pycolmap (incremental)" not in d.metrics["pycolmap"] and d.metrics["truth"]["irls-l0.5"]["time_s"] == 0.5
+    assert set(d.edge_values) == {"error_vs_truth"} and d.positions.shape == (4, 3)
+    d = report_data(metrics, [truth], {}, {}, {}, vg, [], {}, "title", plots_on=False)
+    assert d.vg_edges is None and d.edge_values == {}
+    table = summary_table(metrics)
+    rows = [r.split() for r in table.splitlines()]
+    assert rows[-1][:2] == ["pycolmap", "truth"] and table.endswith("3/4 reg.") and len(rows) == 2 + 3 + 1

@@ -1,28 +1,22 @@
-"""pipeline.evaluate: alignment, errors, paper 2's metrics, edge statistics, name matching, CLI."""
+"""pipeline.evaluation.metrics: alignment, errors, paper 2's metrics, edge statistics."""
 
 from __future__ import annotations
 
 import json
-import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from pipeline.core import so3
-from pipeline.evaluate import (
+from pipeline.evaluation.metrics import (
     align_rotations,
     edge_errors_deg,
     edge_stats,
     frobenius_error,
     mahalanobis_error,
-    main_cli,
-    match_reference,
     rotation_errors_deg,
     summarize,
 )
-from pipeline.io.rotations import write_rotations
 from pipeline.core.viewgraph import ViewGraph
 
 SUMMARY_KEYS = {"n_cameras", "n_evaluated", "median_deg", "mean_deg", "rms_deg", "max_deg", "frobenius", "pct_below"}
@@ -164,73 +158,6 @@ def test_edge_errors_and_stats() -> None:
     mask = np.array([True, True, True, True, False])
     e_m = edge_errors_deg(vg, R, mask)
     assert np.isnan(e_m[[3, 6, 8, 9]]).all() and edge_stats(vg, R, mask)["n_evaluated"] == 6
-
-
-def test_match_reference() -> None:
-    R_ref = so3.random_rotations(4, np.random.default_rng(6))
-    ref_names = ["0001.jpg", "0002.jpg", "x/0003.png", "0003.jpg"]
-    R, m = match_reference(["0002.jpg", "0001", "img/0002.png", "0003", "0004.jpg"], ref_names, R_ref)
-    assert m.tolist() == [True, True, True, False, False]  # "0003" is ambiguous, "0004" missing
-    np.testing.assert_array_equal(R[:3], R_ref[[1, 0, 1]])
-    np.testing.assert_array_equal(R[3], np.eye(3))
-    R, m = match_reference(["0003.jpg"], ref_names, R_ref)  # exact beats the ambiguous stem
-    assert m.all() and np.array_equal(R[0], R_ref[3])
-
-
-# ----------------------------------------------------------------------- command
-def test_cli_help() -> None:
-    out = subprocess.run([sys.executable, "-m", "pipeline.evaluate", "--help"], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0 and "--reference" in out.stdout and "--align" in out.stdout
-
-
-def test_cli_rotations_and_viewgraph(tmp_path, capsys) -> None:
-    rng = np.random.default_rng(7)
-    R = so3.random_rotations(6, rng)
-    names = [f"{k:04d}.jpg" for k in range(6)]
-    ref = write_rotations(tmp_path / "ref.txt", names, R)
-    R_est = so3.exp(rng.normal(scale=0.01, size=(6, 3))) @ R @ so3.random_rotations(1, rng)[0]
-    est = write_rotations(tmp_path / "est.txt", [n[:4] for n in names[:5]], R_est[:5])  # stems, one camera missing
-    H = np.repeat(np.eye(3)[None] * 1e4, 5, axis=0)
-    vg = ViewGraph.from_absolute(names, R, [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)], H=H)
-    vg_path = vg.save(tmp_path / "vg.npz")
-    out = tmp_path / "summary.json"
-    assert main_cli(["--rotations", str(est), "--reference", str(ref), "--json", str(out), "--align", "l1"]) == 0
-    s = json.loads(out.read_text())
-    assert SUMMARY_KEYS <= set(s) and s["n_cameras"] == 5 and s["n_evaluated"] == 5 and s["n_reference"] == 6
-    assert s["align"] == "l1" and set(s["pct_below"]) == {"1", "2", "5", "10"} and s["max_deg"] < 2.0
-    assert "median error (deg)" in capsys.readouterr().out
-    out2 = tmp_path / "edges.json"
-    assert main_cli(["--viewgraph", str(vg_path), "--reference", str(ref), "--json", str(out2)]) == 0
-    e = json.loads(out2.read_text())
-    assert e["n_edges"] == 5 and e["median_deg"] < 1e-9 and set(e["pct_above"]) == {"10", "30", "60", "90"}
-    out3 = tmp_path / "both.json"
-    est6 = write_rotations(tmp_path / "est6.txt", names, R_est)
-    assert main_cli(["--rotations", str(est6), "--viewgraph", str(vg_path), "--reference", str(ref), "--json", str(out3)]) == 0
-    b = json.loads(out3.read_text())
-    assert "mahalanobis" in b and b["mahalanobis"] > 0 and b["edges"]["n_edges"] == 5
-
-
-def test_cli_errors_are_one_line(tmp_path) -> None:
-    ref = write_rotations(tmp_path / "ref.txt", ["a"], np.eye(3)[None])
-    est = write_rotations(tmp_path / "est.txt", ["b"], np.eye(3)[None])
-    for args, match in [
-        (["--rotations", str(est), "--reference", str(tmp_path / "missing.txt")], "error: reference .* does not exist"),
-        (["--rotations", str(est), "--reference", str(ref)], "error: no camera of .* matches a name"),
-        (["--reference", str(ref)], "error: nothing to evaluate"),
-    ]:
-        out = subprocess.run([sys.executable, "-m", "pipeline.evaluate", *args], capture_output=True, text=True, timeout=60)
-        assert out.returncode == 2
-        lines = out.stderr.strip().splitlines()
-        assert len(lines) == 1 and re.search(match, lines[0]), out.stderr
-
-
-@pytest.mark.data
-def test_lu_sphinx_edge_table(shared_data, tmp_path) -> None:
-    mat = shared_data / "lu_sphinx" / "lu_sphinx.mat"
-    out = tmp_path / "e.json"
-    assert main_cli(["--viewgraph", str(mat), "--reference", str(mat), "--json", str(out), "-q"]) == 0
-    e = json.loads(out.read_text())
-    assert e["n_edges"] == 1207 and abs(e["median_deg"] - 0.30) < 0.005
 
 
 def _block_coordinate_ascent(vg: ViewGraph, W: np.ndarray, tol: float = 1e-10, max_sweeps: int = 3000) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The accuracy bound of benchmarks/temple_limit.py, checked against Monte Carlo on a synthetic graph.
+"""pipeline.evaluation.analysis: the accuracy bound (used by benchmarks/temple_limit.py), checked against Monte Carlo.
 
 The benchmark's claim "an efficient estimator from these edges reaches X° on average" rests on
 its information matrix (the signs and frames of ``A_e``) and on its aligned draws. Here the edges
@@ -11,33 +11,19 @@ checked by finite differences, and its information by its 7-dimensional similari
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-import pytest
 
 from pipeline.core import so3
 from pipeline.averaging.irls_h import irls_h
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation import analysis
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.synthetic.graphs import paper2_graph, sample_left_noise
 from pipeline.core.viewgraph import ViewGraph
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "temple_limit.py"
-
-
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("temple_limit", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_information_matches_a_dense_assembly_and_has_the_rotation_gauge(bench):
+def test_information_matches_a_dense_assembly_and_has_the_rotation_gauge():
     g = paper2_graph(7, 0.6, eig_range=(10.0, 1e4), seed=3)
     vg, R = g.vg, g.R_true
-    J = bench.information(vg, R, vg.H)
+    J = analysis.information(vg, R, vg.H)
     ref = np.zeros_like(J)
     for k, (i, j) in enumerate(vg.edges):  # the textbook assembly, one edge at a time
         A = np.zeros((3, 3 * vg.n_cameras))
@@ -51,12 +37,12 @@ def test_information_matches_a_dense_assembly_and_has_the_rotation_gauge(bench):
     assert np.linalg.matrix_rank(J, tol=1e-9 * np.abs(J).max()) == 3 * vg.n_cameras - 3
 
 
-def test_bound_matches_monte_carlo_of_the_maximum_likelihood_estimate(bench):
+def test_bound_matches_monte_carlo_of_the_maximum_likelihood_estimate():
     g = paper2_graph(12, 0.35, eig_range=(300.0, 3e5), seed=1)  # strongly anisotropic, ~0.1–3° noise
     vg, R = g.vg, g.R_true
     mask = np.ones(vg.n_cameras, dtype=bool)
     mask[:3] = False  # score a subset, aligned on it, as the benchmark scores pycolmap's images
-    pred = bench.predicted_errors(bench.information(vg, R, vg.H), R, mask, draws=4000, seed=0)
+    pred = analysis.predicted_errors(analysis.information(vg, R, vg.H), R, mask, draws=4000, seed=0)
     rng = np.random.default_rng(7)
     Rrel = so3.relative(R, vg.edges)
     got = []
@@ -83,7 +69,7 @@ def _pose_measurement(R, C, edges):
     return so3.relative(R, edges), t
 
 
-def test_pose_jacobian_matches_finite_differences(bench):
+def test_pose_jacobian_matches_finite_differences():
     from pipeline.geometry.ba_model import tangent_basis
 
     rng = np.random.default_rng(4)
@@ -92,7 +78,7 @@ def test_pose_jacobian_matches_finite_differences(bench):
     C = rng.normal(size=(vg.n_cameras, 3))
     Rij, t = _pose_measurement(R, C, vg.edges)
     B = np.stack([tangent_basis(v) for v in t])
-    A = bench.pose_jacobian(vg, R, C, B)
+    A = analysis.pose_jacobian(vg, R, C, B)
     i, j = vg.edges.T
     h = 1e-6
     for var in range(4):  # ω_i, ω_j, δc_i, δc_j
@@ -113,7 +99,7 @@ def test_pose_jacobian_matches_finite_differences(bench):
                 np.testing.assert_allclose(np.concatenate([dd, dt]), A[k, :, var, a], atol=2e-5)
 
 
-def test_pose_information_has_the_similarity_gauge(bench):
+def test_pose_information_has_the_similarity_gauge():
     from pipeline.geometry.ba_model import tangent_basis
 
     rng = np.random.default_rng(5)
@@ -125,7 +111,7 @@ def test_pose_information_has_the_similarity_gauge(bench):
     B = np.stack([tangent_basis(v) for v in t])
     L = rng.normal(size=(vg.n_edges, 5, 5))
     S = L @ np.swapaxes(L, 1, 2) + 0.1 * np.eye(5)
-    J = bench.pose_information(vg, R, C, B, S)
+    J = analysis.pose_information(vg, R, C, B, S)
     gauge = []
     for a in range(3):
         v = np.eye(3)[a]
@@ -139,5 +125,5 @@ def test_pose_information_has_the_similarity_gauge(bench):
     S0 = S.copy()
     S0[:, 3:, :] = 0.0
     S0[:, :, 3:] = 0.0
-    np.testing.assert_allclose(bench.pose_information(vg, R, C, B, S0)[:3 * N, :3 * N],
-                               bench.information(vg, R, S[:, :3, :3]), rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(analysis.pose_information(vg, R, C, B, S0)[:3 * N, :3 * N],
+                               analysis.information(vg, R, S[:, :3, :3]), rtol=1e-10, atol=1e-9)

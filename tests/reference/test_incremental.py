@@ -1,4 +1,4 @@
-"""Tests of pipeline.reference: the pycolmap incremental reconstruction used as a reference."""
+"""pipeline.reference.incremental: the pycolmap incremental reconstruction used as a reference (a stage)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,11 @@ import pytest
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from pipeline import reference  # noqa: E402
-from pipeline.core.errors import InputFileError  # noqa: E402
-from pipeline.evaluate import match_reference, summarize  # noqa: E402
-from pipeline.io.references import read_reference  # noqa: E402
+from pipeline.core.errors import InputFileError, PipelineError  # noqa: E402
+from pipeline.evaluation.compare import match_reference  # noqa: E402
+from pipeline.evaluation.metrics import summarize  # noqa: E402
+from pipeline.reference import database  # noqa: E402
+from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
 SMALL = SceneConfig(width=320, height=240, focal=280.0, supersample=1)
@@ -55,8 +57,8 @@ def two_groups(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_reconstruction_matches_truth(scene6, ref6):
-    res = reference.load_reference_result(ref6)
-    s = res.summary
+    res = reference.load_reference(ref6)
+    s = res.info
     assert s["n_registered"] == 6 and s["unregistered"] == {}
     assert s["known_K"] is True  # cameras.txt in the folder was found and passed
     truth = read_reference(scene6 / "cameras.txt")
@@ -112,8 +114,8 @@ def test_interrupted_mapping_resumes_from_database(scene6, ref6, tmp_path, monke
     monkeypatch.setattr(pycolmap, "incremental_mapping", counting_map)
     reference.main(scene6, out)
     assert calls["map"] == 1
-    a = reference.load_reference_result(out)
-    b = reference.load_reference_result(ref6)
+    a = reference.load_reference(out)
+    b = reference.load_reference(ref6)
     assert a.names == b.names
 
 
@@ -144,24 +146,24 @@ def test_missing_folder(tmp_path):
 
 def test_bad_K_shape():
     with pytest.raises(InputFileError, match=r"expected \(3, 3\) or \(2, 3, 3\)"):
-        reference.load_known_K(np.eye(2), ["a.png", "b.png"])
+        reference.known_intrinsics(np.eye(2), ["a.png", "b.png"])
 
 
 def test_K_file_missing_an_image(tmp_path):
     p = tmp_path / "cams.txt"
     p.write_text("a.png 100 100 50 40\n")
     with pytest.raises(InputFileError, match="no intrinsics for"):
-        reference.load_known_K(p, ["a.png", "b.png"])
+        reference.known_intrinsics(p, ["a.png", "b.png"])
 
 
 def test_K_forms(tmp_path):
     p = tmp_path / "K.txt"
     np.savetxt(p, np.array([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]))
-    K = reference.load_known_K(p, ["a.png", "b.png"])
+    K = reference.known_intrinsics(p, ["a.png", "b.png"])
     assert K.shape == (2, 3, 3) and K[1, 0, 0] == 100.0
     q = tmp_path / "cams.txt"
     q.write_text("b 200 200 50 40\na 100 100 50 40\n")  # matched by stem, any order
-    K = reference.load_known_K(q, ["a.png", "b.png"])
+    K = reference.known_intrinsics(q, ["a.png", "b.png"])
     assert K[0, 0, 0] == 100.0 and K[1, 0, 0] == 200.0
 
 
@@ -185,9 +187,9 @@ def test_reuse_our_matches(scene6, tmp_path):
     features.main(scene6, work, progress=False)
     matching.main(work, progress=False)
     cfg = reference.ReferenceConfig(use_our_matches=True)
-    res = reference.load_reference_result(reference.main(scene6, tmp_path / "ref", config=cfg, work=work))
-    assert res.summary["config"]["use_our_matches"] is True
-    assert res.summary["n_registered"] == 6
+    res = reference.load_reference(reference.main(scene6, tmp_path / "ref", config=cfg, work=work))
+    assert res.info["config"]["use_our_matches"] is True
+    assert res.info["n_registered"] == 6
     truth = read_reference(scene6 / "cameras.txt")
     R_ref, mask = match_reference(res.names, truth.names, truth.R)
     assert summarize(res.R, R_ref, mask)["median_deg"] < 0.5
@@ -205,7 +207,7 @@ def test_database_progress_counts_rows_as_they_are_written(tmp_path):
     import sqlite3
     import time
 
-    from pipeline.reference import _DatabaseProgress
+    from pipeline.reference.database import DatabaseProgress as _DatabaseProgress
 
     db = tmp_path / "d.db"
     missing = _DatabaseProgress(db, "keypoints", 5, "x", enabled=False)
@@ -231,8 +233,8 @@ def test_progress_polling_never_blocks_pycolmap(scene6, tmp_path, monkeypatch):
     """
     import sqlite3
 
-    init = reference._DatabaseProgress.__init__
-    monkeypatch.setattr(reference._DatabaseProgress, "__init__",
+    init = database.DatabaseProgress.__init__
+    monkeypatch.setattr(database.DatabaseProgress, "__init__",
                         lambda self, *a, **k: init(self, *a, **{**k, "period": 0.002}))
     s = json.loads(reference.main(scene6, tmp_path / "ref", progress=True).read_text())
     db = next((tmp_path / "ref").glob("database-*.db"))
@@ -244,3 +246,124 @@ def test_progress_polling_never_blocks_pycolmap(scene6, tmp_path, monkeypatch):
         con.close()
     assert n_kp == 6 and n_match_rows == 15
     assert s["n_registered"] == 6
+
+
+# ------------------------------------------------------------------ the stage contract and bad input
+def _boom(*a, **k):
+    raise AssertionError("pycolmap was called although the result is cached")
+
+
+def _png_claiming(w: int, h: int) -> bytes:
+    """A PNG whose header claims w×h pixels (8-bit grey) and whose data is one empty row."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * (w + 1))) + chunk(b"IEND", b""))
+
+
+@pytest.mark.slow
+def test_image_with_absurd_header_is_left_out_not_a_crash(scene6, tmp_path):
+    """A PNG claiming 60000×60000 pixels made pycolmap abort (SIGABRT); it is left out, with why."""
+    folder = tmp_path / "imgs"
+    shutil.copytree(scene6, folder)
+    (folder / "cameras.txt").unlink()  # pycolmap decodes every image itself (with a K file the K lookup failed first)
+    (folder / "huge.png").write_bytes(_png_claiming(60000, 60000))
+    r = subprocess.run([sys.executable, "-m", "pipeline.reference", "--images", str(folder), "--out",
+                        str(tmp_path / "ref"), "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    s = json.loads((tmp_path / "ref" / "reference.json").read_text())
+    assert s["n_registered"] == 6 and "huge.png" in s["images"]
+    assert "60000x60000" in s["unregistered"]["huge.png"] and "not given to pycolmap" in s["unregistered"]["huge.png"]
+    assert "huge.png" in r.stdout  # the command names it
+
+
+def test_bad_reference_config_is_found_before_any_work(scene6, tmp_path):
+    from pipeline import run
+    from pipeline.core.errors import ConfigError
+
+    for text, match in [("reference:\n  no_such_key: 1\n", r"\[reference\]: unknown key"),
+                        ("reference:\n  max_image_size: many\n", r"\[reference\] max_image_size='many'"),
+                        ("run:\n  reference: 'false'\n", r"\[run\] reference='false' but expected true or false"),
+                        ("run:\n  plots: 'false'\n", r"\[run\] plots='false' but expected true or false")]:
+        cfg = tmp_path / "bad.yaml"
+        cfg.write_text(text)
+        out = tmp_path / "out"
+        with pytest.raises(ConfigError, match=match):
+            run.main(scene6, out, config=cfg, quiet=True)
+        assert not (out / "work").exists()  # nothing ran
+    cfg.with_name("r.yaml").write_text("reference:\n  seed: -1\n")
+    r = subprocess.run([sys.executable, "-m", "pipeline.reference", "--images", str(scene6), "--out",
+                        str(tmp_path / "o"), "--config", str(cfg.with_name("r.yaml"))], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.strip().startswith("error: [reference] seed=-1")
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_runtime_options_recompute_nothing_and_a_damaged_result_heals(scene6, ref6, tmp_path, monkeypatch, caplog):
+    import pycolmap
+
+    out = tmp_path / "ref"
+    shutil.copytree(ref6, out)
+    monkeypatch.setattr(pycolmap, "extract_features", _boom)
+    monkeypatch.setattr(pycolmap, "incremental_mapping", _boom)
+    before = (out / "reference.json").read_bytes()
+    reference.main(scene6, out, config=reference.ReferenceConfig(num_threads=1), progress=False)  # runtime option
+    assert (out / "reference.json").read_bytes() == before
+    # a rotations file cut to 2 cameras is found, and rebuilt from the kept models (no pycolmap mapping)
+    lines = (out / "rotations.txt").read_text().splitlines()
+    (out / "rotations.txt").write_text("\n".join(lines[:-4]) + "\n")
+    with caplog.at_level("WARNING"):
+        res = reference.load_reference(reference.main(scene6, out, progress=False))
+    assert "damaged" in caplog.text and len(res.names) == 6
+    np.testing.assert_array_equal(res.R, reference.load_reference(ref6).R)
+    # a result that disagrees with itself is not trusted by the reader either
+    (out / "rotations.txt").write_text("\n".join(lines[:-4]) + "\n")
+    with pytest.raises(PipelineError, match="disagree"):
+        reference.load_reference(out)
+
+
+_KILL = """
+import os, signal, sys
+import pycolmap
+real = getattr(pycolmap, sys.argv[3])
+def killed(*a, **k):
+    db = pycolmap.Database.open(a[0])  # midway: the database is open, with its -wal and -shm
+    if sys.argv[3] == "extract_features":
+        db.write_camera(pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.SIMPLE_PINHOLE, 1.0, 2, 2))
+    os.kill(os.getpid(), signal.SIGKILL)
+setattr(pycolmap, sys.argv[3], killed)
+from pipeline.reference import main
+main(sys.argv[1], sys.argv[2], progress=False)
+"""
+
+
+@pytest.mark.slow
+def test_killed_reference_leaves_nothing_a_later_run_does_not_remove(scene6, tmp_path):
+    from pipeline.core.atomic import TMP_TAG
+
+    out = tmp_path / "ref"
+    for step in ("extract_features", "incremental_mapping"):  # killed while building the database, then mapping
+        r = subprocess.run([sys.executable, "-c", _KILL, str(scene6), str(out), step], capture_output=True, text=True)
+        assert r.returncode == -9, r.stderr
+        left = [p.name for p in out.iterdir()]
+        assert any(TMP_TAG in n for n in left), left  # the kill did leave temporaries
+        assert any(n.endswith("-wal") for n in left), left
+    reference.main(scene6, out, progress=False)
+    names = sorted(p.name for p in out.iterdir())
+    assert not [n for n in names if TMP_TAG in n or n.startswith(".") or n.endswith(("-wal", "-shm"))], names
+    key = lambda n: n.split("-", 1)[-1].split(".")[0]  # noqa: E731
+    assert [n.split("-")[0] for n in names] == ["database", "database", "model", "models", "reference.json",
+                                                 "reference.record.json", "rotations.txt"], names
+    assert key(names[0]) == key(names[1])
+    assert len(reference.load_reference(out).names) == 6
+    # pycolmap killed with the finished database open (e.g. a run with --overwrite): a run that reuses
+    # the result folds the database's -wal/-shm back into it
+    opened = "import os, signal, sys, pycolmap; db = pycolmap.Database.open(sys.argv[1]); os.kill(os.getpid(), 9)"
+    subprocess.run([sys.executable, "-c", opened, str(out / names[0])])
+    assert (out / (names[0] + "-wal")).exists()
+    reference.main(scene6, out, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == names

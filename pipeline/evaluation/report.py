@@ -1,0 +1,244 @@
+"""The run report (``OUT/report.md`` with one table per reference, and PNG plots) and the console tables.
+
+:func:`write_report` takes plain arrays and dicts (:class:`ReportData`) so that
+anything (run.py, a benchmark, a notebook) can call it; :func:`report_data`
+assembles them from the metrics of :func:`pipeline.evaluation.compare.evaluate_all`.
+The plots are :mod:`pipeline.evaluation.plots`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.atomic import atomic_open
+from pipeline.core.names import rows_by_name
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.evaluation import plots
+from pipeline.evaluation.compare import SUBSET_PREFIX
+from pipeline.reference.types import Reference
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summary_table", "console_table",
+           "summary_rows", "edge_rows"]
+
+TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
+              ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
+METHOD_EXTRAS = ("time_s", "certified", "rank", "gap")
+
+
+@dataclass
+class ReportData:
+    """Everything the report shows.
+
+    Attributes:
+        metrics: ``{reference: {method: summary}}``, summaries as returned by
+            :func:`pipeline.evaluation.metrics.summarize` (plus optional ``time_s``,
+            ``certified``, ``rank``, ``gap``).
+        camera_errors: ``{reference: {method: (N,) degrees, NaN = unevaluated}}``.
+        edge_errors: ``{reference: {label: (M,) degrees}}``, labels such as
+            ``"ransac"`` and ``"ba"``.
+        histories: ``{method: [{"time_s", "cost", optional "median_deg"}, ...]}``
+            of the iterative methods.
+        vg_edges: (M, 2) edges of the view graph, or None.
+        vg_names: camera names of the view graph.
+        edge_values: ``{label: (M,)}`` values to colour edges by (error, weight).
+        positions: (N, 2 or 3) camera positions for the picture, or None.
+        notes: free lines appended under "Notes" (unregistered images, dropped
+            cameras, warnings).
+        stages: ``{stage: seconds}``.
+        title: report title.
+    """
+
+    metrics: dict[str, dict[str, dict[str, Any]]]
+    camera_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    edge_errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    histories: dict[str, list[dict[str, float]]] = field(default_factory=dict)
+    vg_edges: np.ndarray | None = None
+    vg_names: list[str] = field(default_factory=list)
+    edge_values: dict[str, np.ndarray] = field(default_factory=dict)
+    positions: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
+    stages: dict[str, float] = field(default_factory=dict)
+    title: str = "Rotation averaging report"
+
+
+def _slug(s: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in s)
+
+
+def _fmt(v: Any, f: str) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    try:
+        return f.format(int(v) if f == "{:d}" else float(v))
+    except (TypeError, ValueError):
+        return str(v)
+
+
+def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """Markdown table lines of ``{method: summary}``."""
+    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "certificate"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, m in rows.items():
+        pct = m.get("pct_below", {}) or {}
+        cert = ""
+        if "certified" in m:
+            cert = ("certified" if m["certified"] else "NOT certified") + (
+                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "")
+        cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
+                 _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), cert]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: dict, edge_errors: dict,
+                histories: dict[str, list[dict[str, float]]], vg: ViewGraph, notes: list[str],
+                stages: dict[str, float], title: str, plots_on: bool = True) -> ReportData:
+    """The report's content from :func:`pipeline.evaluation.compare.evaluate_all`'s results.
+
+    One table per reference (each method's summary with its time and certificate;
+    pycolmap's own row under the truth and its like-for-like subset); the view graph
+    coloured by its edges' errors against the first reference and by inliers, placed
+    at the first reference's centres when it has them. ``plots_on=False`` keeps the
+    tables and notes only.
+    """
+    table = {r.label: {k: m["references"][r.label] | {kk: m.get(kk) for kk in METHOD_EXTRAS if kk in m}
+                       for k, m in metrics["methods"].items()} for r in refs}
+    if "truth" in table and "median_deg" in metrics["pycolmap"]:
+        for r in refs:
+            if r.label == "truth" or r.label.startswith(SUBSET_PREFIX):
+                table[r.label]["pycolmap (incremental)"] = metrics["pycolmap"]
+    edge_vals: dict[str, np.ndarray] = {}
+    if refs and refs[0].label in edge_errors and "ba" in edge_errors[refs[0].label]:
+        edge_vals[f"error_vs_{refs[0].label}"] = edge_errors[refs[0].label]["ba"]
+    if vg.inliers is not None:
+        edge_vals["inliers"] = np.asarray(vg.inliers, float)
+    pos = None
+    if refs and refs[0].centers is not None:
+        pos = rows_by_name(list(vg.names), refs[0].names, np.asarray(refs[0].centers),
+                           what=f"the reference '{refs[0].label}'")
+    data = ReportData(
+        metrics=table, camera_errors=camera_errors, edge_errors=edge_errors, histories=histories,
+        vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
+        notes=notes, stages=stages, title=title)
+    if not plots_on:
+        data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
+    return data
+
+
+def write_report(out: str | os.PathLike, data: ReportData) -> Path:
+    """Write ``out/report.md`` and its PNGs; returns the report path."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [f"# {data.title}", ""]
+    if data.stages:
+        total = sum(data.stages.values())
+        lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
+        lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
+        lines += [f"| **total** | {total:.2f} |", ""]
+    for ref, rows in data.metrics.items():
+        lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
+        errs = data.camera_errors.get(ref)
+        if errs:
+            p = plots.plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)
+            lines += [f"![camera errors vs {ref}]({p.name})", ""]
+        e = data.edge_errors.get(ref)
+        if e:
+            p = plots.plot_edge_errors(e, out / f"edge_errors_{_slug(ref)}.png", ref)
+            if p is not None:
+                lines += [f"![edge errors vs {ref}]({p.name})", ""]
+    p = plots.plot_convergence(data.histories, out / "convergence.png")
+    if p is not None:
+        lines += ["## Convergence", "", f"![convergence]({p.name})", ""]
+    if data.vg_edges is not None and len(data.vg_names):
+        for label, vals in (data.edge_values or {"edge": None}).items():
+            p = plots.plot_viewgraph(len(data.vg_names), np.asarray(data.vg_edges, int), vals,
+                                     out / f"viewgraph_{_slug(label)}.png", label, data.positions, data.vg_names)
+            lines += [f"## View graph ({label})", "", f"![view graph]({p.name})", ""]
+    if data.notes:
+        lines += ["## Notes", "", *[f"- {n}" for n in data.notes], ""]
+    path = out / "report.md"
+    with atomic_open(path) as f:
+        f.write("\n".join(lines))
+    logger.info("report: %s", path)
+    return path
+
+
+# ------------------------------------------------------------------ console
+def _f(v: Any, nd: int = 3) -> str:
+    try:
+        return f"{float(v):.{nd}f}"
+    except (TypeError, ValueError):
+        return "–"
+
+
+def summary_table(metrics: dict[str, Any]) -> str:
+    """The final console table of a run: one row per method and reference, and pycolmap's own."""
+    rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
+    for label, m in metrics["methods"].items():
+        note = ""
+        if "certified" in m:
+            note = "certified" if m["certified"] else "NOT certified"
+        for rname, s in m.get("references", {}).items():
+            rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),
+                         _f(s.get("max_deg")), _f(m.get("time_s"), 2), note))
+        if not m.get("references"):
+            rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
+    p = metrics.get("pycolmap") or {}
+    if "median_deg" in p:
+        rows.append(("pycolmap", "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
+                     _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
+    w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
+    lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
+    lines.insert(1, "  ".join("-" * x for x in w))
+    return "\n".join(lines)
+
+
+def console_table(title: str, rows: list[tuple[str, Any]]) -> str:
+    """A two-column ``name  value`` table under ``title`` (floats with 4 significant digits)."""
+    width = max(len(k) for k, _ in rows)
+    lines = [title, "-" * max(len(title), width + 14)]
+    for k, v in rows:
+        if isinstance(v, float):
+            v = f"{v:.4g}"
+        lines.append(f"{k:<{width}}  {v}")
+    return "\n".join(lines)
+
+
+def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
+    """Rows of a :func:`pipeline.evaluation.metrics.summarize` dict for :func:`console_table`."""
+    rows: list[tuple[str, Any]] = [
+        ("cameras", s["n_cameras"]),
+        ("evaluated", s["n_evaluated"]),
+        ("alignment", s["align"]),
+        ("median error (deg)", s["median_deg"]),
+        ("mean error (deg)", s["mean_deg"]),
+        ("RMS error (deg)", s["rms_deg"]),
+        ("max error (deg)", s["max_deg"]),
+        ("sqrt(sum ||R-R*||_F^2)", s["frobenius"]),
+    ]
+    rows += [(f"% under {t} deg", v) for t, v in s["pct_below"].items()]
+    if "mahalanobis" in s:
+        rows.append(("Mahalanobis (C.13)", s["mahalanobis"]))
+    return rows
+
+
+def edge_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
+    """Rows of a :func:`pipeline.evaluation.metrics.edge_stats` dict for :func:`console_table`."""
+    rows: list[tuple[str, Any]] = [
+        ("edges", s["n_edges"]),
+        ("evaluated", s["n_evaluated"]),
+        ("mean error (deg)", s["mean_deg"]),
+        ("median error (deg)", s["median_deg"]),
+        ("RMS error (deg)", s["rms_deg"]),
+    ]
+    rows += [(f"% above {t} deg", v) for t, v in s["pct_above"].items()]
+    return rows
