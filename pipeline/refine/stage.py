@@ -1,0 +1,268 @@
+"""The refine stage: averaged rotations finished by pycolmap's multi-view machinery (``python -m pipeline.refine``).
+
+It reads our front end's WORK folder (features, two-view inliers, the two-view BA
+view graph) and one averaging method's rotations in ``OUT/rotations/``, runs
+:func:`pipeline.refine.refine.refine_rotations`, and writes, atomically::
+
+    OUT/sparse/                          the COLMAP model (cameras, images, points3D, rigs,
+                                         frames), opened by ``pycolmap.Reconstruction(path)``;
+                                         absent when the refinement failed
+    OUT/rotations/<start>+refine.txt     the rotations to use: refined, or averaged where the
+                                         refinement failed or moved a camera more than
+                                         ``max_change_deg`` (same cameras as <start>.txt)
+    OUT/rotations/<start>+refine.json    status, warnings, per camera: refined or kept averaged
+                                         and why, change from the averaged rotation, predicted
+                                         uncertainty (√tr Σ, degrees) and covariance (rad²)
+    OUT/refine.record.json               the stage record
+
+The start is a method's label, or ``auto``: the recommended one (:func:`recommended_start`).
+The averaged rotations file is never changed: both sets stay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from pipeline.core.atomic import atomic_dir, write_json
+from pipeline.core.errors import CacheError, InputFileError, PipelineError
+from pipeline.core.names import match_names
+from pipeline.io.rotations import read_rotations, write_rotations
+from pipeline.refine.refine import RefineConfig, RefineResult, refine_rotations
+from pipeline.stage import Stage, StageRecord
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RefineStage", "recommended_start", "run_refine", "refined_label", "main_cli", "MODEL", "PREFERRED"]
+
+MODEL = "sparse"
+ROTATIONS = "rotations"
+#: The recommended starts, best first: IRLS-H-ℓ½ where the view graph has H, else IRLS-ℓ½. The
+#: refined result hardly depends on the start (r14: < 1e-4° between both); what matters is a
+#: robust start for the edge filter and for global positioning's basin.
+PREFERRED = ("irls-h-l0.5", "irls-l0.5")
+
+
+def refined_label(start: str) -> str:
+    return f"{start}+refine"
+
+
+def recommended_start(labels: Sequence[str]) -> tuple[str, str]:
+    """The method to start from among ``labels`` (those run) and why."""
+    labels = list(labels)
+    for p in PREFERRED:
+        if p in labels:
+            return p, f"{p}: the recommended start ({' > '.join(PREFERRED)})"
+    if not labels:
+        raise PipelineError("no averaged rotations to refine: run an averaging method first")
+    return labels[0], f"{labels[0]}: the first method run (none of {', '.join(PREFERRED)} ran)"
+
+
+def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
+    """Intrinsics read from a file are known (kept constant); EXIF and default focals are refined."""
+    if len(sources) != n:
+        return np.zeros(n, bool)
+    return np.array([str(s).startswith("file") for s in sources], bool)
+
+
+def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str]]:
+    """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
+
+    Returns:
+        the inputs (over every image of the features; NaN rotations for images the file
+        lacks) and the file's camera names, in the order of the features.
+    """
+    from pipeline.frontend.feature_stage import load_features  # noqa: PLC0415
+    from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: PLC0415
+    from pipeline.geometry.two_view_stage import load_two_view  # noqa: PLC0415
+
+    fs = load_features(work, descriptors=False)
+    tv = load_two_view(work)
+    vg = load_ba_viewgraph(work)
+    n = len(fs.names)
+    if tv.vg.n_cameras != n or vg.n_cameras != n:
+        raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
+                         "re-run the front end")
+    # the pairs that passed two-view BA, with their two-view inliers and refined poses
+    key_tv = tv.vg.edges[:, 0] * n + tv.vg.edges[:, 1]
+    key_ba = vg.edges[:, 0] * n + vg.edges[:, 1]
+    order = np.argsort(key_tv)
+    pos = np.searchsorted(key_tv[order], key_ba)
+    found = (pos < len(order)) & (key_tv[order][np.minimum(pos, len(order) - 1)] == key_ba)
+    if not found.all():
+        raise CacheError(f"the two-view BA view graph in {work} has pairs the two-view result lacks; re-run the front end")
+    e_tv = order[pos]
+    counts = np.diff(tv.offsets)[e_tv]
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    rows = np.arange(offsets[-1]) + np.repeat(tv.offsets[e_tv] - offsets[:-1], counts)  # inliers of the kept pairs
+    names, R = read_rotations(rotations)
+    idx = match_names(list(fs.names), names, what=str(rotations))
+    R_init = np.full((n, 3, 3), np.nan)
+    R_init[idx >= 0] = R[idx[idx >= 0]]
+    if (idx >= 0).sum() != len(names):
+        raise InputFileError(f"{rotations} names cameras that are not images of {work}")
+    return {"names": list(fs.names), "K": fs.K, "sizes": fs.sizes, "keypoints": fs.keypoints, "edges": vg.edges,
+            "match_offsets": offsets,
+            "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
+            "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
+            "known_K": _known_K(fs.K_source, n)}, [fs.names[k] for k in np.flatnonzero(idx >= 0)]
+
+
+class RefineStage(Stage[RefineConfig]):
+    """One averaging method's rotations refined by pycolmap (folder = OUT).
+
+    Args:
+        folder: OUT; the averaged rotations are read from ``OUT/rotations/<start>.txt``.
+        config: options; ``config.start`` may be ``auto``.
+        work: the front end's WORK folder (default ``OUT/work``).
+        methods: the labels of the methods run (to resolve ``auto``; default: the records
+            found in ``OUT/rotations``).
+    """
+
+    name = "refine"
+    title = "multi-view refinement (pycolmap)"
+    config_cls = RefineConfig
+
+    def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
+                 methods: Sequence[str] | None = None) -> None:
+        super().__init__(folder, config)
+        self.work = Path(work) if work is not None else self.folder / "work"
+        self.rot_dir = self.folder / ROTATIONS
+        if self.config.start == "auto":
+            if methods is None:
+                methods = sorted(p.name[:-len(".record.json")] for p in self.rot_dir.glob("*.record.json")
+                                 if "+" not in p.name)
+            self.start, self.start_why = recommended_start(methods)
+        else:
+            self.start, self.start_why = self.config.start, f"{self.config.start}: configured"
+        self.label = refined_label(self.start)
+        self.rotations_path = self.rot_dir / f"{self.label}.txt"
+        self.stats_path = self.rot_dir / f"{self.label}.json"
+
+    def inputs(self) -> dict[str, str]:
+        out = {up: self.upstream(up, self.work).fingerprint for up in ("features", "two_view", "two_view_ba")}
+        out["averaging"] = self.upstream("averaging", self.rot_dir, self.start).fingerprint
+        return out
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
+        inputs, start_names = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
+        res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
+        names = inputs["names"]
+        pos = {nm: k for k, nm in enumerate(names)}
+        rows = np.array([pos[nm] for nm in start_names])
+        paths: list[Path] = []
+        model = self.folder / MODEL
+        if res.reconstruction is not None:
+            with atomic_dir(model) as tmp:
+                res.reconstruction.write(tmp)
+            paths += sorted(p for p in model.rglob("*") if p.is_file())
+        else:
+            shutil.rmtree(model, ignore_errors=True)  # a model of an earlier run would not match these rotations
+        header = (f"rotations of {self.start} refined by pycolmap (global positioning, bundle adjustment, "
+                  f"retriangulation): status {res.status}; averaged where not refined")
+        paths.append(write_rotations(self.rotations_path, start_names, res.R[rows], header=header))
+        stats = refine_stats(res, names, rows, self)
+        paths.append(write_json(self.stats_path, stats))
+        logger.info("refine: %s, %d of %d cameras refined in %.1f s (%d points); %s", res.status,
+                    int(res.refined[rows].sum()), len(rows), res.stats["times"]["total"], res.stats.get("n_points", 0),
+                    self.rotations_path)
+        return paths, {k: stats[k] for k in ("label", "status", "n_cameras", "n_refined", "n_points", "time_s")}
+
+    def verify(self, record: StageRecord) -> None:
+        names, _ = read_rotations(self.rotations_path)
+        start_names, _ = read_rotations(self.rot_dir / f"{self.start}.txt")
+        if list(names) != list(start_names):
+            raise CacheError(f"{self.rotations_path} holds other cameras than {self.start}.txt")
+        stats = read_stats(self.stats_path)
+        if stats.get("n_cameras") != len(names) or (stats.get("model") is not None) != (self.folder / MODEL).is_dir():
+            raise CacheError(f"{self.stats_path} does not describe {self.rotations_path} and {self.folder / MODEL}")
+
+
+def _deg(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: RefineStage) -> dict[str, Any]:
+    """The JSON stats of a refinement over the start's cameras ``rows``."""
+    sigma = np.degrees(np.sqrt(np.trace(res.cov, axis1=1, axis2=2))) if res.cov is not None else \
+        np.full(len(names), np.nan)
+    cameras = {}
+    for k in rows.tolist():
+        c: dict[str, Any] = {"refined": bool(res.refined[k]), "change_deg": _deg(res.change_deg[k]),
+                             "sigma_deg": _deg(sigma[k])}
+        if not res.refined[k]:
+            c["kept_averaged_why"] = res.why[k]
+            if np.isfinite(res.R_refined[k]).all():
+                c["refined_cam_from_world"] = res.R_refined[k].ravel().tolist()
+        if res.cov is not None and np.isfinite(res.cov[k]).all():
+            c["cov_rad2"] = res.cov[k].ravel().tolist()
+        cameras[names[k]] = c
+    ok_sigma = sigma[rows][np.isfinite(sigma[rows])]
+    s = res.stats
+    return {"method": "refine", "label": stage.label, "start": stage.start, "start_why": stage.start_why,
+            "status": res.status, "warnings": res.warnings, "n_cameras": len(rows),
+            "n_refined": int(res.refined[rows].sum()),
+            "kept_averaged": {names[k]: res.why[k] for k in rows.tolist() if not res.refined[k]},
+            "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
+            "uncertainty_deg": {names[k]: _deg(sigma[k]) for k in rows.tolist()},
+            "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
+            "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
+            "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
+
+
+def read_stats(path: Path) -> dict[str, Any]:
+    """The stats JSON of a refinement; :class:`CacheError` naming it if unreadable."""
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        if not isinstance(d, dict) or d.get("method") != "refine" or not isinstance(d.get("cameras"), dict):
+            raise ValueError("not the stats of a refinement")
+        return d
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run `python -m pipeline.refine`") \
+            from None
+
+
+def run_refine(out: Path, config: RefineConfig, methods: Sequence[str] | None = None, work: Path | None = None,
+               overwrite: bool = False) -> dict[str, dict[str, Any]]:
+    """Run (or reuse) the stage in ``out``: ``{label: {"rotations", "stats", "record"}}``, as the averaging stage's."""
+    stage = RefineStage(Path(out), config, work=work, methods=methods)
+    record = stage.run(overwrite)
+    summary = {k: v for k, v in read_stats(stage.stats_path).items() if k not in ("cameras", "options", "stats")}
+    return {stage.label: {"rotations": stage.rotations_path, "stats": summary, "record": record}}
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.refine", description="Refine one averaging method's "
+                                "rotations with pycolmap (global positioning, BA, retriangulation); writes "
+                                "OUT/sparse/ and OUT/rotations/<start>+refine.txt.")
+    p.add_argument("--out", type=Path, required=True, help="the run's output folder (holds rotations/)")
+    p.add_argument("--work", type=Path, default=None, help="the front end's WORK folder (default OUT/work)")
+    p.add_argument("--config", type=Path, default=None, help="YAML config; its 'refine' section is used")
+    p.add_argument("--overwrite", action="store_true", help="recompute even if an intact result exists")
+    add_config_args(p, RefineConfig)
+
+    def body(a: argparse.Namespace) -> int:
+        cfg = config_from_args(RefineConfig, a, a.config)
+        res = run_refine(a.out, cfg, work=a.work, overwrite=a.overwrite)
+        for label, r in res.items():
+            s = r["stats"]
+            print(f"{label}: {s['status']}, {s['n_refined']}/{s['n_cameras']} cameras refined; {r['rotations']}")
+            for nm, why in s["kept_averaged"].items():
+                print(f"  kept averaged: {nm}: {why}")
+        return 0
+
+    return run_cli(body, p, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())
