@@ -213,6 +213,7 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "kept_averaged": {names[k]: res.why[k] for k in rows.tolist() if not res.refined[k]},
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
             "uncertainty_deg": {names[k]: _deg(sigma[k]) for k in rows.tolist()},
+            "change_from_averaged_deg": {names[k]: _deg(res.change_deg[k]) for k in rows.tolist()},
             "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
             "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
             "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
