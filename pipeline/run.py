@@ -16,9 +16,11 @@ same files):
 4. two-view BA       ``pipeline.two_view_ba``   → OUT/work/viewgraph.npz (with H)
 5. view graph        largest connected component → OUT/viewgraph.npz (the rest named)
 6. averaging         ``pipeline.average``       → OUT/rotations/<method>.txt + .json
-7. pycolmap          ``pipeline.reference``     → OUT/reference/ (rotations.txt, reference.json)
-8. evaluation        ``pipeline.evaluation``    → OUT/metrics.json
-9. report            ``pipeline.evaluation.report`` → OUT/report.md + PNGs
+7. refine            ``pipeline.refine``        → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
+8. pycolmap          ``pipeline.reference``     → OUT/reference/ (rotations.txt, reference.json)
+9. GLOMAP            ``pipeline.reference.global_mapping`` → OUT/reference-global/ (same layout)
+10. evaluation       ``pipeline.evaluation``    → OUT/metrics.json
+11. report           ``pipeline.evaluation.report`` → OUT/report.md + PNGs
 
 Averaging methods (``--methods``; default IRLS-ℓ½, plus, when the view graph has
 H, IRLS-H-ℓ½ and SDP-cSO(3), the latter when it has at most ``run.sdp_max_n``
@@ -77,8 +79,8 @@ logger = logging.getLogger("run")
 
 # configs/ sits beside the package in a checkout; without it the dataclass defaults apply
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
-STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "reference", "evaluation",
-          "report")
+STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine", "reference",
+          "global_reference", "evaluation", "report")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -89,7 +91,9 @@ class RunConfig(Config):
         methods: averaging methods; empty = IRLS-ℓ½ plus SDP-cSO(3) when N ≤ sdp_max_n.
         sdp_max_n: largest view graph (cameras) on which SDP runs by default.
         sdp_solver: conic solver of the SDP ("scs" or "clarabel").
-        reference: run the pycolmap reference.
+        reference: run the pycolmap references (incremental, and GLOMAP when global_reference).
+        refine: refine the recommended (or configured) method's rotations with pycolmap.
+        global_reference: run pycolmap's global SfM (GLOMAP) beside the incremental reference.
         align: global alignment of the evaluation ("l2" or "l1").
         scene_views: views of the default rendered scene (no IMAGE_DIR).
         scene_seed: seed of the default rendered scene.
@@ -101,6 +105,8 @@ class RunConfig(Config):
     sdp_max_n: int = 60
     sdp_solver: str = "scs"
     reference: bool = True
+    refine: bool = True
+    global_reference: bool = True
     align: str = "l2"
     scene_views: int = 8
     scene_seed: int = 0
@@ -261,12 +267,18 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     t_start = time.perf_counter()
     yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
-    allowed = {"run", "features", "matching", "two_view", "two_view_ba", "reference", *registry.sections()}
+    allowed = {"run", "features", "matching", "two_view", "two_view_ba", "reference", "refine", "global_reference",
+               *registry.sections()}
     unknown = sorted(set(yaml_data) - allowed)
     if unknown:
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
     rc = stage_config(st_reference.ReferenceConfig, yaml_data, "reference")  # checked before any work
+    from pipeline.reference import global_mapping as st_global  # noqa: PLC0415
+    from pipeline.refine.stage import RefineConfig, refine_notes, run_refine  # noqa: PLC0415
+
+    gc = st_global.GlobalReferenceConfig.sharing_database(rc, yaml_data.get("global_reference"))
+    fc = stage_config(RefineConfig, yaml_data, "refine")
     overrides = {"sdp": {"solver": rcfg.sdp_solver}}
     given = parse_methods(methods or rcfg.methods, yaml_data, overrides)  # checked before any work
     out = Path(out) if out is not None else default_out(images)
@@ -339,8 +351,19 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         return res
 
     results = runner("averaging", "rotation averaging", do_averaging)
+    if rcfg.refine:
+        try:
+            refined = runner("refine", "refine (pycolmap)", lambda: run_refine(out, fc, list(results), work, overwrite))
+            results.update(refined)
+            notes += refine_notes(refined)
+        except (PipelineError, RuntimeError, ValueError, OSError) as exc:  # the averaged rotations stand without it
+            notes.append(f"refine failed: {' '.join(str(exc).split())}; the averaged rotations are kept")
+            logger.warning("the refine stage failed (%s); continuing without it", notes[-1])
+    else:
+        runner.times["refine"] = 0.0
+        runner.k += 1
 
-    pyc = None
+    pyc = glo = None
     if rcfg.reference if reference is None else reference:
         try:
             ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
@@ -360,17 +383,29 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                 notes.append("pycolmap registered no image")
             for nm, why in rr.unregistered.items():
                 notes.append(f"pycolmap did not register {nm}: {why}")
+        if rcfg.global_reference:
+            try:
+                glo = st_global.load_global_reference(runner("global_reference", "pycolmap global (GLOMAP)", lambda: (
+                    st_global.main(images, out / "reference-global", K=K, overwrite=overwrite, config=gc, work=work,
+                                   names=list(fs.names), progress=progress, database_dir=out / "reference"))))
+                notes += [f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items()]
+            except (PipelineError, RuntimeError, ValueError, OSError) as exc:
+                notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
+                logger.warning("%s; continuing without it", notes[-1])
+        else:
+            runner.k += 1
     else:
         runner.times["reference"] = 0.0
-        runner.k += 1
+        runner.k += 2
 
     truth_ref = None if truth is None else truth.replace(label="truth")
     refs: list[Reference] = [truth_ref] if truth_ref is not None else []
-    if pyc is not None and len(pyc.names) >= 2:
-        sub = truth_on_registered(truth_ref, pyc, vg)
-        refs += ([sub] if sub is not None else []) + [pyc]
+    peers = [p for p in (pyc, glo) if p is not None]
+    for peer in [p for p in peers if len(p.names) >= 2]:
+        sub = truth_on_registered(truth_ref, peer, vg)
+        refs += ([sub] if sub is not None else []) + [peer]
     metrics, cam_err, edge_err = runner("evaluation", "evaluation", lambda: evaluate_all(
-        vg, ransac_vg, results, refs, pyc, rcfg.align))
+        vg, ransac_vg, results, refs, peers, rcfg.align))
     if not refs:
         notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
 
@@ -388,7 +423,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     metrics["stages_reused"] = dict(runner.reused)
     metrics["total_s"] = time.perf_counter() - t_start
     metrics["our_path_s"] = sum(runner.times.get(k, 0.0) for k in
-                                ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging"))
+                                ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine"))
     metrics["input"] = {"images": str(images), "n_images": len(fs.names), "n_cameras_graph": vg.n_cameras,
                         "n_edges": vg.n_edges, "left_out": dropped,
                         "left_out_why": left_out, "gt": None if gt is None else str(gt),

@@ -31,7 +31,7 @@ __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summar
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
-METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "status", "n_refined", "sigma_median_deg")
+METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg")
 #: The report's row of each pycolmap peer (by its label in the metrics).
 PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 
@@ -98,7 +98,7 @@ def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
         if "certified" in m:
             cert = ("certified" if m["certified"] else "NOT certified") + (
                 f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "")
-        if "status" in m:  # a refinement: ok, partial (some cameras kept averaged) or failed (all kept)
+        if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
                  _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), _fmt(m.get("sigma_median_deg"), "{:.4f}"),
@@ -231,7 +231,7 @@ def summary_table(metrics: dict[str, Any]) -> str:
         note = ""
         if "certified" in m:
             note = "certified" if m["certified"] else "NOT certified"
-        if "status" in m:
+        if m.get("method") == "refine":
             note = f"refine {m['status']}"
         for rname, s in m.get("references", {}).items():
             rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),

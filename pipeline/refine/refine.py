@@ -238,37 +238,45 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         return result("failed")
     tracks = restrict_tracks(tracks, active, cfg.min_track_views)
 
-    # 3. the in-memory database (correspondence graph) and the starting reconstruction
-    t0 = time.perf_counter()
+    # 3. the in-memory database (correspondence graph) and the starting reconstruction; 4. pycolmap's steps
     pc = _pycolmap()
-    images = np.flatnonzero(active)
-    pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
-    p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
-    cache = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off, p_matches,
-                                 cam2_from_cam1[pair_ok], t[pair_ok])
-    pose_graph = pc.PoseGraph()
-    pose_graph.load(cache.correspondence_graph)
-    if schedule["positioning_tracks_per_image"] > 0:
-        tracks = subset_tracks(tracks, select_tracks(tracks, n, schedule["positioning_tracks_per_image"]))
-    rec = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tracks, scratch)
-    stats["n_points_start"] = int(rec.num_points3D())
-    times["setup"] = time.perf_counter() - t0
+    state: dict[str, Any] = {}
 
-    # 4. positioning, iterative BA, retriangulation + final BA
+    def setup() -> tuple[bool, str]:
+        images = np.flatnonzero(active)
+        pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
+        p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
+        state["cache"] = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off,
+                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok])
+        state["pose_graph"] = pc.PoseGraph()
+        state["pose_graph"].load(state["cache"].correspondence_graph)
+        tr = tracks
+        if schedule["positioning_tracks_per_image"] > 0:
+            tr = subset_tracks(tr, select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
+        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch)
+        stats["n_points_start"] = int(state["rec"].num_points3D())
+        return True, ""
+
     ba = mapper.ba_options(pc, cfg, known)
-    steps = [("global_positioning", lambda: mapper.global_positioning(pc, rec, pose_graph, cfg)),
-             ("bundle_adjustment", lambda: mapper.iterative_bundle_adjustment(pc, rec, ba, known, cfg))]
+    steps = [("setup", setup),
+             ("global_positioning", lambda: mapper.global_positioning(pc, state["rec"], state["pose_graph"], cfg)),
+             ("bundle_adjustment", lambda: mapper.iterative_bundle_adjustment(pc, state["rec"], ba, known, cfg))]
     if cfg.retriangulate:
-        steps.append(("retriangulation", lambda: mapper.retriangulate(pc, rec, cache, ba, known, cfg,
+        steps.append(("retriangulation", lambda: mapper.retriangulate(pc, state["rec"], state["cache"], ba, known, cfg,
                                                                       schedule["refinement_rounds"])))
     for step, run in steps:
         t0 = time.perf_counter()
-        ok, reason = run()
+        try:
+            ok, reason = run()
+        except (RuntimeError, ValueError, MemoryError) as exc:  # pycolmap's failed checks raise these
+            ok, reason = False, f"{step.replace('_', ' ')} raised {type(exc).__name__}: {' '.join(str(exc).split())[:120]}"
         times[step] = time.perf_counter() - t0
-        stats[f"n_points_after_{step}"] = int(rec.num_points3D())
+        if "rec" in state:
+            stats[f"n_points_after_{step}"] = int(state["rec"].num_points3D())
         if not ok:
             warnings.append(f"{reason}; the averaged rotations are kept")
             return result("failed")
+    rec = state["rec"]
     rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))

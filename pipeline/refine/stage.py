@@ -40,7 +40,8 @@ from pipeline.stage import Stage, StageRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RefineStage", "recommended_start", "run_refine", "refined_label", "main_cli", "MODEL", "PREFERRED"]
+__all__ = ["RefineStage", "recommended_start", "run_refine", "refine_notes", "refined_label", "load_inputs",
+           "main_cli", "MODEL", "PREFERRED"]
 
 MODEL = "sparse"
 ROTATIONS = "rotations"
@@ -238,6 +239,20 @@ def run_refine(out: Path, config: RefineConfig, methods: Sequence[str] | None = 
     record = stage.run(overwrite)
     summary = {k: v for k, v in read_stats(stage.stats_path).items() if k not in ("cameras", "options", "stats")}
     return {stage.label: {"rotations": stage.rotations_path, "stats": summary, "record": record}}
+
+
+def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The report's notes on a refinement (:func:`run_refine`'s result): its start, status and every kept camera."""
+    notes = []
+    for label, r in results.items():
+        s = r["stats"]
+        notes.append(f"{label}: started from {s['start_why']}; status {s['status']}, {s['n_refined']}/{s['n_cameras']} "
+                     f"cameras refined" + (f"; COLMAP model in {MODEL}/" if s.get("model") else "; no model written"))
+        if s["status"] == "failed":
+            notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
+        notes += [f"{label}: {nm} keeps its averaged rotation: {why}" for nm, why in s["kept_averaged"].items()
+                  if why != "no averaged rotation"]
+    return notes
 
 
 def main_cli(argv: Sequence[str] | None = None) -> int:
