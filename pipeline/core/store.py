@@ -23,12 +23,13 @@ import hashlib
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.atomic import save_npz_uncompressed, write_json
 from pipeline.core.errors import CacheError
 
 __all__ = ["ItemStore", "item_key", "compute_missing"]
@@ -36,6 +37,27 @@ __all__ = ["ItemStore", "item_key", "compute_missing"]
 logger = logging.getLogger(__name__)
 
 INDEX = "index.json"
+#: What starting a pool of processes costs, in seconds of wall time on free cores (spawn, and each
+#: worker importing numpy, OpenCV and the package: 0.6 s CPU per worker, measured): :func:`compute_missing`
+#: computes in this process when the work left is shorter. ``ROTAVG_POOL_STARTUP_S`` overrides it (0: a pool
+#: whenever workers > 1).
+POOL_STARTUP_S = 1.0
+
+
+def _pool_pays_off(rest_s: float, workers: int) -> bool:
+    """Whether ``workers`` processes finish ``rest_s`` seconds of work sooner than this process alone.
+
+    A pool costs its start-up and gains only on free cores: on a machine whose load average
+    already fills every core (as ``make -l`` checks), it adds work and saves no time.
+    """
+    startup = float(os.environ.get("ROTAVG_POOL_STARTUP_S", POOL_STARTUP_S))
+    if startup <= 0:
+        return True
+    try:
+        busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
+    except OSError:  # no load average on this platform
+        busy = False
+    return not busy and rest_s > startup * workers / (workers - 1)
 _SEP = "__"
 
 
@@ -78,7 +100,7 @@ class ItemStore:
             for name, v in results[k].items():
                 arrays[f"{q}{_SEP}{name}"] = np.asarray(v)
         path = self.folder / _chunk_name(keys)
-        save_npz(path, **arrays)
+        save_npz_uncompressed(path, **arrays)  # zlib took most of the stores' write time (descriptors barely compress)
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
@@ -173,7 +195,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         work: ``work(tasks)`` returns the results of a chunk of tasks, in order; a
             module-level function (or a ``functools.partial`` of one), run on the
             executor of :func:`pipeline.core.parallel.make_executor`.
-        workers: workers of the executor (1, or a single chunk, runs in this process).
+        workers: workers of the executor (1, a single chunk, or work shorter than starting a pool runs in
+            this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
 
@@ -192,12 +215,27 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
     if not chunks:
         return 0
-    executor = make_executor(min(workers, len(chunks)))
+
+    def finish(idx: list[int], results: list[Mapping[str, Any]]) -> None:
+        store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
+        if on_chunk is not None:
+            on_chunk(len(idx))
+
+    n_workers = min(workers, len(chunks) - 1)
+    if n_workers > 1:
+        # the first chunk runs here and times the work: a pool of processes pays off only when the rest
+        # takes longer than starting it, and only on free cores
+        t0 = time.perf_counter()
+        finish(chunks[0], work([make_task(k) for k in chunks[0]]))
+        rest = (time.perf_counter() - t0) * (len(chunks) - 1)
+        chunks = chunks[1:]
+        if not _pool_pays_off(rest, n_workers):
+            logger.debug("%d chunks left, about %.1f s: computed here, without a pool", len(chunks), rest)
+            n_workers = 1
+    executor = make_executor(max(n_workers, 1))
     try:
         for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
-            store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
-            if on_chunk is not None:
-                on_chunk(len(idx))
+            finish(idx, results)
     finally:
         executor.close()
     return len(todo)

@@ -148,8 +148,11 @@ class RefineStage(Stage[RefineConfig]):
         self.stats_path = self.rot_dir / f"{self.label}.json"
 
     def inputs(self) -> dict[str, str]:
-        out = {up: self.upstream(up, self.work).fingerprint for up in ("features", "two_view", "two_view_ba")}
-        out["averaging"] = self.upstream("averaging", self.rot_dir, self.start).fingerprint
+        if not (self.rot_dir / f"{self.start}.record.json").is_file():
+            raise InputFileError(f"{self.rot_dir} has no rotations of '{self.start}', the refinement's start: run that "
+                                 "averaging method first (run.py --methods), or set refine.start to a method that ran")
+        out = {"averaging": self.upstream("averaging", self.rot_dir, self.start).fingerprint}
+        out.update({up: self.upstream(up, self.work).fingerprint for up in ("features", "two_view", "two_view_ba")})
         return out
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
