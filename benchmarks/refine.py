@@ -8,10 +8,11 @@ adjustment; the truth (Strecha ``gt_dense_cameras/``, ``templeSR_par.txt``) is r
 evaluation only. In one process, one after the other:
 
 1. **our path**: ``run.main`` without the peers and without plots: features → matching →
-   two-view → two-view BA → averaging (the default methods) → refine. Its time is
-   ``metrics.json``'s ``our_path_s`` (the stages' wall times, every averaging method
-   included; the report is not in it), and its CPU time is this process's plus its
-   reaped workers';
+   two-view → two-view BA → averaging (the default methods) → refine. The path to the
+   refined model is the stages' wall times with the averaging of the refinement's start
+   only (the other methods are rows of the report, not steps to the model); the path with
+   every default method (``metrics.json``'s ``our_path_s``) is reported beside it. CPU:
+   this process's and its reaped workers', without the other methods' averaging;
 2. **GLOMAP**: the GLOMAP peer stage (``pipeline.reference.global_mapping``) exactly as
    ``run.py`` calls it; its time is pycolmap's extraction + matching + ``global_mapping``;
 3. ``run.main`` again with the peers: our stages and GLOMAP are reused, the incremental
@@ -48,6 +49,7 @@ from pipeline.core.names import match_names  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "refine.json"
+FRONT_END = ("features", "matching", "two_view", "two_view_ba", "viewgraph")
 SCENES = {  # name: (images, truth, K), relative to the data folder
     "fountain": ("strecha/fountain-P11/images", "strecha/fountain-P11/gt_dense_cameras",
                  "strecha/fountain-P11/images/K.txt"),
@@ -93,9 +95,17 @@ def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict) 
     load0 = os.getloadavg()[0]
     c0, t0 = cpu_s(), time.perf_counter()
     m = _json(run.main(images, out, config=config, gt=gt, K=K, reference=False, quiet=True))
-    ours = {"path_s": m["our_path_s"], "run_wall_s": time.perf_counter() - t0, "cpu_s": cpu_s() - c0,
-            "stages_s": m["stages"], "load_avg": load0}
-    print(f"  {name}: our path {ours['path_s']:.1f} s ({ours['cpu_s']:.1f} s CPU)", flush=True)
+    cpu = cpu_s() - c0
+    refine = next(v for v in m["methods"].values() if v.get("method") == "refine")
+    starts = {k: _json(out / "rotations" / f"{k}.record.json")["time_s"] for k, v in m["methods"].items()
+              if v.get("method") != "refine"}  # each averaging method's stage time
+    st = m["stages"]
+    path = sum(st[k] for k in FRONT_END) + starts[refine["start"]] + st["refine"]
+    ours = {"path_s": path, "path_all_methods_s": m["our_path_s"], "cpu_s": cpu,
+            "cpu_path_s": cpu - (sum(starts.values()) - starts[refine["start"]]) - st.get("report", 0.0),
+            "averaging_s": starts, "run_wall_s": time.perf_counter() - t0, "stages_s": st, "load_avg": load0}
+    print(f"  {name}: our path {path:.1f} s, with every averaging method {m['our_path_s']:.1f} s ({cpu:.1f} s CPU)",
+          flush=True)
 
     rc = stage_config(ReferenceConfig, yaml_data, "reference")
     gc = glomap.GlobalReferenceConfig.sharing_database(rc, yaml_data.get("global_reference"))
@@ -132,7 +142,8 @@ def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict) 
     row["peers"]["glomap"]["load_avg"] = load1
     g = row["peers"]["glomap"]
     row["time_ratio"] = ours["path_s"] / g["time_s"]
-    row["cpu_ratio"] = ours["cpu_s"] / g_cpu if g_cpu > 0 else None
+    row["time_ratio_all_methods"] = ours["path_all_methods_s"] / g["time_s"]
+    row["cpu_ratio"] = ours["cpu_path_s"] / g_cpu if g_cpu > 0 else None
     row["accept"] = {
         "refined_le_each_peer": all(row["peers"][k]["pairwise"]["ours"]["median_deg"]
                                     <= row["peers"][k]["pairwise"][k]["median_deg"] for k in peers),
@@ -163,8 +174,9 @@ def table(rows: list[dict]) -> str:
                      f"{s['sigma_median_deg'] or float('nan'):.4f}°")
         g = r["peers"]["glomap"]
         lines.append(f"{'':<9} time: our path {r['ours']['path_s']:.1f} s / GLOMAP {g['time_s']:.1f} s = "
-                     f"{r['time_ratio']:.2f} (CPU {r['ours']['cpu_s']:.1f} / {g['cpu_s']:.1f} s = "
-                     f"{r['cpu_ratio'] or float('nan'):.2f}); acceptance {r['accept']}")
+                     f"{r['time_ratio']:.2f} (CPU {r['ours']['cpu_path_s']:.1f} / {g['cpu_s']:.1f} s = "
+                     f"{r['cpu_ratio'] or float('nan'):.2f}; with every averaging method "
+                     f"{r['time_ratio_all_methods']:.2f}); acceptance {r['accept']}")
     return "\n".join(lines)
 
 

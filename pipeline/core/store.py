@@ -195,8 +195,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         work: ``work(tasks)`` returns the results of a chunk of tasks, in order; a
             module-level function (or a ``functools.partial`` of one), run on the
             executor of :func:`pipeline.core.parallel.make_executor`.
-        workers: workers of the executor (1, a single chunk, or work shorter than starting a pool runs in
-            this process).
+        workers: workers of the executor (1 or a single chunk runs in this process; work shorter than
+            starting a pool of processes runs on threads of this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
 
@@ -222,17 +222,19 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             on_chunk(len(idx))
 
     n_workers = min(workers, len(chunks) - 1)
+    backend = "processes"
     if n_workers > 1:
         # the first chunk runs here and times the work: a pool of processes pays off only when the rest
-        # takes longer than starting it, and only on free cores
+        # takes longer than starting it, and only on free cores; otherwise threads, which start at once
+        # and run in parallel where the work releases the GIL (OpenCV, BLAS)
         t0 = time.perf_counter()
         finish(chunks[0], work([make_task(k) for k in chunks[0]]))
         rest = (time.perf_counter() - t0) * (len(chunks) - 1)
         chunks = chunks[1:]
         if not _pool_pays_off(rest, n_workers):
-            logger.debug("%d chunks left, about %.1f s: computed here, without a pool", len(chunks), rest)
-            n_workers = 1
-    executor = make_executor(max(n_workers, 1))
+            logger.debug("%d chunks left, about %.1f s: threads of this process, no pool", len(chunks), rest)
+            backend = "threads"
+    executor = make_executor(max(n_workers, 1), backend)
     try:
         for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
             finish(idx, results)
