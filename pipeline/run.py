@@ -264,6 +264,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: PLC0415
     from pipeline import reference as st_reference  # noqa: PLC0415
     from pipeline.evaluation import report as st_report  # noqa: PLC0415
+    from pipeline.reference import global_mapping as st_global  # noqa: PLC0415
+    from pipeline.refine.stage import RefineConfig, refine_for_run  # noqa: PLC0415
 
     t_start = time.perf_counter()
     yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
@@ -274,9 +276,6 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
     rcfg = stage_config(RunConfig, yaml_data, "run")
     rc = stage_config(st_reference.ReferenceConfig, yaml_data, "reference")  # checked before any work
-    from pipeline.reference import global_mapping as st_global  # noqa: PLC0415
-    from pipeline.refine.stage import RefineConfig, refine_notes, run_refine  # noqa: PLC0415
-
     gc = st_global.GlobalReferenceConfig.sharing_database(rc, yaml_data.get("global_reference"))
     fc = stage_config(RefineConfig, yaml_data, "refine")
     overrides = {"sdp": {"solver": rcfg.sdp_solver}}
@@ -352,13 +351,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
 
     results = runner("averaging", "rotation averaging", do_averaging)
     if rcfg.refine:
-        try:
-            refined = runner("refine", "refine (pycolmap)", lambda: run_refine(out, fc, list(results), work, overwrite))
-            results.update(refined)
-            notes += refine_notes(refined)
-        except (PipelineError, RuntimeError, ValueError, OSError) as exc:  # the averaged rotations stand without it
-            notes.append(f"refine failed: {' '.join(str(exc).split())}; the averaged rotations are kept")
-            logger.warning("the refine stage failed (%s); continuing without it", notes[-1])
+        results.update(runner("refine", "refine (pycolmap)", lambda: refine_for_run(
+            out, fc, list(results), work, overwrite, notes)))
     else:
         runner.times["refine"] = 0.0
         runner.k += 1
@@ -383,17 +377,8 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                 notes.append("pycolmap registered no image")
             for nm, why in rr.unregistered.items():
                 notes.append(f"pycolmap did not register {nm}: {why}")
-        if rcfg.global_reference:
-            try:
-                glo = st_global.load_global_reference(runner("global_reference", "pycolmap global (GLOMAP)", lambda: (
-                    st_global.main(images, out / "reference-global", K=K, overwrite=overwrite, config=gc, work=work,
-                                   names=list(fs.names), progress=progress, database_dir=out / "reference"))))
-                notes += [f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items()]
-            except (PipelineError, RuntimeError, ValueError, OSError) as exc:
-                notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
-                logger.warning("%s; continuing without it", notes[-1])
-        else:
-            runner.k += 1
+        glo = runner("global_reference", "pycolmap global (GLOMAP)", lambda: st_global.global_peer_for_run(
+            images, out, K, overwrite, gc, work, list(fs.names), progress, notes)) if rcfg.global_reference else None
     else:
         runner.times["reference"] = 0.0
         runner.k += 2

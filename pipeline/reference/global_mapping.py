@@ -32,6 +32,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from pipeline.core.errors import PipelineError
 from pipeline.reference.database import DatabaseConfig
 from pipeline.reference.models import load_reference
 from pipeline.reference.peer import PeerConfig, PeerStage, peer_cli, run_peer
@@ -39,7 +40,8 @@ from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["GlobalReferenceConfig", "GlobalReferenceStage", "LABEL", "main", "main_cli", "load_global_reference"]
+__all__ = ["GlobalReferenceConfig", "GlobalReferenceStage", "LABEL", "main", "main_cli", "load_global_reference",
+           "global_peer_for_run"]
 
 #: The label of the GLOMAP peer in metrics and reports.
 LABEL = "glomap"
@@ -93,6 +95,23 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
     """
     return run_peer(GlobalReferenceStage, images, out, K=K, overwrite=overwrite, config=config, work=work,
                     names=names, progress=progress, database_dir=database_dir)
+
+
+def global_peer_for_run(images: Path, out: Path, K: Any, overwrite: bool, config: GlobalReferenceConfig,
+                        work: Path, names: list[str], progress: bool, notes: list[str]) -> Reference | None:
+    """The GLOMAP peer as ``run.py`` runs it: in ``out/reference-global`` on ``out/reference``'s database.
+
+    Its unregistered images, or its failure (which never stops the run), are appended to ``notes``.
+    """
+    try:
+        glo = load_global_reference(main(images, out / "reference-global", K=K, overwrite=overwrite, config=config,
+                                         work=work, names=names, progress=progress, database_dir=out / "reference"))
+    except (PipelineError, RuntimeError, ValueError, OSError) as exc:
+        notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
+        logger.warning("%s; continuing without it", notes[-1])
+        return None
+    notes += [f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items()]
+    return glo
 
 
 def load_global_reference(out: str | Path) -> Reference:

@@ -40,7 +40,8 @@ from pipeline.stage import Stage, StageRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RefineStage", "recommended_start", "run_refine", "refine_notes", "refined_label", "load_inputs",
+__all__ = ["RefineStage", "recommended_start", "run_refine", "refine_for_run", "refine_notes", "refined_label",
+           "load_inputs",
            "main_cli", "MODEL", "PREFERRED"]
 
 MODEL = "sparse"
@@ -256,6 +257,23 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
         notes += [f"{label}: {nm} keeps its averaged rotation: {why}" for nm, why in s["kept_averaged"].items()
                   if why != "no averaged rotation"]
     return notes
+
+
+def refine_for_run(out: Path, config: RefineConfig, methods: Sequence[str], work: Path, overwrite: bool,
+                   notes: list[str]) -> dict[str, dict[str, Any]]:
+    """:func:`run_refine` for ``run.py``: its notes appended to ``notes``; a failure to run is a note, not an error.
+
+    Returns:
+        ``{label: result}`` to add to the averaging results (empty when the stage could not run).
+    """
+    try:
+        res = run_refine(out, config, methods, work, overwrite)
+    except (PipelineError, RuntimeError, ValueError, OSError) as exc:  # the averaged rotations stand without it
+        notes.append(f"refine failed: {' '.join(str(exc).split())}; the averaged rotations are kept")
+        logger.warning("%s", notes[-1])
+        return {}
+    notes += refine_notes(res)
+    return res
 
 
 def main_cli(argv: Sequence[str] | None = None) -> int:

@@ -121,3 +121,17 @@ def test_bad_inputs(problem0):
         refine_rotations(**inp, R_init=R_true[:3])
     with pytest.raises(ValueError, match=r"edges must be pairs \(i, j\) with 0 <= i < j < 8"):
         refine_rotations(**dict(inp, edges=inp["edges"][:, ::-1]), R_init=R_true)
+
+
+def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
+    """A focal 3% off: kept constant when 'known', refined toward the truth when not."""
+    inp, R_true = problem0
+    K = inp["K"].copy()
+    K[:, 0, 0] *= 1.03
+    K[:, 1, 1] *= 1.03
+    kept = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=True, config=ONE_THREAD)
+    free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    f = lambda res: np.array([c.params[0] for c in res.reconstruction.cameras.values()])  # noqa: E731
+    np.testing.assert_allclose(f(kept), 1280.0 * 1.03)
+    assert np.all(np.abs(f(free) - 1280.0) < 0.3 * 1280.0 * 0.03)
+    assert free.status == "ok" and free.stats["mean_reprojection_error_px"] < kept.stats["mean_reprojection_error_px"]
