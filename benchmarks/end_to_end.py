@@ -1,5 +1,3 @@
-# NOTE (lead): renamed from benchmarks/pipeline.py, which shadowed the `pipeline` package for every
-# `python benchmarks/<x>.py` (the script folder comes first on sys.path). Keep this name.
 """The whole pipeline on the default scene, fountain-P11, temple, and rendered scenes.
 
     python benchmarks/end_to_end.py [--quick] [--only default,fountain,temple,rendered]

@@ -21,10 +21,6 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# benchmarks/pipeline.py (another benchmark) would shadow the package when this
-# script's folder is first on sys.path; import the installed package instead.
-_here = str(Path(__file__).resolve().parent)
-sys.path[:] = [p for p in sys.path if str(Path(p or ".").resolve()) != _here]
 
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402

@@ -1,48 +1,32 @@
-"""The whole pipeline on an image folder: images → rotations → evaluation → report.
+"""The whole pipeline on an image folder: a list of stages.
 
-The implementation behind the top-level ``run.py`` (a thin entry point); also
-``python -m pipeline.run``. Usage::
+The implementation behind the top-level ``run.py``; also ``python -m pipeline.run``::
 
     python run.py [IMAGE_DIR] [--out DIR] [--config configs/NAME.yaml] [--methods M ...]
                   [--gt REF] [--K FILE] [--no-reference] [--overwrite] [-v | -q]
 
-Stages, in order (each one is the ``main()`` of its ``python -m pipeline.<stage>``
-command, so running the stage commands one by one on the same folders gives the
-same files):
+Every input is checked first (:func:`pipeline.plan.prepare`: the whole config, the
+methods, ``--K``, ``--gt``, the output folder, every image's header). Then the
+stages run, each under the stage contract (:mod:`pipeline.stage`: a fingerprint of
+its options and inputs, a record, an intact cached result reused, a damaged one
+recomputed), each also a command of its own:
 
-1. features          ``pipeline.features``      → OUT/work/features.json (+ per-image cache)
-2. matching          ``pipeline.matching``      → OUT/work/...
-3. two-view          ``pipeline.two_view``      → OUT/work/two_view.npz (RANSAC view graph)
-4. two-view BA       ``pipeline.two_view_ba``   → OUT/work/viewgraph.npz (with H)
-5. view graph        largest connected component → OUT/viewgraph.npz (the rest named)
-6. averaging         ``pipeline.average``       → OUT/rotations/<method>.txt + .json
-7. refine            ``pipeline.refine``        → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
-8. pycolmap          ``pipeline.reference``     → OUT/reference/ (rotations.txt, reference.json)
-9. GLOMAP            ``pipeline.reference.global_mapping`` → OUT/reference-global/ (same layout)
-10. evaluation       ``pipeline.evaluation``    → OUT/metrics.json
-11. report           ``pipeline.evaluation.report`` → OUT/report.md + PNGs
+1. features      ``python -m pipeline.features``     → OUT/work/features.json + features/
+2. matching      ``python -m pipeline.matching``     → OUT/work/matches.json + matches/
+3. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
+4. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
+5. view graph    largest connected component          → OUT/viewgraph.npz (+ why each image is left out)
+6. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
+7. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
+8. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
+9. GLOMAP        ``python -m pipeline.reference.global_mapping`` → OUT/reference-global/ (pycolmap global)
+10. evaluation and report                             → OUT/metrics.json, OUT/report.md
 
-Averaging methods (``--methods``; default IRLS-ℓ½, plus, when the view graph has
-H, IRLS-H-ℓ½ and SDP-cSO(3), the latter when it has at most ``run.sdp_max_n``
-cameras):
-
-- ``irls`` (= ``irls-l0.5``), ``irls-<loss>`` for any loss of ``pipeline.average``
-  (``l2``, ``l1``, ``l<p>``, ``geman-mcclure``, ``huber``, ...): paper 1;
-- ``irls-h`` (= ``irls-h-l0.5``), ``irls-h-<loss>``: the same IRLS with each
-  residual in its H metric (``pipeline.averaging.irls_h``; not in either paper);
-- ``l1`` (the initial ℓ1 step alone), ``weiszfeld``;
-- ``sdp`` (= ``sdp-cso3``), ``sdp-cso3-iso``, ``sdp-o3-iso``, ``sdp-o3-aniso``.
-
-References: ``--gt REF`` (true cameras: a rendered cameras file, Strecha
-``gt_dense_cameras/``, Middlebury ``*_par.txt``, a COLMAP model or a rotations
-file) and the pycolmap reconstruction. Every method is evaluated against every
-reference; pycolmap is also evaluated against the truth.
-
-With no IMAGE_DIR, a tiny scene is rendered (``pipeline.synthetic.render``) into
-OUT/scene and the pipeline runs on it with its cameras file as the truth.
-
-Re-running with the same ``--out`` reuses every finished stage (each stage's own
-cache); ``--overwrite`` redoes everything.
+Methods come from the registry (:mod:`pipeline.averaging.registry`). With no
+IMAGE_DIR a small scene is rendered into OUT/scene and its cameras are the truth.
+A re-run with the same ``--out`` reuses every finished stage; ``--overwrite`` redoes
+everything. One run at a time holds an output folder; temporary files an
+interrupted run left there are removed.
 """
 
 from __future__ import annotations
@@ -53,372 +37,140 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import argparse  # noqa: E402
-import dataclasses  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any, Callable  # noqa: E402
 
-import numpy as np  # noqa: E402
-
 from pipeline.averaging import registry  # noqa: E402
-from pipeline.averaging.convergence import error_vs_time_curves  # noqa: E402
-from pipeline.averaging.registry import parse_methods  # noqa: E402
 from pipeline.averaging.stage import run_averaging  # noqa: E402
-from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.core.config import Config, load_yaml, stage_config  # noqa: E402
-from pipeline.core.errors import ConfigError, InputFileError, PipelineError  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-from pipeline.evaluation.compare import SUBSET_PREFIX, evaluate_all, match_reference, truth_on_registered  # noqa: E402,F401
-from pipeline.evaluation.report import report_data, summary_table  # noqa: E402
-from pipeline.reference.types import Reference  # noqa: E402
+from pipeline.core.atomic import remove_stale_temporaries  # noqa: E402
+from pipeline.core.errors import PipelineError  # noqa: E402
+from pipeline.core.lock import folder_lock  # noqa: E402
+from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
+from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
+from pipeline.frontend.matching_stage import MatchingStage  # noqa: E402
+from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
+from pipeline.geometry.two_view_stage import TwoViewStage  # noqa: E402
+from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
+from pipeline.plan import Plan, prepare  # noqa: E402
+from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
+from pipeline.reference.incremental import IncrementalReferenceStage  # noqa: E402
+from pipeline.reference.models import load_reference  # noqa: E402
+from pipeline.refine.stage import refine_for_run  # noqa: E402
+from pipeline.stage import Stage, StageRecord  # noqa: E402
 
 logger = logging.getLogger("run")
 
-# configs/ sits beside the package in a checkout; without it the dataclass defaults apply
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
-STAGES = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine", "reference",
-          "global_reference", "evaluation", "report")
+STEPS = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine", "reference",
+         "global_reference", "evaluation", "report")
 
 
-@dataclass(frozen=True, kw_only=True)
-class RunConfig(Config):
-    """Options of run.py itself (YAML section ``run``), typed: ``reference: "false"`` is an error.
+class Runner:
+    """Runs the steps in order: one progress line each, its wall time, whether it reused its result."""
 
-    Attributes:
-        methods: averaging methods; empty = IRLS-ℓ½ plus SDP-cSO(3) when N ≤ sdp_max_n.
-        sdp_max_n: largest view graph (cameras) on which SDP runs by default.
-        sdp_solver: conic solver of the SDP ("scs" or "clarabel").
-        reference: run the pycolmap references (incremental, and GLOMAP when global_reference).
-        refine: refine the recommended (or configured) method's rotations with pycolmap.
-        global_reference: run pycolmap's global SfM (GLOMAP) beside the incremental reference.
-        align: global alignment of the evaluation ("l2" or "l1").
-        scene_views: views of the default rendered scene (no IMAGE_DIR).
-        scene_seed: seed of the default rendered scene.
-        scene_noise: pixel noise (0-255 scale) of the default rendered scene.
-        plots: write the PNG plots of the report.
-    """
-
-    methods: tuple[str, ...] = ()
-    sdp_max_n: int = 60
-    sdp_solver: str = "scs"
-    reference: bool = True
-    refine: bool = True
-    global_reference: bool = True
-    align: str = "l2"
-    scene_views: int = 8
-    scene_seed: int = 0
-    scene_noise: float = 0.0
-    plots: bool = True
-
-    SECTION = "run"
-
-    def check(self) -> None:
-        if self.align not in ("l2", "l1"):
-            raise ConfigError(f"[run] align={self.align!r}; expected 'l2' or 'l1'")
-        if self.sdp_max_n < 0:
-            raise ConfigError(f"[run] sdp_max_n={self.sdp_max_n}; expected >= 0")
-
-
-def _mtimes(paths: list[Path]) -> list[int | None]:
-    return [p.stat().st_mtime_ns if p.exists() else None for p in paths]
-
-
-class StageRunner:
-    """Times stages, prints one progress line per stage, records whether a stage reused its result."""
-
-    def __init__(self, quiet: bool = False) -> None:
-        self.times: dict[str, float] = {}
+    def __init__(self, plan: Plan) -> None:
+        self.plan = plan
+        self.times: dict[str, float] = dict(plan.times)
         self.reused: dict[str, bool] = {}
-        self.quiet = quiet
         self.k = 0
 
-    def __call__(self, name: str, title: str, fn: Callable[[], Any],
-                 outputs: Callable[[], list[Path]] | None = None) -> Any:
-        """Run stage ``name``; ``outputs`` lists its result files (unchanged mtimes = reused)."""
+    def step(self, name: str, title: str, fn: Callable[[], Any]) -> Any:
         self.k += 1
-        if not self.quiet:
-            print(f"[{self.k}/{len(STAGES)}] {title} ...", file=sys.stderr, flush=True)
-        before = (outputs(), _mtimes(outputs())) if outputs else None
+        if not self.plan.quiet:
+            print(f"[{self.k}/{len(STEPS)}] {title} ...", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         res = fn()
-        dt = time.perf_counter() - t0
-        self.times[name] = dt
-        if outputs and before is not None:
-            paths = outputs()
-            self.reused[name] = bool(paths) and paths == before[0] and _mtimes(paths) == before[1]
-        if not self.quiet:
+        self.times[name] = self.times.get(name, 0.0) + time.perf_counter() - t0
+        if isinstance(res, StageRecord):
+            self.reused[name] = res.reused
+        if not self.plan.quiet:
             tag = " (reused)" if self.reused.get(name) else ""
-            print(f"[{self.k}/{len(STAGES)}] {title}: {dt:.2f} s{tag}", file=sys.stderr, flush=True)
+            print(f"[{self.k}/{len(STEPS)}] {title}: {self.times[name]:.2f} s{tag}", file=sys.stderr, flush=True)
         return res
 
-
-# ----------------------------------------------------------------------- stages
-def _cfg(module: Any, cls_names: tuple[str, ...], yaml_data: dict, section: str) -> Any:
-    """The stage's config dataclass from YAML, or None when the module has no known config class."""
-    for n in cls_names:
-        cls = getattr(module, n, None)
-        if cls is not None:
-            return stage_config(cls, yaml_data, section)
-    if yaml_data.get(section):
-        raise InputFileError(f"[{section}] options given but {module.__name__} has no config class")
-    return None
+    def stage(self, stage: Stage) -> StageRecord:
+        return self.step(stage.name, stage.title, lambda: stage.run(self.plan.overwrite))
 
 
-def _left_out_reasons(vg_all: ViewGraph, labels: np.ndarray, rejected: list[dict]) -> dict[str, str]:
-    """Why each camera outside the largest component is left out."""
-    deg = vg_all.degrees()
-    sizes = np.bincount(labels)
-    reasons: dict[str, str] = {}
-    for k, nm in enumerate(vg_all.names):
-        if labels[k] == 0:
-            continue
-        if deg[k] == 0:
-            mine = [r for r in rejected if nm in r.get("names", [])]
-            why = [str(r.get("reason", "?")) for r in mine]
-            common = max(set(why), key=why.count) if why else "no match with any image"
-            reasons[nm] = (f"no accepted image pair ({len(mine)} pair(s) rejected, most often: {common})"
-                           if mine else f"no accepted image pair ({common})")
-        else:
-            others = [n for j, n in enumerate(vg_all.names) if labels[j] == labels[k] and j != k]
-            reasons[nm] = (f"in another connected component of {sizes[labels[k]]} images "
-                           f"(with {', '.join(others[:5])}{'...' if len(others) > 5 else ''}), not linked to the largest")
-    return reasons
+def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str, dict]]:
+    specs = list(plan.methods)
+    if not specs:
+        specs, why = registry.default_methods(vg, plan.run, plan.yaml, plan.overrides)
+        plan.notes.extend(why)
+    upstream = ("viewgraph", plan.out, None)
+
+    def solve_all() -> dict[str, dict]:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        res = {}
+        for spec in tqdm(specs, desc="averaging", unit="method", disable=plan.quiet):
+            res[spec.label] = run_averaging(plan.out / "rotations", spec, plan.out / "viewgraph.npz",
+                                            plan.overwrite, upstream=upstream)
+        return res
+
+    results = runner.step("averaging", "rotation averaging", solve_all)
+    runner.reused["averaging"] = all(r["record"].reused for r in results.values())
+    return specs, results
 
 
-def stage_viewgraph(work: Path, out: Path, rejected: list[dict] | None = None) -> tuple[ViewGraph, dict[str, str], Path]:
-    """Stage 5: the largest connected component of the BA view graph, saved as OUT/viewgraph.npz.
-
-    Args:
-        work: WORK folder holding ``viewgraph.npz`` (two-view BA's output).
-        out: OUT folder.
-        rejected: the two-view stage's rejected pairs (to say why an image has no edge).
-
-    Returns:
-        the component, ``{name: why}`` of the cameras left out, and the saved path.
-    """
-    vg_all = ViewGraph.load(work / "viewgraph.npz", allow_isolated=True)
-    if vg_all.n_edges == 0:
-        raise PipelineError(f"no pair of the {vg_all.n_cameras} images has enough geometrically consistent matches; "
-                            "the images must overlap (see the warnings above for each pair's reason)")
-    sub, info = vg_all.largest_component()
-    left_out: dict[str, str] = {}
-    if info.dropped_names:
-        left_out = _left_out_reasons(vg_all, vg_all.components(), rejected or [])
-        logger.warning("the view graph is not connected: using the largest component (%d of %d images); left out: %s",
-                       sub.n_cameras, vg_all.n_cameras, "; ".join(f"{n}: {w}" for n, w in left_out.items()))
-    path = out / "viewgraph.npz"
-    if path.exists():
-        try:
-            old = ViewGraph.load(path)
-            if (old.names == sub.names and np.array_equal(old.edges, sub.edges) and np.array_equal(old.R_rel, sub.R_rel)
-                    and (old.H is None) == (sub.H is None) and (sub.H is None or np.array_equal(old.H, sub.H))):
-                return old, left_out, path
-        except PipelineError:
-            pass
-    sub.save(path)
-    return sub, left_out, path
-
-
-
-
-# ----------------------------------------------------------------------- driver
-@dataclass
-class RunArgs:
-    images: Path | None = None
-    out: Path | None = None
-    config: Path | None = None
-    methods: list[str] | None = None
-    gt: Path | None = None
-    K: Path | None = None
-    reference: bool | None = None
-    overwrite: bool = False
-    quiet: bool = False
-
-
-def default_out(images: Path | None) -> Path:
-    return Path("out") / ("default" if images is None else (Path(images).resolve().name or "run"))
-
-
-def check_writable(out: Path) -> None:
-    """Fail early, with an actionable message, when OUT cannot be written."""
+def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
+    """The pycolmap reference; its failure is reported and never throws our result away."""
+    if not plan.reference:
+        runner.k += 1
+        return None
+    stage = IncrementalReferenceStage(plan.out / "reference", plan.configs["reference"], images=plan.images,
+                                      names=names, K=plan.K, work=plan.work, progress=plan.progress)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_probe"
-        probe.write_text("ok")
-        probe.unlink()
-    except OSError as exc:
-        raise PipelineError(f"cannot write to the output folder {out} ({exc.strerror or exc}); "
-                            "choose a writable folder with --out DIR") from None
+        runner.stage(stage)
+        ref = load_reference(plan.out / "reference")
+    except (PipelineError, RuntimeError, ValueError, OSError) as exc:
+        msg = " ".join(str(exc).split())
+        logger.warning("the pycolmap reference failed (%s); continuing without it", msg)
+        plan.notes.append(f"pycolmap reference failed: {msg}")
+        return None
+    if not ref.names:
+        plan.notes.append("pycolmap registered no image")
+    plan.notes.extend(f"pycolmap did not register {nm}: {why}" for nm, why in ref.unregistered.items())
+    return ref
 
 
 def main(images: Path | None = None, out: Path | None = None, config: Path | None = None,
          methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
          reference: bool | None = None, overwrite: bool = False, quiet: bool = False) -> Path:
     """Run the whole pipeline; returns the path of ``OUT/metrics.json``."""
-    from pipeline import features as st_features  # noqa: PLC0415
-    from pipeline import matching as st_matching  # noqa: PLC0415
-    from pipeline.geometry.ba_stage import BAConfig, TwoViewBAStage  # noqa: PLC0415
-    from pipeline.geometry.two_view_stage import TwoViewConfig, TwoViewStage, load_two_view  # noqa: PLC0415
-    from pipeline import reference as st_reference  # noqa: PLC0415
-    from pipeline.evaluation import report as st_report  # noqa: PLC0415
-    from pipeline.reference import global_mapping as st_global  # noqa: PLC0415
-    from pipeline.refine.stage import RefineConfig, refine_for_run  # noqa: PLC0415
-
     t_start = time.perf_counter()
-    yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
-    allowed = {"run", "features", "matching", "two_view", "two_view_ba", "reference", "refine", "global_reference",
-               *registry.sections()}
-    unknown = sorted(set(yaml_data) - allowed)
-    if unknown:
-        raise InputFileError(f"{config}: unknown section(s) {unknown}; allowed sections are {sorted(allowed)}")
-    rcfg = stage_config(RunConfig, yaml_data, "run")
-    rc = stage_config(st_reference.ReferenceConfig, yaml_data, "reference")  # checked before any work
-    gc = st_global.GlobalReferenceConfig.sharing_database(rc, yaml_data.get("global_reference"))
-    fc = stage_config(RefineConfig, yaml_data, "refine")
-    overrides = {"sdp": {"solver": rcfg.sdp_solver}}
-    given = parse_methods(methods or rcfg.methods, yaml_data, overrides)  # checked before any work
-    out = Path(out) if out is not None else default_out(images)
-    check_writable(out)
-    progress = not quiet
-    runner = StageRunner(quiet)
-    notes: list[str] = []
-
-    if images is None:
-        from pipeline.synthetic import render  # noqa: PLC0415
-
-        scene = out / "scene"
-        if not (scene / "cameras.txt").exists() or overwrite:
-            t0 = time.perf_counter()
-            render.main(scene, n_views=rcfg.scene_views, seed=rcfg.scene_seed, noise_sigma=rcfg.scene_noise)
-            runner.times["render"] = time.perf_counter() - t0
-        images = scene
-        gt = gt if gt is not None else scene / "cameras.txt"
-        notes.append(f"default scene: {rcfg.scene_views} rendered views (seed {rcfg.scene_seed}) in {scene}; "
-                     "truth = its cameras.txt")
-    images = Path(images)
-    if not images.is_dir():
-        raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
-    truth = None
-    if gt is not None:
-        from pipeline.reference.truth import read_reference  # noqa: PLC0415
-
-        truth = read_reference(gt)  # read early: a bad --gt fails before hours of work
-    work = out / "work"
-
-    runner("features", "features", lambda: st_features.main(
-        images, work, _cfg(st_features, ("FeatureConfig",), yaml_data, "features"), K_path=K, overwrite=overwrite,
-        progress=progress), lambda: [work / "features.record.json"])
-    fs = st_features.load_features(work)
-    n_default = sum(1 for s in fs.K_source if s == "default")
-    if n_default:
-        notes.append(f"{n_default} image(s) had no K file and no EXIF focal: default focal 1.2·max(w, h) used")
-    runner("matching", "matching", lambda: st_matching.main(
-        work, _cfg(st_matching, ("MatchingConfig",), yaml_data, "matching"), overwrite=overwrite, progress=progress),
-        lambda: [work / "matching.record.json"])
-    runner("two_view", "two-view geometry", lambda: TwoViewStage(
-        work, stage_config(TwoViewConfig, yaml_data, "two_view", progress=progress)).run(overwrite),
-        lambda: [work / "two_view.npz", work / "two_view_corr.npz"])
-    runner("two_view_ba", "two-view BA", lambda: TwoViewBAStage(
-        work, stage_config(BAConfig, yaml_data, "two_view_ba", progress=progress)).run(overwrite),
-        lambda: [work / "viewgraph.npz"])
-    try:
-        tv = load_two_view(work)
-        rejected, ransac_vg = list(tv.rejected), tv.vg
-    except (PipelineError, OSError, AttributeError):
-        rejected, ransac_vg = [], None
-    vg, left_out, vg_path = runner("viewgraph", "view graph", lambda: stage_viewgraph(work, out, rejected))
-    dropped = list(left_out)
-    if dropped:
-        notes.append(f"view graph not connected: the largest component ({vg.n_cameras} images) is used; "
-                     f"left out: {', '.join(dropped)}")
-        notes += [f"left out of the view graph: {n}: {w}" for n, w in left_out.items()]
-
-    specs = list(given)
-    if not specs:
-        specs, why = registry.default_methods(vg, rcfg, yaml_data, overrides)
-        notes += why
-
-    def do_averaging() -> dict[str, dict]:
-        res = {}
-        from tqdm import tqdm  # noqa: PLC0415
-
-        for spec in tqdm(specs, desc="averaging", unit="method", disable=not progress):
-            res[spec.label] = run_averaging(out / "rotations", spec, vg_path, overwrite)
-        return res
-
-    results = runner("averaging", "rotation averaging", do_averaging)
-    if rcfg.refine:
-        results.update(runner("refine", "refine (pycolmap)", lambda: refine_for_run(
-            out, fc, list(results), work, overwrite, notes)))
-    else:
-        runner.times["refine"] = 0.0
-        runner.k += 1
-
-    pyc = glo = None
-    if rcfg.reference if reference is None else reference:
-        try:
-            ref_json = runner("reference", "pycolmap reference", lambda: st_reference.main(
-                images, out / "reference", K=K, overwrite=overwrite, config=rc, work=work, names=list(fs.names),
-                progress=progress),
-                lambda: [out / "reference" / "reference.json"])
-            rr = st_reference.load_reference(ref_json)
-        except (PipelineError, RuntimeError, ValueError, OSError) as exc:
-            # the reference only scores our result: its failure must not throw our rotations away
-            msg = " ".join(str(exc).split())
-            logger.warning("the pycolmap reference failed (%s); continuing without it", msg)
-            notes.append(f"pycolmap reference failed: {msg}")
-            rr = None
-        if rr is not None:
-            pyc = rr
-            if not rr.names:
-                notes.append("pycolmap registered no image")
-            for nm, why in rr.unregistered.items():
-                notes.append(f"pycolmap did not register {nm}: {why}")
-        glo = runner("global_reference", "pycolmap global (GLOMAP)", lambda: st_global.global_peer_for_run(
-            images, out, K, overwrite, gc, work, list(fs.names), progress, notes)) if rcfg.global_reference else None
-    else:
-        runner.times["reference"] = 0.0
-        runner.k += 2
-
-    truth_ref = None if truth is None else truth.replace(label="truth")
-    refs: list[Reference] = [truth_ref] if truth_ref is not None else []
-    peers = [p for p in (pyc, glo) if p is not None]
-    for peer in [p for p in peers if len(p.names) >= 2]:
-        sub = truth_on_registered(truth_ref, peer, vg)
-        refs += ([sub] if sub is not None else []) + [peer]
-    metrics, cam_err, edge_err = runner("evaluation", "evaluation", lambda: evaluate_all(
-        vg, ransac_vg, results, refs, peers, rcfg.align))
-    if not refs:
-        notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
-
-    def do_report() -> Path:
-        histories = error_vs_time_curves(vg, specs, results, refs[0], rcfg.align) if refs else {}
-        for label, c in histories.items():
-            metrics["methods"][label]["error_vs_time"] = c
-        data = report_data(metrics, refs, cam_err, edge_err, histories, vg, notes,
-                           {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()},
-                           f"Rotations of {images}", rcfg.plots)
-        return st_report.write_report(out, data)
-
-    runner("report", "report", do_report)
-    metrics["stages"] = dict(runner.times)
-    metrics["stages_reused"] = dict(runner.reused)
-    metrics["total_s"] = time.perf_counter() - t_start
-    metrics["our_path_s"] = sum(runner.times.get(k, 0.0) for k in
-                                ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine"))
-    metrics["input"] = {"images": str(images), "n_images": len(fs.names), "n_cameras_graph": vg.n_cameras,
-                        "n_edges": vg.n_edges, "left_out": dropped,
-                        "left_out_why": left_out, "gt": None if gt is None else str(gt),
-                        "K": None if K is None else str(K), "config": dataclasses.asdict(rcfg)}
-    metrics["notes"] = notes
-    path = write_json(out / "metrics.json", metrics)
-    if not quiet:
-        print(summary_table(metrics), flush=True)
-        print(f"report: {out / 'report.md'}\nmetrics: {path}", flush=True)
-    return path
+    plan = prepare(images, out, config, methods, gt, K, reference, overwrite, quiet)
+    with folder_lock(plan.out):
+        remove_stale_temporaries(plan.out)
+        runner = Runner(plan)
+        work, progress = plan.work, {"progress": plan.progress}
+        runner.stage(plan.features)
+        runner.stage(MatchingStage(work, plan.config("matching"), progress=plan.progress))
+        runner.stage(TwoViewStage(work, plan.config("two_view", **progress)))
+        runner.stage(TwoViewBAStage(work, plan.config("two_view_ba", **progress)))
+        graph = ViewGraphStage(plan.out, plan.config("viewgraph"), work=work)
+        runner.stage(graph)
+        vg = graph.load()
+        left_out = load_graph_summary(plan.out)["left_out"]
+        if left_out:
+            plan.notes.append(f"view graph not connected: the largest component ({vg.n_cameras} images) is used; "
+                              f"left out: {', '.join(left_out)}")
+            plan.notes.extend(f"left out of the view graph: {n}: {w}" for n, w in left_out.items())
+        specs, results = _averaging(plan, runner, vg)
+        if plan.run.refine:  # the recommended method's rotations finished by pycolmap: rows <method>+refine
+            results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
+                plan.out, plan.configs["refine"], list(results), work, plan.overwrite, plan.notes)))
+        names = list(load_manifest(work)["names"])
+        peer = _reference(plan, runner, names)
+        glomap = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
+            plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
+            plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
+        peers = [p for p in (peer, glomap) if p is not None]
+        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
+        runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
+        return write_metrics(plan, ev, vg, left_out, runner, t_start)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -171,7 +171,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
 def test_reference_failure_keeps_our_result(scene, full_run, tmp_path, monkeypatch):
     import shutil
 
-    from pipeline import reference
+    from pipeline.reference.incremental import IncrementalReferenceStage
 
     out = tmp_path / "out"
     shutil.copytree(full_run, out)
@@ -180,7 +180,7 @@ def test_reference_failure_keeps_our_result(scene, full_run, tmp_path, monkeypat
     def broken(*a, **k):
         raise RuntimeError("pycolmap crashed")
 
-    monkeypatch.setattr(reference, "main", broken)
+    monkeypatch.setattr(IncrementalReferenceStage, "compute", broken)
     m = json.loads(run.main(scene, out, gt=scene / "cameras.txt", quiet=True).read_text())
     assert m["methods"]["irls-l0.5"]["median_deg"] < 0.3
     assert set(m["methods"]["irls-l0.5"]["references"]) == {"truth", "glomap"}  # GLOMAP does not depend on it

@@ -29,6 +29,7 @@ from pipeline.core.config import Config, option, stage_config  # noqa: E402
 from pipeline.core.errors import ConfigError, PipelineError, ViewGraphError  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.io.rotations import read_rotations  # noqa: E402
+from pipeline.plan import RunConfig  # noqa: E402
 from pipeline.synthetic.graphs import paper2_graph  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
@@ -76,7 +77,7 @@ def test_methods_scalar_in_yaml_is_one_method(tmp_path):
     p.write_text("run:\n  methods: irls\n")
     from pipeline.core.config import load_yaml
 
-    rcfg = stage_config(run.RunConfig, load_yaml(p), "run")
+    rcfg = stage_config(RunConfig, load_yaml(p), "run")
     assert rcfg.methods == ("irls",)
     assert [s.label for s in parse_methods(rcfg.methods)] == ["irls-l0.5"]
 
