@@ -42,6 +42,7 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 from pipeline.core.atomic import write_json  # noqa: E402
@@ -80,17 +81,15 @@ def scored_on_common(a, b, truth) -> dict:
     return out
 
 
-def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict) -> dict:
+def timed_paths(name: str, data: Path, out: Path, config: Path, yaml_data: dict) -> tuple[dict, dict]:
+    """Our path (fresh, without the peers) then GLOMAP's, in ``out``: their times and CPU times."""
     from pipeline import run
     from pipeline.core.config import stage_config
     from pipeline.frontend.feature_stage import load_features
-    from pipeline.io.rotations import read_rotations
-    from pipeline.reference import Reference, ReferenceConfig, load_reference
+    from pipeline.reference import ReferenceConfig, load_reference
     from pipeline.reference import global_mapping as glomap
-    from pipeline.reference.truth import read_reference
 
     images, gt, K = (data / p for p in SCENES[name])
-    out = root / name
     shutil.rmtree(out, ignore_errors=True)
     load0 = os.getloadavg()[0]
     c0, t0 = cpu_s(), time.perf_counter()
@@ -114,10 +113,22 @@ def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict) 
     c0 = cpu_s()
     glomap.main(images, out / "reference-global", K=K, config=gc, work=out / "work", names=names, progress=False,
                 database_dir=out / "reference")
-    g_cpu = cpu_s() - c0
-    print(f"  {name}: GLOMAP {load_reference(out / 'reference-global').info['time_s']:.1f} s ({g_cpu:.1f} s CPU)",
-          flush=True)
+    g, g_cpu = load_reference(out / "reference-global").info, cpu_s() - c0
+    print(f"  {name}: GLOMAP {g['time_s']:.1f} s ({g_cpu:.1f} s CPU)", flush=True)
+    return ours, {"time_s": g["time_s"], "times": g["times"], "cpu_s": g_cpu, "load_avg": load1}
 
+
+def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict, repeat: int = 1) -> dict:
+    from pipeline import run
+    from pipeline.io.rotations import read_rotations
+    from pipeline.reference import Reference, load_reference
+    from pipeline.reference.truth import read_reference
+
+    images, gt, K = (data / p for p in SCENES[name])
+    out = root / name
+    ours, glo = timed_paths(name, data, out, config, yaml_data)
+    reps = [(ours, glo)] + [timed_paths(name, data, root / f"{name}-time{k}", config, yaml_data)
+                            for k in range(1, repeat)]
     m = _json(run.main(images, out, config=config, gt=gt, K=K, quiet=True))  # ours and GLOMAP reused
     truth = read_reference(gt).replace(label="truth")
     label = next(k for k, v in m["methods"].items() if v.get("method") == "refine")
@@ -138,12 +149,16 @@ def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict) 
                              "time_s": info["time_s"], "times": info["times"],
                              "truth": {k: pm.get(k) for k in ("n_evaluated", "median_deg", "mean_deg", "max_deg")},
                              "pairwise": scored_on_common(mine, p, truth)}
-    row["peers"]["glomap"]["cpu_s"] = g_cpu
-    row["peers"]["glomap"]["load_avg"] = load1
+    row["peers"]["glomap"].update(cpu_s=glo["cpu_s"], load_avg=glo["load_avg"])
     g = row["peers"]["glomap"]
     row["time_ratio"] = ours["path_s"] / g["time_s"]
     row["time_ratio_all_methods"] = ours["path_all_methods_s"] / g["time_s"]
-    row["cpu_ratio"] = ours["cpu_path_s"] / g_cpu if g_cpu > 0 else None
+    row["cpu_ratio"] = ours["cpu_path_s"] / glo["cpu_s"] if glo["cpu_s"] > 0 else None
+    if repeat > 1:  # the time alone, measured again in fresh folders, ours then GLOMAP each time
+        row["time_repeats"] = [{"path_s": o["path_s"], "glomap_s": q["time_s"], "ratio": o["path_s"] / q["time_s"],
+                                "cpu_ratio": o["cpu_path_s"] / q["cpu_s"], "load_avg": [o["load_avg"], q["load_avg"]]}
+                               for o, q in reps]
+        row["time_ratio_median"] = float(np.median([t["ratio"] for t in row["time_repeats"]]))
     row["accept"] = {
         "refined_le_each_peer": all(row["peers"][k]["pairwise"]["ours"]["median_deg"]
                                     <= row["peers"][k]["pairwise"][k]["median_deg"] for k in peers),
@@ -177,6 +192,10 @@ def table(rows: list[dict]) -> str:
                      f"{r['time_ratio']:.2f} (CPU {r['ours']['cpu_path_s']:.1f} / {g['cpu_s']:.1f} s = "
                      f"{r['cpu_ratio'] or float('nan'):.2f}; with every averaging method "
                      f"{r['time_ratio_all_methods']:.2f}); acceptance {r['accept']}")
+        if r.get("time_repeats"):
+            ratios = ", ".join(f"{t['ratio']:.2f}" for t in r["time_repeats"])
+            lines.append(f"{'':<9} time ratio over {len(r['time_repeats'])} repeats: {ratios} "
+                         f"(median {r['time_ratio_median']:.2f})")
     return "\n".join(lines)
 
 
@@ -185,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="fountain,castle,temple", help="comma-separated: fountain,castle,temple")
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="the shared data folder")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: a temp folder)")
+    ap.add_argument("--repeat", type=int, default=1, help="measure the time this many times per scene (median)")
     a = ap.parse_args(argv)
     names = [n for n in a.only.split(",") if n]
     unknown = [n for n in names if n not in SCENES]
@@ -203,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (a.data / SCENES[n][0]).is_dir():
             print(f"skipping {n}: {a.data / SCENES[n][0]} not found")
             continue
-        rows[n] = run_scene(n, a.data, root, config, yaml_data)
+        rows[n] = run_scene(n, a.data, root, config, yaml_data, a.repeat)
     result = {"scenes": [rows[n] for n in SCENES if n in rows], "machine": {"cores": os.cpu_count()},
               "note": "one run per scene with the true K; ours, then GLOMAP, then the incremental reference, in one "
                       "process; each pair scored on the images both register (l2 alignment)"}

@@ -37,28 +37,25 @@ __all__ = ["ItemStore", "item_key", "compute_missing"]
 logger = logging.getLogger(__name__)
 
 INDEX = "index.json"
-#: What starting a pool of processes costs, in seconds of wall time on free cores (spawn, and each
-#: worker importing numpy, OpenCV and the package: 0.6 s CPU per worker, measured): :func:`compute_missing`
-#: computes in this process when the work left is shorter. ``ROTAVG_POOL_STARTUP_S`` overrides it (0: a pool
-#: whenever workers > 1).
-POOL_STARTUP_S = 1.0
+_SEP = "__"
+#: What starting a pool of processes costs, in CPU seconds per worker (spawn, and each worker importing
+#: numpy, OpenCV and the package; measured: 0.6 s). :func:`compute_missing` starts a pool only for work
+#: of at least ``POOL_MIN_SHARE`` times that: shorter work runs on threads of this process, which start
+#: at once. ``ROTAVG_POOL_STARTUP_S`` overrides the cost (0: a pool whenever workers > 1).
+POOL_STARTUP_S = 0.6
+POOL_MIN_SHARE = 4.0
 
 
-def _pool_pays_off(rest_s: float, workers: int) -> bool:
-    """Whether ``workers`` processes finish ``rest_s`` seconds of work sooner than this process alone.
+def _pool_pays_off(rest_cpu_s: float, workers: int) -> bool:
+    """Whether ``rest_cpu_s`` CPU seconds of work are worth starting ``workers`` processes for.
 
-    A pool costs its start-up and gains only on free cores: on a machine whose load average
-    already fills every core (as ``make -l`` checks), it adds work and saves no time.
+    On free cores a pool returns its start-up once the work is about twice it; the
+    margin ``POOL_MIN_SHARE`` keeps the start-up a small part of the work, since on a
+    busy machine it is pure extra work. CPU time, not wall time, so that the load of
+    other processes does not change the choice.
     """
     startup = float(os.environ.get("ROTAVG_POOL_STARTUP_S", POOL_STARTUP_S))
-    if startup <= 0:
-        return True
-    try:
-        busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
-    except OSError:  # no load average on this platform
-        busy = False
-    return not busy and rest_s > startup * workers / (workers - 1)
-_SEP = "__"
+    return startup <= 0 or rest_cpu_s >= POOL_MIN_SHARE * startup * workers
 
 
 def item_key(*parts: Any) -> str:
@@ -225,14 +222,14 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     backend = "processes"
     if n_workers > 1:
         # the first chunk runs here and times the work: a pool of processes pays off only when the rest
-        # takes longer than starting it, and only on free cores; otherwise threads, which start at once
-        # and run in parallel where the work releases the GIL (OpenCV, BLAS)
-        t0 = time.perf_counter()
+        # is long beside starting it; otherwise threads, which start at once and run in parallel where
+        # the work releases the GIL (OpenCV, BLAS)
+        t0 = time.thread_time()
         finish(chunks[0], work([make_task(k) for k in chunks[0]]))
-        rest = (time.perf_counter() - t0) * (len(chunks) - 1)
+        rest = (time.thread_time() - t0) * (len(chunks) - 1)
         chunks = chunks[1:]
         if not _pool_pays_off(rest, n_workers):
-            logger.debug("%d chunks left, about %.1f s: threads of this process, no pool", len(chunks), rest)
+            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(chunks), rest)
             backend = "threads"
     executor = make_executor(max(n_workers, 1), backend)
     try:
