@@ -74,12 +74,12 @@ def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
     return np.array([str(s).startswith("file") for s in sources], bool)
 
 
-def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str]]:
+def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str], np.ndarray]:
     """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
 
     Returns:
         the inputs (over every image of the features; NaN rotations for images the file
-        lacks) and the file's camera names, in the order of the features.
+        lacks), the file's camera names and (len(names),) their images' indices.
     """
     from pipeline.frontend.feature_stage import load_features  # noqa: PLC0415
     from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: PLC0415
@@ -105,16 +105,17 @@ def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str]]
     offsets = np.concatenate([[0], np.cumsum(counts)])
     rows = np.arange(offsets[-1]) + np.repeat(tv.offsets[e_tv] - offsets[:-1], counts)  # inliers of the kept pairs
     names, R = read_rotations(rotations)
-    idx = match_names(list(fs.names), names, what=str(rotations))
+    cams = match_names(names, list(fs.names), what=f"the images of {work}")
+    if np.any(cams < 0) or len(set(cams.tolist())) != len(cams):
+        raise InputFileError(f"{rotations} names cameras that are not images of {work} (e.g. "
+                             f"{[nm for nm, c in zip(names, cams) if c < 0][:3]}); re-run the averaging")
     R_init = np.full((n, 3, 3), np.nan)
-    R_init[idx >= 0] = R[idx[idx >= 0]]
-    if (idx >= 0).sum() != len(names):
-        raise InputFileError(f"{rotations} names cameras that are not images of {work}")
+    R_init[cams] = R
     return {"names": list(fs.names), "K": fs.K, "sizes": fs.sizes, "keypoints": fs.keypoints, "edges": vg.edges,
             "match_offsets": offsets,
             "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
             "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
-            "known_K": _known_K(fs.K_source, n)}, [fs.names[k] for k in np.flatnonzero(idx >= 0)]
+            "known_K": _known_K(fs.K_source, n)}, list(names), cams
 
 
 class RefineStage(Stage[RefineConfig]):
@@ -158,11 +159,8 @@ class RefineStage(Stage[RefineConfig]):
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
         logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
-        inputs, start_names = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
+        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
         res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
-        names = inputs["names"]
-        pos = {nm: k for k, nm in enumerate(names)}
-        rows = np.array([pos[nm] for nm in start_names])
         paths: list[Path] = []
         model = self.folder / MODEL
         if res.reconstruction is not None:
@@ -174,7 +172,7 @@ class RefineStage(Stage[RefineConfig]):
         header = (f"rotations of {self.start} refined by pycolmap (global positioning, bundle adjustment, "
                   f"retriangulation): status {res.status}; averaged where not refined")
         paths.append(write_rotations(self.rotations_path, start_names, res.R[rows], header=header))
-        stats = refine_stats(res, names, rows, self)
+        stats = refine_stats(res, start_names, rows, self)
         paths.append(write_json(self.stats_path, stats))
         logger.info("refine: %s, %d of %d cameras refined in %.1f s (%d points); %s", res.status,
                     int(res.refined[rows].sum()), len(rows), res.stats["times"]["total"], res.stats.get("n_points", 0),
@@ -196,11 +194,12 @@ def _deg(x: float) -> float | None:
 
 
 def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: RefineStage) -> dict[str, Any]:
-    """The JSON stats of a refinement over the start's cameras ``rows``."""
+    """The JSON stats of a refinement over the start's cameras ``names`` (images ``rows`` of ``res``)."""
     sigma = np.degrees(np.sqrt(np.trace(res.cov, axis1=1, axis2=2))) if res.cov is not None else \
-        np.full(len(names), np.nan)
+        np.full(len(res.R), np.nan)
+    cams = list(zip(names, rows.tolist()))
     cameras = {}
-    for k in rows.tolist():
+    for nm, k in cams:
         c: dict[str, Any] = {"refined": bool(res.refined[k]), "change_deg": _deg(res.change_deg[k]),
                              "sigma_deg": _deg(sigma[k])}
         if not res.refined[k]:
@@ -209,16 +208,16 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
                 c["refined_cam_from_world"] = res.R_refined[k].ravel().tolist()
         if res.cov is not None and np.isfinite(res.cov[k]).all():
             c["cov_rad2"] = res.cov[k].ravel().tolist()
-        cameras[names[k]] = c
+        cameras[nm] = c
     ok_sigma = sigma[rows][np.isfinite(sigma[rows])]
     s = res.stats
     return {"method": "refine", "label": stage.label, "start": stage.start, "start_why": stage.start_why,
             "status": res.status, "warnings": res.warnings, "n_cameras": len(rows),
             "n_refined": int(res.refined[rows].sum()),
-            "kept_averaged": {names[k]: res.why[k] for k in rows.tolist() if not res.refined[k]},
+            "kept_averaged": {nm: res.why[k] for nm, k in cams if not res.refined[k]},
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
-            "uncertainty_deg": {names[k]: _deg(sigma[k]) for k in rows.tolist()},
-            "change_from_averaged_deg": {names[k]: _deg(res.change_deg[k]) for k in rows.tolist()},
+            "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
+            "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
             "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
             "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
             "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
