@@ -275,7 +275,7 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
         if "certified" in entry:
             entry["certificate"] = {k: entry.get(k) for k in ("certified", "rank", "gap", "gap_residual", "lower_bound",
                                                                "primal_cost", "cost_offset", "status", "solver",
-                                                               "fallback") if k in entry}
+                                                               "fallback") if k in entry} | (entry.get("certificate") or {})
         entry["references"] = {}
         for r in refs:
             s, e = _summ(evaluate, list(names), np.asarray(R), r, align, vg)

@@ -247,6 +247,10 @@ def read_reference(path: str | os.PathLike) -> Reference:
         InputFileError: a missing path, an unrecognised format, or malformed content.
     """
     path = Path(path)
+    from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm_reference  # noqa: PLC0415 - issue 15 formats
+
+    if is_1dsfm_folder(path) or path.name == "gt_bundle.out":
+        return Reference(*read_1dsfm_reference(path), kind="1dsfm")
     if path.is_dir():
         if any((path / f"images{ext}").is_file() for ext in (".bin", ".txt")):
             return read_colmap_model(path)
@@ -273,7 +277,7 @@ def read_reference(path: str | os.PathLike) -> Reference:
         nf = _first_row_fields(path)
     except UnicodeDecodeError:
         raise InputFileError(f"{path} is not a text file; expected a rotations, cameras or *_par.txt file, a .mat file or a folder") from None
-    if nf == 10:
+    if nf in (10, 5):  # ours, or GLOMAP's NAME QW QX QY QZ
         names, R = read_rotations(path, tol=REF_ROTATION_TOL)
         return Reference(names, so3.project_to_so3(R), kind="rotations")
     if nf == 17:

@@ -187,7 +187,12 @@ def test_noise_free_input_gives_exact_rotations_rank3_and_zero_gap(clean_graph, 
     res = solve_sdp(vg, variant, solver)
     st = res.stats
     assert st["rank"] == 3
-    assert st["certified"] is True
+    # Certified means a gap small against what the cost resolves (issue 15). Exact data resolve
+    # everything (resolution ≈ 0): only a solve to the cost's rounding is certified. The
+    # isotropic variants get there; cso3's Clarabel re-solve stops at a relative gap of 1e-11,
+    # 56× the rounding: exact rotations, honestly not certified.
+    assert st["certified"] is (variant != "cso3")
+    assert st["certified"] == (st["gap_abs"] <= 0.01 * st["resolution"] + st["cost_rounding"])
     assert 0 <= st["gap"] < 1e-5 or abs(st["gap"]) < 1e-6
     assert aligned_errors_deg(res.R, R).max() < 0.05
     # at the truth every term is −tr(M_ij) (aniso) or −3 (iso): the optimum is known exactly
