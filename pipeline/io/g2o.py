@@ -202,9 +202,9 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
                              "of this project)")
     e_ij = np.array(e_ij, dtype=np.int64)
     if v_ids:
-        uniq, counts = np.unique(np.asarray(v_ids, dtype=np.int64), return_counts=True)
-        if np.any(counts > 1):
-            raise InputFileError(f"{path}: vertex id {int(uniq[np.argmax(counts > 1)])} declared twice")
+        uniq, n_decl = np.unique(np.asarray(v_ids, dtype=np.int64), return_counts=True)
+        if np.any(n_decl > 1):
+            raise InputFileError(f"{path}: vertex id {int(uniq[np.argmax(n_decl > 1)])} declared twice")
         order = np.argsort(v_ids, kind="stable")
         ids = np.array(v_ids, dtype=np.int64)[order]
         undeclared = ~np.isin(e_ij, ids).all(axis=1)
