@@ -136,10 +136,12 @@ def isotropic_start(vg: ViewGraph, cfg: IRLSConfig, init: Any, init_weights: np.
         need_l1 = bad > cfg.auto_bad_share
     if need_l1:
         runs["l1"] = _branch(vg, R0, solver, lossf, cfg, True, t0)
-    thetas = {k: residual_angles(vg, v["R"]) for k, v in runs.items()}
-    s_sel = min(robust_scale(t) for t in thetas.values())
-    sel = {k: selection_cost(t, s_sel) for k, t in thetas.items()}
-    best = min(sel, key=sel.__getitem__)
+    sel: dict[str, float | None] = {k: None for k in runs}
+    if len(runs) > 1:
+        thetas = {k: residual_angles(vg, v["R"]) for k, v in runs.items()}
+        s_sel = min(robust_scale(t) for t in thetas.values())
+        sel = {k: selection_cost(t, s_sel) for k, t in thetas.items()}
+    best = min(sel, key=lambda k: sel[k] or 0.0)
     summary = {"start_used": best, "auto_bad_share_measured": bad,
                "branches": {k: {"selection_cost": sel[k], "iterations": v["iterations"], "converged": v["converged"],
                                 "l1_iterations": v["l1_iterations"]} for k, v in runs.items()}}
@@ -181,7 +183,8 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
     elif cfg.refine:
         R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
-    theta = residual_angles(vg, R)
+    r = edge_residuals(vg.edges, vg.R_rel, R)
+    theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
         w = (theta <= tau).astype(np.float64)
         kept = w > 0
@@ -192,7 +195,6 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     else:
         w = lossf.phi(theta)
         kept = w >= 0.05 * float(np.max(w))  # an edge with < 5% of the full weight has hardly any say
-    r = edge_residuals(vg.edges, vg.R_rel, R)
     grad = solver.AT @ (w[:, None] * r)
     t_solve = time.perf_counter() - t0
     n_l1 = run["l1_iterations"]
@@ -222,7 +224,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     }
     if cfg.certify:
         what = _final_problem(lossf, cfg, tau, model, trust_used)
-        stats["certificate"] = certify_weights(vg, R, w, kept, what=what, method=f"IRLS-{lossf.name}")
+        stats["certificate"] = certify_weights(vg, R, w, kept, what=what, method=f"IRLS-{lossf.name}", theta=theta)
     elapsed = time.perf_counter() - t0
     logger.info("IRLS-%s: %d cameras, %d edges, start %s, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
                 lossf.name, N, M, starts["start_used"], n_l1, it, elapsed, np.rad2deg(np.median(theta)))

@@ -96,31 +96,43 @@ def cg_with_factor(A: sp.spmatrix, b: np.ndarray, lu: sla.SuperLU, rtol: float, 
                    ) -> tuple[np.ndarray | None, int]:
     """Conjugate gradients on ``A x = b`` preconditioned by the factor ``lu`` of a nearby matrix.
 
+    The columns of ``b`` are solved together (one sparse product and one triangular solve
+    per iteration for all of them), each with its own step lengths.
+
     Args:
         A: (n, n) the current symmetric positive-definite matrix.
-        b: (n,) or (n, k) right-hand side(s); each column is solved in turn.
+        b: (n,) or (n, k) right-hand side(s).
         lu: the factor of an earlier matrix (the preconditioner).
-        rtol: relative residual tolerance.
-        max_cg: iteration cap per column.
+        rtol: relative residual tolerance, per column.
+        max_cg: iteration cap.
 
     Returns:
         The solution with ``b``'s shape, or None when a column did not converge; the CG
         iterations spent.
     """
-    prec = sla.LinearOperator(A.shape, matvec=lambda v: lu.solve(np.asarray(v, dtype=np.float64)))
-    cols = b.reshape(b.shape[0], -1)
-    out = np.empty_like(cols)
-    n_it = [0]
-
-    def count(_: np.ndarray) -> None:
-        n_it[0] += 1
-
-    for a in range(cols.shape[1]):
-        x, info = sla.cg(A, cols[:, a], M=prec, rtol=rtol, atol=0.0, maxiter=max_cg, callback=count)
-        if info != 0 or not np.all(np.isfinite(x)):
-            return None, n_it[0]
-        out[:, a] = x
-    return out.reshape(b.shape), n_it[0]
+    B = np.asarray(b, dtype=np.float64).reshape(b.shape[0], -1)
+    X = np.zeros_like(B)
+    Rr = B.copy()
+    tol = rtol * np.linalg.norm(B, axis=0)
+    if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+        return X.reshape(b.shape), 0
+    Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+    P = Z.copy()
+    rz = np.einsum("ij,ij->j", Rr, Z)
+    for it in range(1, max_cg + 1):
+        AP = A @ P
+        pap = np.einsum("ij,ij->j", P, AP)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap != 0)
+        X += alpha * P
+        Rr -= alpha * AP
+        if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+            return (X.reshape(b.shape), it) if np.all(np.isfinite(X)) else (None, it)
+        Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+        rz_new = np.einsum("ij,ij->j", Rr, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
+        P = Z + beta * P
+        rz = rz_new
+    return None, max_cg
 
 
 class LaplacianSolver:

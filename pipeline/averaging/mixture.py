@@ -27,7 +27,7 @@ NU_GRID = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 32.0)
 #: fitting the rest exactly (templeSparseRing, 31 edges for 16 cameras: ε = 0.48 and s → 0).
 EPS_MAX = 0.3
 #: EM on fixed residuals stops early once (s, ε) change by less than this (relative s, absolute ε).
-EM_TOL = 1e-9
+EM_TOL = 1e-6
 
 
 def log_haar(theta: np.ndarray) -> np.ndarray:

@@ -163,7 +163,8 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
     Lam, G = lagrange_multipliers(L, R)
     S = certificate_matrix(L, Lam)
     Y = R.reshape(3 * n, 3)
-    cost = float(np.einsum("ab,ab->", Y, (connection_laplacian(n, e, C, D) @ Y)))
+    L_cost = L if C_cert is C else connection_laplacian(n, e, C, D)
+    cost = float(np.einsum("ab,ab->", Y, (L_cost @ Y)))
     times["build_s"] = time.perf_counter() - t
     stat = float(np.sqrt(np.square(G).sum()))
     stat_bound = stat / np.sqrt(n)
@@ -223,7 +224,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
 def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarray | None = None, *,
                     M: np.ndarray | None = None, chordal: bool | None = None, what: str = "the final weighted cost",
                     method: str = "IRLS", gap_tol: float | None = None, kappa: float = KAPPA,
-                    k_margin: int = 0) -> dict[str, Any]:
+                    k_margin: int = 0, theta: np.ndarray | None = None) -> dict[str, Any]:
     """The certificate of an IRLS result's final fixed-weight problem, JSON-ready, with its statement.
 
     Isotropic (``M`` None): IRLS's last step solves the geodesic problem ``Σ w_e θ_e²``;
@@ -248,13 +249,15 @@ def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarra
             criterion as the SDP's (:func:`pipeline.averaging.sdp.robust.resolution_check`).
         kappa: see ``gap_tol``.
         k_margin: non-trivial eigenvalues near 0 to report (0: skip; they cost a Lanczos run).
+        theta: (M,) the residual angles at ``R`` when the caller has them (radians).
 
     Returns:
         :meth:`Certificate.to_dict` plus ``statement``, ``n_kept``, ``n_rejected``,
         ``rejected_min_residual_deg``, ``rejected_weight_ratio`` and ``max_move_deg``.
     """
     w = np.asarray(w, dtype=np.float64)
-    theta = so3.angle_between(so3.relative(R, vg.edges), vg.R_rel)
+    if theta is None:
+        theta = so3.angle_between(so3.relative(R, vg.edges), vg.R_rel)
     kept = (w > 0) if kept is None else np.asarray(kept, dtype=bool)
     if chordal is None:
         chordal = M is None
