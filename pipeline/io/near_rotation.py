@@ -107,9 +107,9 @@ def project_near_rotations(R: np.ndarray, tol: float = DEFAULT_ROTATION_TOL, *, 
     if np.any(bad):
         k = int(np.flatnonzero(bad)[0])
         if not np.isfinite(dev[k]):
-            why = "has NaN or inf entries"
+            why = "is not a rotation (or has NaN): it has NaN or inf entries"
         elif not det[k] > 0:
-            why = f"has det={det[k]:.6g} (a reflection or degenerate, not a rotation)"
+            why = f"is not a rotation: det={det[k]:.6g} (a reflection or degenerate)"
         else:
             why = f"is not a rotation: max|RᵀR−I|={dev[k]:.3g} > tolerance {tol:g}"
         n_bad = int(bad.sum())

@@ -78,8 +78,8 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
             continue
         parts = line.split()
         if len(parts) != 10:
-            raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields, or GLOMAP's 5), "
-                                 f"got {len(parts)}")
+            raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields), got {len(parts)} "
+                                 "(GLOMAP's rotation files have 5: NAME QW QX QY QZ)")
         try:
             vals = [float(x) for x in parts[1:]]
         except ValueError:
@@ -93,5 +93,5 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
         dup = sorted({n for n in names if n in seen or seen.add(n)})
         raise InputFileError(f"{path}: camera names repeat: {dup[:5]}")
     R = np.array(rows).reshape(-1, 3, 3)
-    return names, projected_or_input_error(R, tol, what="rotation", source=str(path),
+    return names, projected_or_input_error(R, tol, what="the matrix", source=str(path),
                                            labels=[f"of camera {n!r}" for n in names])
