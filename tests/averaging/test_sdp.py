@@ -367,14 +367,14 @@ def test_one_huge_H_defeats_a_default_tolerance_solve(one_huge_edge, caplog):
     # the interior of the optimal face (high rank) and is not certified.
     vg, _ = one_huge_edge
     with caplog.at_level(logging.WARNING):
-        res = solve_sdp(vg, "cso3", "clarabel", fallback=False)
+        res = solve_sdp(vg, "cso3", "clarabel", fallback=False, polish=False)  # the rounding as it comes
     assert res.stats["rank"] > 3 and not res.stats["certified"] and not res.stats["fallback"]
     assert "NOT certified" in caplog.text
 
 
 def test_one_huge_H_is_certified_by_the_tight_fallback(one_huge_edge):
     vg, R_true = one_huge_edge
-    res = solve_sdp(vg, "cso3", "clarabel")
+    res = solve_sdp(vg, "cso3", "clarabel", polish=False)
     st = res.stats
     assert st["fallback"] and st["first_attempt"]["rank"] > 3
     assert st["rank"] == 3 and st["certified"]
@@ -387,3 +387,10 @@ def test_one_huge_H_is_certified_by_the_tight_fallback(one_huge_edge):
     assert st["lower_bound"] <= st["primal_cost"] <= truth_cost
     # rounding found the minimizer: a cSO(3) optimum with errors like the noise (a few degrees)
     assert np.median(aligned_errors_deg(res.R, R_true)) < 6.0
+    # issue 15: the high-rank rounding, polished on the same cost, is certified by the dual certificate of
+    # the rotations themselves, without the re-solve; the same minimizer
+    pol = solve_sdp(vg, "cso3", "clarabel")
+    assert pol.stats["certified"] and not pol.stats["fallback"]
+    assert pol.stats["certified_by"] == "the dual certificate of the rounded rotations"
+    assert pol.stats["primal_cost"] <= st["primal_cost"] + 1e-6 * abs(st["primal_cost"])
+    assert aligned_errors_deg(pol.R, res.R).max() < 0.05

@@ -128,10 +128,11 @@ def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
         f"; {n_rej} rejected by {name} ({why}; their residuals {rej.min():.2g}°–{rej.max():.3g}°)" if n_rej
         else "; no edge rejected") + (f"; {readmitted} rejected edge(s) re-admitted to connect the cameras"
                                       if readmitted else ""))
-    head = "globally optimal" if st["certified"] else (
+    by = f" (proven by {st['certified_by']})" if st.get("certified_by") else ""
+    head = f"globally optimal{by}" if st["certified"] else (
         f"NOT certified (rank {st['rank']}, gap {st['gap_vs_resolution']:.2g}× the cost's resolution, "
         f"{cfg.cert_kappa:g}× needed): a rounding of the relaxation, not a proven optimum")
-    gap = f"gap {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
+    gap = f"proven suboptimality ≤ {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
     if st["certified"] and st["gap_vs_resolution"] > cfg.cert_kappa:
         gap += f" (the data are fitted exactly: within the cost's rounding {st['cost_rounding']:.3g})"
     statement = f"{head} for {cost_desc}{text}; {gap}" + (
