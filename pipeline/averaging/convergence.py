@@ -56,6 +56,10 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
     L = int(stats.get("l1_iterations", 0) or 0)
     K = int(stats.get("irls_iterations", 0) or 0)
     budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
+    fields = spec.method.fields()
+    extra: dict[str, Any] = {"certify": False} if "certify" in fields else {}
+    if "start" in fields and stats.get("start_used") in ("tree", "l1"):
+        extra["start"] = stats["start_used"]  # the branch the full run kept, alone
     quiet = logging.getLogger("pipeline.averaging")
     level = quiet.level
     quiet.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
@@ -63,7 +67,7 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
     try:
         for n_done, (l, k) in enumerate(budgets):
             try:
-                cfg = spec.config.replace(refine=False, l1_iterations=l, max_iterations=k)
+                cfg = spec.config.replace(refine=False, l1_iterations=l, max_iterations=k, **extra)
                 r = method.solve(vg, config=cfg)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue

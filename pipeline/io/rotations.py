@@ -3,6 +3,11 @@
 One camera per line: ``name r11 r12 r13 r21 r22 r23 r31 r32 r33``, the
 cam_from_world rotation in row-major order. ``#`` starts a comment; blank lines
 are ignored. Names may not contain whitespace.
+
+:func:`read_rotations` also reads GLOMAP's rotation files (``NAME QW QX QY QZ``,
+:mod:`pipeline.io.glomap`), recognised by their 5 fields a line. Matrices within
+``tol`` of SO(3) (default 1e-3; files printed with a few digits) are projected onto it
+with one warning; beyond, refused (:mod:`pipeline.io.near_rotation`).
 """
 
 from __future__ import annotations
@@ -12,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
 
 
 def write_rotations(path: str | os.PathLike, names: list[str], R: np.ndarray, header: str | None = None) -> Path:
@@ -42,8 +47,8 @@ def write_rotations(path: str | os.PathLike, names: list[str], R: np.ndarray, he
     return Path(path)
 
 
-def read_rotations(path: str | os.PathLike, tol: float = 1e-6) -> tuple[list[str], np.ndarray]:
-    """Read a rotations file.
+def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -> tuple[list[str], np.ndarray]:
+    """Read a rotations file (ours, or GLOMAP's ``NAME QW QX QY QZ``).
 
     Returns:
         names: N camera names, in file order.
@@ -51,35 +56,42 @@ def read_rotations(path: str | os.PathLike, tol: float = 1e-6) -> tuple[list[str
 
     Raises:
         InputFileError: missing file, a line without 10 fields, a value that is
-            not a number, a repeated name, or a matrix that is not a rotation.
+            not a number, a repeated name, or a matrix farther than ``tol`` from SO(3).
     """
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"rotations file {path} does not exist")
     names: list[str] = []
     rows: list[list[float]] = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            line = line.split("#", 1)[0].strip()
-            if not line:
-                continue
-            parts = line.split()
-            if len(parts) != 10:
-                raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields), got {len(parts)}")
-            try:
-                vals = [float(x) for x in parts[1:]]
-            except ValueError:
-                raise InputFileError(f"{path}:{lineno}: rotation entries must be numbers") from None
-            names.append(parts[0])
-            rows.append(vals)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path} is not a readable rotations text file ({exc.__class__.__name__})") from None
+    first = next((ln.split("#", 1)[0].split() for ln in lines if ln.split("#", 1)[0].strip()), [])
+    if len(first) == 5:
+        from pipeline.io.glomap import read_glomap_rotations  # noqa: PLC0415
+
+        return read_glomap_rotations(path, tol)
+    for lineno, line in enumerate(lines, 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.split()
+        if len(parts) != 10:
+            raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields), got {len(parts)} "
+                                 "(GLOMAP's rotation files have 5: NAME QW QX QY QZ)")
+        try:
+            vals = [float(x) for x in parts[1:]]
+        except ValueError:
+            raise InputFileError(f"{path}:{lineno}: rotation entries must be numbers") from None
+        names.append(parts[0])
+        rows.append(vals)
     if not names:
         raise InputFileError(f"{path} holds no rotations")
     if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
+        seen: set[str] = set()
+        dup = sorted({n for n in names if n in seen or seen.add(n)})
         raise InputFileError(f"{path}: camera names repeat: {dup[:5]}")
     R = np.array(rows).reshape(-1, 3, 3)
-    ok = so3.is_rotation(R, tol)
-    if not np.all(ok):
-        k = int(np.flatnonzero(~ok)[0])
-        raise InputFileError(f"{path}: the matrix of camera {names[k]!r} is not a rotation (or has NaN)")
-    return names, R
+    return names, projected_or_input_error(R, tol, what="the matrix", source=str(path),
+                                           labels=[f"of camera {n!r}" for n in names])
