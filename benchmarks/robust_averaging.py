@@ -56,8 +56,9 @@ from pipeline.averaging.polish import reweighted  # noqa: E402
 from pipeline.averaging.stopping import StopRule  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-from pipeline.evaluate import match_reference, rotation_errors_deg  # noqa: E402
-from pipeline.io.references import read_reference  # noqa: E402
+from pipeline.evaluation.compare import match_reference  # noqa: E402
+from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
+from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.synthetic.protocols import PROTOCOLS, make_protocol  # noqa: E402
 

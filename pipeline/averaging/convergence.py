@@ -47,9 +47,9 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
     method = spec.method
     if not method.error_vs_time or vg.n_cameras > max_n:
         return []
-    from pipeline import evaluate  # noqa: PLC0415
+    from pipeline.evaluation import compare, metrics  # noqa: PLC0415
 
-    R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
+    R_ref, mask = compare.match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
         return []
     hist = list(stats.get("history") or [])
@@ -71,13 +71,13 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
                 r = method.solve(vg, config=cfg)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue
-            e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
+            e = metrics.rotation_errors_deg(r.R, R_ref, mask, align=align)
             t = hist[n_done]["time_s"] if n_done < len(hist) and "time_s" in hist[n_done] else r.time_s
             curve.append({"time_s": float(t), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
                           "irls_iterations": k})
     finally:
         quiet.setLevel(level)
-    e = evaluate.rotation_errors_deg(R_final, R_ref, mask, align=align)
+    e = metrics.rotation_errors_deg(R_final, R_ref, mask, align=align)
     curve.append({"time_s": float(stats.get("time_s", curve[-1]["time_s"] if curve else 0.0)),
                   "median_deg": float(np.nanmedian(e)), "l1_iterations": L, "irls_iterations": K, "final": True})
     return curve

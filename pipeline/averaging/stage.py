@@ -149,7 +149,7 @@ class AveragingStage(Stage[Config]):
             ]
         stats["evidence"] = camera_evidence(vg, res)
         if data.R_gt is not None:
-            from pipeline.evaluate import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
+            from pipeline.evaluation.metrics import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
 
             kept = np.array([vg.names.index(n) for n in res.names])
             mask = None if data.gt_mask is None else data.gt_mask[kept]

@@ -22,7 +22,7 @@ from pipeline.averaging.irls_h import TRIM_T, BlockLaplacianSolver, IRLSHConfig,
 from pipeline.averaging.kernel import edge_residuals
 from pipeline.averaging.solve import average
 from pipeline.core.errors import ViewGraphError
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.io.rotations import read_rotations
 from pipeline.synthetic.graphs import paper2_graph, random_precisions, with_outliers
 from pipeline.core.viewgraph import ViewGraph

@@ -16,7 +16,7 @@ from pipeline.averaging.stopping import StopRule, converged, robust_scale
 from pipeline.core import so3
 from pipeline.core.errors import ConfigError
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.synthetic.graphs import paper1_graph
 from pipeline.synthetic.protocols import make_protocol, miscalibrated_h_graph
 

@@ -14,7 +14,7 @@ from pipeline.averaging.sdp import solve_sdp
 from pipeline.averaging.sdp.robust import connect_kept
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.evaluate import rotation_errors_deg
+from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.io.rotations import read_rotations
 from pipeline.synthetic.graphs import paper2_graph, with_outliers
 

@@ -153,7 +153,7 @@ def test_inputs_are_recognised_by_name_extension_and_layout(formats, tmp_path):
 
 
 def test_average_and_evaluate_read_the_new_formats(formats, tmp_path):
-    from pipeline.evaluate import main as evaluate
+    from pipeline.evaluation.compare import evaluate_files as evaluate
 
     for key in ("1dsfm", "g2o", "relpose"):
         out = tmp_path / f"{key}.txt"
