@@ -161,8 +161,9 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
             raise InputFileError(f"{path}: Alpha.shape={Alpha.shape} but expected Rrel's shape {Rrel.shape}")
         M = Alpha.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[i, j]
         # The file stores M to single-precision symmetry; H must be symmetric.
-        M = 0.5 * (M + np.swapaxes(M, 1, 2))
-        H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
+        with np.errstate(all="ignore"):  # absurd entries give inf/NaN, which the view graph refuses
+            M = 0.5 * (M + np.swapaxes(M, 1, 2))
+            H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
         # An edge stored as (j, i) carries M_ji; from_edges turns H into that of (i, j).
     R_gt = gt_mask = None
     if "Rgt" in data:
@@ -208,7 +209,7 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
     if I.shape[1] != RR.shape[0]:
         raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
-    if np.any(I != np.round(I)) or (I.size and I.min() < 1):
+    if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
     R_gt = gt_mask = None
@@ -218,6 +219,11 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         R_gt, gt_mask = _ground_truth(path, Rgt)
     else:
         n = int(edges.max()) + 1 if edges.size else 0
+        used = len(np.unique(edges))
+        if n > 10 * used + 1000:  # every camera up to the largest index would be allocated, nearly all isolated
+            raise InputFileError(f"{path}: I refers to camera {n} but only {used} distinct cameras have an edge; "
+                                 "without Rgt the largest index is the camera count, so this index is a mistake "
+                                 "(check I, or add Rgt 3x3xN)")
     if edges.size and edges.max() >= n:
         raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
     H = None
