@@ -160,9 +160,9 @@ def load_configs(config: Path | None = None, methods: list[str] | None = None
     except ConfigError as exc:  # a "[section] key=value" message, or run.methods, comes from the file: name it
         msg = str(exc)
         if path is not None and msg.startswith("["):
-            msg = f"{path}: {msg}"
+            msg = f"{msg} (in {path})"
         elif path is not None and not methods and msg.startswith("unknown method"):
-            msg = f"{path}: [run] methods: {msg}"
+            msg = f"[run] methods: {msg} (in {path})"
         raise ConfigError(msg) from None
 
 

@@ -69,12 +69,12 @@ def match_reference(names: list[str], ref_names: list[str], R_ref: np.ndarray, w
     Returns:
         (N, 3, 3) reference rotations (identity where missing) and (N,) bool mask.
     Raises:
-        InputFileError: a name matches several reference names by its stem, or two names the same one.
+        InputFileError: a name matches several reference names by its stem.
     """
     R_ref = np.asarray(R_ref, dtype=np.float64)
     if R_ref.shape != (len(ref_names), 3, 3):
         raise ValueError(f"R_ref.shape={R_ref.shape} but expected ({len(ref_names)}, 3, 3)")
-    idx = match_names(list(names), list(ref_names), what=what, unique=True)
+    idx = match_names(list(names), list(ref_names), what=what)
     mask = idx >= 0
     out = np.broadcast_to(np.eye(3), (len(names), 3, 3)).copy()
     out[mask] = R_ref[idx[mask]]

@@ -1,4 +1,4 @@
-"""Fixtures of the bad-input matrix and the fuzzer: a tiny rendered scene, a finished run on it, and a command runner.
+"""The command runner of the bad-input matrix (the tiny scene and its finished run are in ``tests/conftest.py``).
 
 Every matrix case runs a command line as a new user would: ``python run.py …`` or
 ``python -m pipeline.<command> …``, in a process of its own (its exit code, its
@@ -14,10 +14,8 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,11 +23,7 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
-
 REPO = Path(__file__).resolve().parents[2]
-TINY = SceneConfig(width=240, height=180, focal=210.0, supersample=1)
-N_VIEWS = 6
 MEMORY_LIMIT = 8 << 30  # address space of one command: far more than a tiny scene needs
 
 # The helper: imports the package once, then forks one child per request. A request is one JSON
@@ -153,37 +147,3 @@ def cli(tmp_path_factory) -> Commands:
     c.close()
 
 
-@pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory) -> Path:
-    """6 rendered views of 240×180 pixels with their true cameras (``cameras.txt``)."""
-    out = tmp_path_factory.mktemp("tiny_scene")
-    render_scene(N_VIEWS, 0, out, config=TINY)
-    return out
-
-
-@pytest.fixture(scope="session")
-def tiny_config(tmp_path_factory) -> Path:
-    """run.py options for fast cases: IRLS only, no reference, no plots, no process pools."""
-    p = tmp_path_factory.mktemp("tiny_cfg") / "tiny.yaml"
-    p.write_text("run:\n  methods: [irls]\n  reference: false\n  plots: false\n"
-                 "features:\n  workers: 1\nmatching:\n  workers: 1\n"
-                 "two_view:\n  workers: 1\ntwo_view_ba:\n  workers: 1\n")
-    return p
-
-
-@pytest.fixture(scope="session")
-def baseline(tiny_scene, tiny_config, tmp_path_factory) -> Path:
-    """A finished ``run.py`` on the tiny scene (with ``--gt``): the OUT folder to copy, damage and re-run."""
-    from pipeline import run
-
-    out = tmp_path_factory.mktemp("baseline") / "out"
-    t0 = time.perf_counter()
-    run.main(tiny_scene, out, config=tiny_config, gt=tiny_scene / "cameras.txt", quiet=True, reference=False)
-    assert (out / "metrics.json").is_file(), f"baseline run failed after {time.perf_counter() - t0:.1f} s"
-    return out
-
-
-@pytest.fixture
-def run_copy(baseline, tmp_path) -> Path:
-    """This test's own copy of the finished OUT folder (every stage up to date)."""
-    return Path(shutil.copytree(baseline, tmp_path / "out", copy_function=shutil.copy2))

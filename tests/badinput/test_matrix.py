@@ -729,3 +729,13 @@ def test_interrupted_pycolmap_reference_leaves_nothing_a_later_run_does_not_remo
     handled(cli("run.py", tiny_scene, "--out", run_copy, "--config", cfg, "-q"))
     nothing_half_written(run_copy)
     assert metrics(run_copy)["pycolmap"]["n_registered"] == 6
+
+
+@pytest.mark.slow
+def test_pycolmap_reference_leaves_out_a_png_claiming_60000x60000(cli, tiny_scene, tmp_path):  # issue
+    folder = scene_copy(tiny_scene, tmp_path / "imgs")
+    (folder / "huge.png").write_bytes(_png_header(60000, 60000))
+    r = cli("-m", "pipeline.reference", "--images", folder, "--out", tmp_path / "ref", "-q")
+    handled(r, r"pycolmap reference: leaving out .*huge.png: it claims 60000x60000")
+    assert "registered 6/7 images" in r.stdout and "huge.png: not given to pycolmap" in r.stdout, r.stdout
+    nothing_half_written(tmp_path / "ref", folder)
