@@ -27,6 +27,12 @@ Camera names are the 0-based indices as strings (``"0"``, ``"1"``, …).
   camera without ground truth.
 - ``H`` (3, 3, M, optional): precisions, an addition of this project written by
   :func:`write_l1_mat` when the view graph has them.
+
+**Near-rotations.** Public sets store their rotations to about 1e-6 (the Ellis Island
+graph of 1DSfM in the ℓ1 layout: ``det = 0.999999``). Blocks within ``rotation_tol``
+(default 1e-3, :mod:`pipeline.io.near_rotation`) of SO(3) are projected onto it, with
+ONE warning per file giving the count and the largest deviation; beyond it they are
+refused, naming the block.
 """
 
 from __future__ import annotations
@@ -40,16 +46,14 @@ from typing import Any
 import numpy as np
 import scipy.io as sio
 
-from pipeline.core import so3
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, project_near_rotations
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["MatData", "read_lu_sphinx", "read_l1_mat", "write_l1_mat", "read_mat", "read_input_graph"]
-
-GT_TOL = 1e-5
 
 
 @dataclass
@@ -92,17 +96,35 @@ def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
     return a
 
 
-def _ground_truth(path: Path, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class _Projector:
+    """Projects a file's variables onto SO(3) within the tolerance and logs ONE warning for the file."""
+
+    def __init__(self, path: Path, tol: float) -> None:
+        self.path, self.tol, self.parts, self.worst = path, tol, [], 0.0
+
+    def __call__(self, R: np.ndarray, key: str, labels: list[str] | None = None) -> np.ndarray:
+        try:
+            out, rep = project_near_rotations(R, self.tol, what=f"{key} block", source=str(self.path), labels=labels,
+                                              warn=False)
+        except NearRotationError as exc:
+            raise InputFileError(f"{exc}; expected rotations (raise --rotation-tol to accept coarser ones)") from None
+        if rep.n_projected:
+            self.parts.append(f"{rep.n_projected} of {rep.n_total} {key} blocks")
+            self.worst = max(self.worst, rep.max_deviation)
+        return out
+
+    def warn(self) -> None:
+        if self.parts:
+            logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)",
+                           self.path, " and ".join(self.parts), self.worst, self.tol)
+
+
+def _ground_truth(path: Path, blocks: np.ndarray, project: _Projector) -> tuple[np.ndarray, np.ndarray]:
     """Validate (N, 3, 3) truth blocks; all-zero blocks become identity + mask False."""
     mask = np.abs(blocks).sum(axis=(1, 2)) > 0
     R = np.where(mask[:, None, None], blocks, np.eye(3))
-    ok = so3.is_rotation(R, GT_TOL)
-    if not np.all(ok):
-        k = int(np.flatnonzero(~ok)[0])
-        raise InputFileError(
-            f"{path}: Rgt block of camera {k} is not a rotation "
-            f"(det={np.linalg.det(R[k]):.6g}); expected cam_from_world rotations or an all-zero block"
-        )
+    if mask.any():
+        R[mask] = project(R[mask], "Rgt", labels=[f"of camera {k}" for k in np.flatnonzero(mask)])
     return R, mask
 
 
@@ -120,11 +142,15 @@ def _make_graph(path: Path, names: list[str], edges: np.ndarray, R_rel: np.ndarr
         raise InputFileError(f"{path}: {exc}") from exc
 
 
-def read_lu_sphinx(path: str | os.PathLike) -> MatData:
+def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
     """Read the LU Sphinx layout (``Rgt``, ``Rrel``, optional ``Alpha``).
 
     Args:
         path: a ``.mat`` file.
+
+    Args:
+        path: a ``.mat`` file.
+        rotation_tol: blocks within this of SO(3) are projected (one warning), beyond refused.
 
     Returns:
         MatData with ``H_ij = tr(M_ij)·I − M_ij`` (symmetrized) when ``Alpha`` is present.
@@ -153,7 +179,8 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
     present &= ~lower_dup
     i, j = np.nonzero(present)
     edges = np.stack([i, j], axis=1)
-    R_rel = blocks[i, j]
+    project = _Projector(path, rotation_tol)
+    R_rel = project(blocks[i, j], "Rrel", labels=[f"({a}, {b})" for a, b in zip(i, j)])
     H = None
     if "Alpha" in data:
         Alpha = _numeric(path, data, "Alpha")
@@ -170,8 +197,9 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
         Rgt = _numeric(path, data, "Rgt")
         if Rgt.shape != (3 * n, 3):
             raise InputFileError(f"{path}: Rgt.shape={Rgt.shape} but expected ({3 * n}, 3) for {n} cameras")
-        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3))
+        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3), project)
     vg = _make_graph(path, [str(k) for k in range(n)], edges, R_rel, H)
+    project.warn()
     return MatData(vg, R_gt, gt_mask)
 
 
@@ -184,11 +212,12 @@ def _stack3(path: Path, a: np.ndarray, key: str) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 2, 0))
 
 
-def read_l1_mat(path: str | os.PathLike) -> MatData:
+def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
     """Read the ℓ1 layout (``RR`` 3×3×M, ``I`` 2×M 1-based, optional ``Rgt`` 3×3×N).
 
     Args:
         path: a ``.mat`` file.
+        rotation_tol: blocks within this of SO(3) are projected (one warning), beyond refused.
 
     Returns:
         MatData; N is the size of ``Rgt`` when present, else the largest index in ``I``.
@@ -212,11 +241,13 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
     if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
+    project = _Projector(path, rotation_tol)
+    RR = project(RR, "RR", labels=[f"{k + 1} (1-based)" for k in range(RR.shape[0])])
     R_gt = gt_mask = None
     if "Rgt" in data:
         Rgt = _stack3(path, _numeric(path, data, "Rgt"), "Rgt")
         n = Rgt.shape[0]
-        R_gt, gt_mask = _ground_truth(path, Rgt)
+        R_gt, gt_mask = _ground_truth(path, Rgt, project)
     else:
         n = int(edges.max()) + 1 if edges.size else 0
         used = len(np.unique(edges))
@@ -232,6 +263,7 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         if H.shape[0] != RR.shape[0]:
             raise InputFileError(f"{path}: H has {H.shape[0]} blocks but RR has {RR.shape[0]}")
     vg = _make_graph(path, [str(k) for k in range(n)], edges, RR, H)
+    project.warn()
     return MatData(vg, R_gt, gt_mask)
 
 
@@ -264,32 +296,24 @@ def write_l1_mat(path: str | os.PathLike, vg: ViewGraph, R_gt: np.ndarray | None
     return Path(path)
 
 
-def read_mat(path: str | os.PathLike) -> MatData:
+def read_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
     """Read a ``.mat`` view graph, detecting the layout from its variables.
 
     ``Rrel`` → LU Sphinx layout; ``RR`` and ``I`` → ℓ1 layout.
     """
     p, data = _load(path)
     if "Rrel" in data:
-        return read_lu_sphinx(p)
+        return read_lu_sphinx(p, rotation_tol)
     if "RR" in data and "I" in data:
-        return read_l1_mat(p)
+        return read_l1_mat(p, rotation_tol)
     raise InputFileError(
         f"{p}: unknown .mat layout with variables {sorted(data)}; expected Rrel (+Rgt, Alpha) "
         "as in LU Sphinx, or RR and I (+Rgt) as in the ℓ1 layout"
     )
 
 
-def read_input_graph(path: str | os.PathLike) -> MatData:
-    """Read a view graph to average: a ``.npz`` from ``ViewGraph.save`` or a supported ``.mat``.
+def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+    """Read a view graph to average from any supported input (:func:`pipeline.io.graphs.read_input_graph`)."""
+    from pipeline.io.graphs import read_input_graph as read  # noqa: PLC0415 - graphs imports this module
 
-    Returns:
-        MatData (``R_gt`` is None for ``.npz`` files).
-    """
-    p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix == ".npz":
-        return MatData(ViewGraph.load(p, allow_isolated=True), None, None)
-    if suffix == ".mat":
-        return read_mat(p)
-    raise InputFileError(f"{p}: unsupported view-graph file; expected a .npz written by ViewGraph.save or a .mat file")
+    return read(path, rotation_tol)

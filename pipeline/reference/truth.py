@@ -147,6 +147,14 @@ def _rotations_text(path: Path, text: str) -> Reference:
     return Reference(names, _clean_rotations(path, names, v.reshape(-1, 3, 3)), source="rotations")
 
 
+def _glomap_text(path: Path, text: str) -> Reference:
+    """GLOMAP's rotation file: ``NAME QW QX QY QZ`` (cam_from_world)."""
+    from pipeline.io.glomap import read_glomap_rotations  # noqa: PLC0415
+
+    names, R = read_glomap_rotations(path)
+    return Reference(names, R, source="glomap")
+
+
 def _cameras_text(path: Path, text: str) -> Reference:
     names, v = _read_table(path, text, 17, CAMERAS_LAYOUT)
     n = len(names)
@@ -300,6 +308,11 @@ def read_reference(path: str | os.PathLike) -> Reference:
         InputFileError: a missing path, an unrecognised format, or malformed content.
     """
     path = Path(path)
+    from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm_reference  # noqa: PLC0415
+
+    if is_1dsfm_folder(path) or path.name == "gt_bundle.out":
+        names, R = read_1dsfm_reference(path)
+        return Reference(names, R, source="1dsfm")
     if path.is_dir():
         if any((path / f"images{ext}").is_file() for ext in (".bin", ".txt")):
             return read_colmap_model(path)
@@ -325,10 +338,10 @@ def read_reference(path: str | os.PathLike) -> Reference:
     text = _read_text(path, "reference")
     rows = _rows(text, path)
     first = next((parts for _, parts in rows if not (len(parts) == 1 and parts[0].isdigit())), [])
-    readers = {10: _rotations_text, 17: _cameras_text, 22: _middlebury_text}
+    readers = {10: _rotations_text, 5: _glomap_text, 17: _cameras_text, 22: _middlebury_text}
     if len(first) not in readers:
         raise InputFileError(
             f"{path}: unrecognised reference with {len(first)} fields per line; expected 10 (rotations: "
-            "name r11..r33), 17 (cameras: name fx fy cx cy r11..r33 t1 t2 t3) or 22 (Middlebury: name k11..k33 "
+            "name r11..r33), 5 (GLOMAP rotations: name qw qx qy qz), 17 (cameras: name fx fy cx cy r11..r33 t1 t2 t3) or 22 (Middlebury: name k11..k33 "
             "r11..r33 t1 t2 t3)")
     return readers[len(first)](path, text)

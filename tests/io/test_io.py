@@ -231,7 +231,10 @@ def test_read_mat_and_input_graph_errors(tmp_path) -> None:
         read_mat(junk)
     with pytest.raises(InputFileError, match="does not exist"):
         read_mat(tmp_path / "missing.mat")
-    with pytest.raises(InputFileError, match="unsupported view-graph file"):
+    with pytest.raises(InputFileError, match="does not exist"):  # a .txt may be GLOMAP relative poses (issue 15)
+        read_input_graph(tmp_path / "graph.txt")
+    (tmp_path / "graph.txt").write_text("a b\n")
+    with pytest.raises(InputFileError, match="unsupported view-graph input"):
         read_input_graph(tmp_path / "graph.txt")
     vg = ViewGraph.from_absolute(["a", "b"], so3.random_rotations(2, np.random.default_rng(5)), [(0, 1)])
     data = read_input_graph(vg.save(tmp_path / "g.npz"))

@@ -81,7 +81,7 @@ def test_true_essential_matrix_is_satisfied_by_true_points():
 
 
 def test_writes_images_cameras_and_points(tmp_path):
-    from pipeline.io.references import read_cameras_file
+    from pipeline.reference.truth import read_cameras_file
 
     s = render_scene(n_views=2, seed=0, out=tmp_path, config=SMALL, write_points=True)
     assert sorted(p.name for p in tmp_path.glob("*.png")) == s.names
