@@ -30,6 +30,7 @@ EXPECTED = {
     "pipeline.reference": ["--images", "--out", "--K"],
     "pipeline.evaluate": ["--reference", "--align", "--rotations"],
     "pipeline.synthetic.render": ["--views", "--seed", "--out"],
+    "pipeline.convert": ["--to", "--rotation-tol"],
 }
 
 

@@ -207,7 +207,7 @@ def _save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
         sio.savemat(path, {k: v for k, v in arrays.items() if v.dtype.kind != "U" or v.size}, do_compression=True)
     else:
         buf = io.BytesIO()
-        np.savez_compressed(buf, **arrays)
+        np.savez(buf, **arrays)  # uncompressed: cheaper, and readers must take both
         path.write_bytes(buf.getvalue())
 
 

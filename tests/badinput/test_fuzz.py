@@ -280,6 +280,15 @@ def seeds(baseline, tiny_scene, tmp_path_factory) -> dict[str, Path]:
     (refdir / "reference.json").write_text(json.dumps({"images": ref.names, "n_images": n, "n_registered": n,
                                                        "registered": ref.names, "unregistered": {}}))
     out["pycolmap_result"] = refdir
+    from pipeline.io.g2o import write_g2o
+    from pipeline.io.glomap import write_glomap_relpose, write_glomap_rotations
+    from pipeline.synthetic.files import make_synthetic_1dsfm
+
+    out["g2o"] = write_g2o(d / "graph.g2o", vg, ref.R)
+    out["glomap_rotations"] = write_glomap_rotations(d / "glomap_rotations.txt", ref.names, ref.R)
+    out["glomap_relpose"] = write_glomap_relpose(d / "relpose.txt", vg.with_H(None))
+    make_synthetic_1dsfm(d / "onedsfm", n=8, n_extra_images=2, n_unregistered=1, seed=0)
+    out["onedsfm"] = d / "onedsfm"
     import cv2
 
     img = cv2.imread(str(tiny_scene / "view_000.png"))
@@ -331,7 +340,9 @@ def _targets(seeds: dict[str, Path]) -> dict[str, tuple[Path, Target]]:
     from pipeline.frontend.matching_stage import load_matches
     from pipeline.frontend.pairs import read_pairs
     from pipeline.graph.stage import load_graph_summary
-    from pipeline.io.mat import read_input_graph, read_mat
+    from pipeline.io.g2o import read_g2o
+    from pipeline.io.graphs import read_input_graph
+    from pipeline.io.mat import read_mat
     from pipeline.io.rotations import read_rotations
     from pipeline.plan import load_configs
     from pipeline.reference.models import load_reference
@@ -341,7 +352,13 @@ def _targets(seeds: dict[str, Path]) -> dict[str, tuple[Path, Target]]:
     names = _names_of(seeds)
     return {
         "ViewGraph.load": (seeds["viewgraph"], Target(lambda p: ViewGraph.load(p, allow_isolated=True), _viewgraph)),
-        "read_input_graph": (seeds["viewgraph"], Target(lambda p: read_input_graph(p).vg, _viewgraph)),
+        "g2o file": (seeds["g2o"], Target(read_g2o, lambda d: (_viewgraph(d.vg), _rotations(d.R_init)))),
+        "1DSfM folder": (seeds["onedsfm"], Target(read_input_graph, _mat)),
+        "truth: 1DSfM gt_bundle.out": (seeds["onedsfm"], Target(lambda p: read_reference(p / "gt_bundle.out"), _reference,
+                                                              files=["gt_bundle.out", "list.txt"])),
+        "GLOMAP rotations": (seeds["glomap_rotations"], Target(read_rotations, lambda r: (_names(r[0]),
+                                                                                         _rotations(r[1], len(r[0]))))),
+        "GLOMAP relative poses": (seeds["glomap_relpose"], Target(lambda p: read_input_graph(p).vg, _viewgraph)),
         "read_rotations": (seeds["rotations"], Target(read_rotations, lambda r: (_names(r[0]), _rotations(r[1], len(r[0]))))),
         "truth: rotations file": (seeds["rotations"], Target(read_reference, _reference)),
         "truth: cameras file": (seeds["cameras"], Target(read_reference, _reference)),
@@ -373,7 +390,8 @@ def _fail(x: Any) -> None:
     raise AssertionError(f"accepted nonsense: {x!r}"[:200])
 
 
-READERS = ["ViewGraph.load", "read_input_graph", "read_rotations", "truth: rotations file", "truth: cameras file",
+READERS = ["ViewGraph.load", "g2o file", "1DSfM folder", "truth: 1DSfM gt_bundle.out", "GLOMAP rotations",
+           "GLOMAP relative poses", "read_rotations", "truth: rotations file", "truth: cameras file",
            "truth: Middlebury _par.txt", "truth: Strecha gt_dense_cameras", "truth: COLMAP text model", "truth: .mat Rgt",
            ".mat LU Sphinx layout", ".mat l1-RA layout", "intrinsics K.txt", "intrinsics cameras file", "pairs file",
            "YAML config", "features store + manifest", "matches store + manifest", "item store index", "stage record",

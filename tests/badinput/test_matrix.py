@@ -606,6 +606,47 @@ def test_average_refuses_a_bad_view_graph_naming_it(cli, graphs, tmp_path, name,
     assert not (tmp_path / "r").exists()
 
 
+@pytest.fixture
+def other_formats(tmp_path, baseline) -> Path:
+    """Damaged inputs in the other tools' formats (g2o, 1DSfM, GLOMAP) that python -m pipeline.average reads."""
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.io.g2o import write_g2o
+    from pipeline.io.glomap import write_glomap_relpose
+    from pipeline.synthetic.files import make_synthetic_1dsfm
+
+    d = tmp_path / "formats"
+    d.mkdir()
+    vg = ViewGraph.load(baseline / "viewgraph.npz")
+    g2o = write_g2o(d / "nan.g2o", vg).read_text().splitlines()
+    k = next(i for i, ln in enumerate(g2o) if ln.startswith("EDGE"))
+    g2o[k] = " ".join(g2o[k].split()[:6] + ["nan"] + g2o[k].split()[7:])
+    (d / "nan.g2o").write_text("\n".join(g2o) + "\n")
+    (d / "text.g2o").write_text("# not a graph\nhello world\n")
+    make_synthetic_1dsfm(d / "onedsfm", n=6, n_extra_images=0, n_unregistered=0)
+    (d / "onedsfm" / "list.txt").write_bytes(b"\xff\xfe" + (d / "onedsfm" / "list.txt").read_bytes())
+    rel = write_glomap_relpose(d / "relpose.txt", vg.with_H(None)).read_text().splitlines()
+    rel[0] = " ".join(rel[0].split()[:2] + ["0", "0", "0", "0"] + rel[0].split()[6:])
+    (d / "relpose.txt").write_text("\n".join(rel) + "\n")
+    return d
+
+
+@pytest.mark.parametrize("name,pattern", [
+    ("nan.g2o", r"nan.g2o:\d+: NaN or inf value"),
+    ("text.g2o", r"text.g2o holds no EDGE_SE3:QUAT"),
+    ("onedsfm", r"list.txt is not a readable text file"),
+    ("relpose.txt", r"relpose.txt: quaternion of line 1 has norm 0"),
+], ids=["g2o-nan", "g2o-text", "1dsfm-list-not-utf8", "glomap-zero-quaternion"])
+def test_average_refuses_damaged_files_of_other_tools(cli, other_formats, tmp_path, name, pattern):
+    refused(cli("-m", "pipeline.average", other_formats / name, "--out", tmp_path / "r" / "rot.txt", "-q"), pattern)
+    assert not (tmp_path / "r").exists()
+
+
+def test_convert_refuses_a_text_file_named_npz(cli, graphs, tmp_path):
+    line = refused(cli("-m", "pipeline.convert", graphs / "text.npz", tmp_path / "out.g2o", "-q"),
+                   r"is not an .npz archive")
+    assert "pickle" not in line and not (tmp_path / "out.g2o").exists()
+
+
 @pytest.mark.parametrize("args,pattern", [
     (["--method", "nope"], r"unknown method 'nope'"),
     (["--method", "irls", "--alpha-deg", "nan"], r"alpha_deg=nan but expected a finite number"),
