@@ -71,25 +71,45 @@ class MatData:
     gt_mask: np.ndarray | None
 
 
+def _loadmat_arrays(path: str) -> dict[str, Any]:
+    """The variables of a .mat file: numeric arrays (sparse ones densified), others as their type name.
+
+    Runs in a sandboxed child process (:mod:`pipeline.core.sandbox`): scipy's reader
+    crashes the process (SIGSEGV) on some damaged files (scipy 1.17, two flipped bytes).
+    """
+    out: dict[str, Any] = {}
+    for k, v in sio.loadmat(path, squeeze_me=False).items():
+        if k.startswith("__"):
+            continue
+        if hasattr(v, "toarray") and not isinstance(v, np.ndarray):  # a MATLAB sparse variable
+            v = v.toarray()
+        out[k] = v if isinstance(v, np.ndarray) and v.dtype.kind in "fiub" else type(v).__name__
+    return out
+
+
 def _load(path: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    from pipeline.core.sandbox import SandboxError, run_limited  # noqa: PLC0415
+
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f".mat file {path} does not exist")
+    size = path.stat().st_size
     try:
-        data = sio.loadmat(path, squeeze_me=False)
-    except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
-        raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')") from exc
-    except Exception as exc:  # noqa: BLE001 - any reader failure means a bad file
-        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from exc
-    return path, {k: v for k, v in data.items() if not k.startswith("__")}
+        data = run_limited(_loadmat_arrays, str(path), timeout=60 + size / 1e6, memory_bytes=(3 << 30) + 64 * size,
+                           preload=("numpy", "scipy.io", __name__))
+    except SandboxError as exc:
+        if str(exc).startswith("NotImplementedError"):  # MATLAB v7.3 files are HDF5
+            raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')"
+                                 ) from None
+        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from None
+    return path, data
 
 
 def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
     a = data[key]
-    if hasattr(a, "toarray") and not isinstance(a, np.ndarray):  # a MATLAB sparse variable
-        a = a.toarray()
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
-        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {type(a).__name__}")
+        got = a if isinstance(a, str) else type(a).__name__
+        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {got}")
     a = np.asarray(a, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise InputFileError(f"{path}: variable {key!r} has NaN or inf entries")

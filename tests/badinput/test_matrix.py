@@ -641,6 +641,14 @@ def test_average_refuses_damaged_files_of_other_tools(cli, other_formats, tmp_pa
     assert not (tmp_path / "r").exists()
 
 
+def test_a_mat_file_that_crashes_scipy_is_one_line(cli, tmp_path):
+    """Two flipped bytes in a .mat make scipy 1.17's loadmat crash with SIGSEGV; it runs in a sandbox, so no crash."""
+    bad = Path(__file__).parent / "data" / "loadmat_segfault.mat"
+    refused(cli("-m", "pipeline.average", bad, "--out", tmp_path / "r" / "rot.txt", "-q"),
+            re.escape(str(bad)) + r" is not a readable .mat file")
+    assert not (tmp_path / "r").exists()
+
+
 def test_convert_refuses_a_text_file_named_npz(cli, graphs, tmp_path):
     line = refused(cli("-m", "pipeline.convert", graphs / "text.npz", tmp_path / "out.g2o", "-q"),
                    r"is not an .npz archive")
