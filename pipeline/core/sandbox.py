@@ -96,17 +96,17 @@ class SandboxError(Exception):
 
 
 class _Helper:
-    """The helper process, started on first use and again if it died."""
+    """A helper process with ``preload`` imported, started on first use and again if it died."""
 
-    def __init__(self) -> None:
+    def __init__(self, preload: tuple[str, ...]) -> None:
         self.proc: subprocess.Popen | None = None
-        self.preload: tuple[str, ...] = ()
+        self.preload = preload
         self.lock = threading.Lock()
 
-    def call(self, request: tuple, preload: tuple[str, ...]) -> tuple:
+    def call(self, request: tuple) -> tuple:
         with self.lock:
-            if self.proc is None or self.proc.poll() is not None or not set(preload) <= set(self.preload):
-                self._start(tuple(dict.fromkeys(self.preload + preload)))
+            if self.proc is None or self.proc.poll() is not None:
+                self._start()
             proc: Any = self.proc
             data = pickle.dumps(request)
             try:
@@ -119,20 +119,20 @@ class _Helper:
             except (OSError, EOFError):
                 self.proc = None
                 return ("crashed", "the helper process ended")
+            except BaseException:  # interrupted mid-exchange (Ctrl-C): the protocol is out of step
+                proc.kill()
+                self.proc = None
+                raise
 
-    def _start(self, preload: tuple[str, ...]) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.stdin.close()  # type: ignore[union-attr]
-            self.proc.wait()
+    def _start(self) -> None:
         root = str(Path(__file__).resolve().parents[2])  # the folder holding this `pipeline` package
         env = {**os.environ, "OMP_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE",
                "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
-        self.proc = subprocess.Popen([sys.executable, "-c", _HELPER, *preload], stdin=subprocess.PIPE,
+        self.proc = subprocess.Popen([sys.executable, "-c", _HELPER, *self.preload], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env)
-        self.preload = preload
 
 
-_HELPER_PROCESS = _Helper()
+_HELPERS: dict[tuple[str, ...], _Helper] = {}  # one per set of preloaded modules: each forks only what it needs
 
 
 def run_limited(fn: Callable[..., Any], *args: Any, timeout: float, memory_bytes: int | None = None,
@@ -149,7 +149,9 @@ def run_limited(fn: Callable[..., Any], *args: Any, timeout: float, memory_bytes
     Raises:
         SandboxError: ``fn`` raised (its type and message), the child crashed, or it timed out.
     """
-    status, value = _HELPER_PROCESS.call((fn, args, memory_bytes, float(timeout)), tuple(preload))
+    key = tuple(sorted(set(preload)))
+    helper = _HELPERS.setdefault(key, _Helper(key))
+    status, value = helper.call((fn, args, memory_bytes, float(timeout)))
     if status == "ok":
         return value
     if status == "timeout":

@@ -162,7 +162,8 @@ def _make_graph(path: Path, names: list[str], edges: np.ndarray, R_rel: np.ndarr
         raise InputFileError(f"{path}: {exc}") from exc
 
 
-def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                   _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the LU Sphinx layout (``Rgt``, ``Rrel``, optional ``Alpha``).
 
     Args:
@@ -179,7 +180,7 @@ def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATI
         InputFileError: missing variables, shapes that are not multiples of 3,
             non-rotation blocks, or H that is not positive definite.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     if "Rrel" not in data:
         raise InputFileError(f"{path}: no variable 'Rrel'; the LU Sphinx layout needs Rrel (3N×3N), found {sorted(data)}")
     Rrel = _numeric(path, data, "Rrel")
@@ -232,7 +233,8 @@ def _stack3(path: Path, a: np.ndarray, key: str) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 2, 0))
 
 
-def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the ℓ1 layout (``RR`` 3×3×M, ``I`` 2×M 1-based, optional ``Rgt`` 3×3×N).
 
     Args:
@@ -246,7 +248,7 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         InputFileError: missing variables, bad shapes, indices that are not
             positive integers or exceed N, non-rotation blocks.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     missing = [k for k in ("RR", "I") if k not in data]
     if missing:
         raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
@@ -323,9 +325,9 @@ def read_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
     """
     p, data = _load(path)
     if "Rrel" in data:
-        return read_lu_sphinx(p, rotation_tol)
+        return read_lu_sphinx(p, rotation_tol, _loaded=(p, data))
     if "RR" in data and "I" in data:
-        return read_l1_mat(p, rotation_tol)
+        return read_l1_mat(p, rotation_tol, _loaded=(p, data))
     raise InputFileError(
         f"{p}: unknown .mat layout with variables {sorted(data)}; expected Rrel (+Rgt, Alpha) "
         "as in LU Sphinx, or RR and I (+Rgt) as in the ℓ1 layout"
