@@ -282,6 +282,10 @@ def read_colmap_model(path: str | os.PathLike) -> Reference:
     from pipeline.core.sandbox import SandboxError, run_limited  # noqa: PLC0415
 
     path = Path(path)
+    if (path / "images.bin").is_file():
+        from pipeline.reference.colmap_binary import check_binary_model  # noqa: PLC0415
+
+        check_binary_model(path)  # pycolmap trusts the counts of a damaged binary file
     size = sum(p.stat().st_size for p in path.iterdir() if p.is_file()) if path.is_dir() else 0
     try:
         arr = run_limited(_colmap_arrays, str(path), timeout=COLMAP_TIMEOUT_S + size / 2e6,

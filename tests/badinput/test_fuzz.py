@@ -12,8 +12,7 @@ copy is either
 
 Anything else (another exception, a hang, a memory blow-up) fails, with the seed
 and the damage that caused it. ``FUZZ_N=2000 pytest tests/badinput/test_fuzz.py``
-runs a larger budget; ``FUZZ_SLOW=1`` adds COLMAP binary models, whose damaged copies
-take pycolmap to the sandbox's time or memory limit (seconds each).
+runs a larger budget.
 """
 
 from __future__ import annotations
@@ -40,9 +39,6 @@ from pipeline.frontend.intrinsics import check_K
 from pipeline.synthetic.damage import damaged_copies
 
 N = int(os.environ.get("FUZZ_N", "200"))
-# pycolmap's binary reader hangs (to the sandbox's 20 s limit) or grows to its memory limit (~8 s) on many
-# truncations: 200 damaged binary models take ~7 minutes here, so they run only with FUZZ_SLOW=1.
-SLOW = os.environ.get("FUZZ_SLOW") == "1"
 CALL_LIMIT_S = 20.0  # per read; the COLMAP reader's own child-process limit is shorter
 MEMORY_HEADROOM = 3 << 30  # a read may allocate this much beyond what the test process holds
 
@@ -241,7 +237,7 @@ def seeds(baseline, tiny_scene, tmp_path_factory) -> dict[str, Path]:
     img_lines, tracks = [], {k: [] for k in range(len(pts))}
     for i, (nm, R, tt) in enumerate(zip(ref.names, ref.R, t), 1):
         x, y, z, w = Rotation.from_matrix(R).as_quat()
-        img_lines.append(f"{i} {w!r} {x!r} {y!r} {z!r} {tt[0]!r} {tt[1]!r} {tt[2]!r} 1 {nm}")
+        img_lines.append(" ".join([str(i)] + [repr(float(v)) for v in (w, x, y, z, *tt)] + ["1", nm]))
         obs = []
         for k, X in enumerate(pts):
             p = ref.K[i - 1] @ (R @ X + tt)
@@ -293,12 +289,11 @@ def seeds(baseline, tiny_scene, tmp_path_factory) -> dict[str, Path]:
     out["glomap_relpose"] = write_glomap_relpose(d / "relpose.txt", vg.with_H(None))
     make_synthetic_1dsfm(d / "onedsfm", n=8, n_extra_images=2, n_unregistered=1, seed=0)
     out["onedsfm"] = d / "onedsfm"
-    if SLOW:
-        import pycolmap
+    import pycolmap
 
-        (d / "colmap_bin").mkdir()
-        pycolmap.Reconstruction(str(cm)).write(str(d / "colmap_bin"))
-        out["colmap_bin"] = d / "colmap_bin"
+    (d / "colmap_bin").mkdir()
+    pycolmap.Reconstruction(str(cm)).write(str(d / "colmap_bin"))
+    out["colmap_bin"] = d / "colmap_bin"
     import cv2
 
     img = cv2.imread(str(tiny_scene / "view_000.png"))[40:104, 60:140]  # 80x64: decoding stays cheap
@@ -376,7 +371,7 @@ def _targets(seeds: dict[str, Path]) -> dict[str, tuple[Path, Target]]:
         "truth: Strecha gt_dense_cameras": (seeds["strecha"], Target(read_reference, _reference)),
         "truth: COLMAP text model": (seeds["colmap"], Target(read_reference, _reference)),
         "truth: .mat Rgt": (seeds["l1_mat"], Target(read_reference, _reference)),
-        "truth: COLMAP binary model": (seeds.get("colmap_bin", seeds["colmap"]), Target(read_reference, _reference)),
+        "truth: COLMAP binary model": (seeds["colmap_bin"], Target(read_reference, _reference)),
         ".mat LU Sphinx layout": (seeds["lu_mat"], Target(read_mat, _mat)),
         ".mat l1-RA layout": (seeds["l1_mat"], Target(read_mat, _mat)),
         "intrinsics K.txt": (seeds["K"], Target(parse_intrinsics_file, _intrinsics)),
@@ -413,8 +408,6 @@ READERS = ["ViewGraph.load", "g2o file", "1DSfM folder", "truth: 1DSfM gt_bundle
 
 @pytest.mark.parametrize("reader", READERS)
 def test_fuzz_reader(reader: str, seeds, tmp_path, caplog) -> None:
-    if reader == "truth: COLMAP binary model" and not SLOW:
-        pytest.skip("slow (pycolmap hangs to the sandbox limit on truncated binary files): run with FUZZ_SLOW=1")
     src, target = _targets(seeds)[reader]
     seed = READERS.index(reader) + 1000
     failures: list[str] = []
