@@ -189,14 +189,3 @@ def test_bad_config_key(tmp_path, scene):
         run.main(scene, tmp_path / "out", config=p, quiet=True)
 
 
-def test_help():
-    r = subprocess.run([sys.executable, str(REPO / "run.py"), "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--methods" in r.stdout and "--gt" in r.stdout
-
-
-@pytest.mark.parametrize("module", ["pipeline.reference", "pipeline.features", "pipeline.matching",
-                                    "pipeline.two_view", "pipeline.two_view_ba", "pipeline.average",
-                                    "pipeline.evaluate"])
-def test_stage_help(module):
-    r = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "usage" in r.stdout.lower()

@@ -44,7 +44,6 @@ import argparse
 import logging
 import os
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -316,6 +315,3 @@ def main_cli(argv: list[str] | None = None) -> int:
 
     return run_cli(body, parser, argv)
 
-
-if __name__ == "__main__":
-    sys.exit(main_cli())

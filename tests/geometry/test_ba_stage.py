@@ -187,12 +187,6 @@ def test_stage_rejects_graph_without_translations(tmp_path: Path) -> None:
         TwoViewBAStage(work, Q).run()
 
 
-def test_cli_help() -> None:
-    out = subprocess.run([sys.executable, "-m", "pipeline.two_view_ba", "--help"], capture_output=True, text=True,
-                         timeout=60)
-    assert out.returncode == 0 and "--work" in out.stdout and "--sigma-px" in out.stdout
-
-
 def test_cli_missing_work_is_one_line_error(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "pipeline.two_view_ba", "--work", str(tmp_path / "missing")],
                          capture_output=True, text=True, timeout=60)
