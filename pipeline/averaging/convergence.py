@@ -47,15 +47,19 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
     method = spec.method
     if not method.error_vs_time or vg.n_cameras > max_n:
         return []
-    from pipeline import evaluate  # noqa: PLC0415
+    from pipeline.evaluation import compare, metrics  # noqa: PLC0415
 
-    R_ref, mask = evaluate.match_reference(list(vg.names), ref.names, ref.R)
+    R_ref, mask = compare.match_reference(list(vg.names), ref.names, ref.R)
     if mask.sum() < 2:
         return []
     hist = list(stats.get("history") or [])
     L = int(stats.get("l1_iterations", 0) or 0)
     K = int(stats.get("irls_iterations", 0) or 0)
     budgets = [(l, 0) for l in range(1, L + 1)] + [(L, k) for k in range(1, K + 1)]
+    fields = spec.method.fields()
+    extra: dict[str, Any] = {"certify": False} if "certify" in fields else {}
+    if "start" in fields and stats.get("start_used") in ("tree", "l1"):
+        extra["start"] = stats["start_used"]  # the branch the full run kept, alone
     quiet = logging.getLogger("pipeline.averaging")
     level = quiet.level
     quiet.setLevel(logging.ERROR)  # each truncated run would warn that it hit its (deliberate) cap
@@ -63,17 +67,17 @@ def error_vs_time(vg: ViewGraph, spec: MethodSpec, stats: Mapping[str, Any], R_f
     try:
         for n_done, (l, k) in enumerate(budgets):
             try:
-                cfg = spec.config.replace(refine=False, l1_iterations=l, max_iterations=k)
+                cfg = spec.config.replace(refine=False, l1_iterations=l, max_iterations=k, **extra)
                 r = method.solve(vg, config=cfg)
             except (PipelineError, ValueError, IndexError, TypeError):
                 continue
-            e = evaluate.rotation_errors_deg(r.R, R_ref, mask, align=align)
+            e = metrics.rotation_errors_deg(r.R, R_ref, mask, align=align)
             t = hist[n_done]["time_s"] if n_done < len(hist) and "time_s" in hist[n_done] else r.time_s
             curve.append({"time_s": float(t), "median_deg": float(np.nanmedian(e)), "l1_iterations": l,
                           "irls_iterations": k})
     finally:
         quiet.setLevel(level)
-    e = evaluate.rotation_errors_deg(R_final, R_ref, mask, align=align)
+    e = metrics.rotation_errors_deg(R_final, R_ref, mask, align=align)
     curve.append({"time_s": float(stats.get("time_s", curve[-1]["time_s"] if curve else 0.0)),
                   "median_deg": float(np.nanmedian(e)), "l1_iterations": L, "irls_iterations": K, "final": True})
     return curve

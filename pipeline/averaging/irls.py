@@ -6,16 +6,41 @@ Each iteration (paper 1, Alg. 1):
 2. weights ``φ_ij = φ(‖r_ij‖)`` of the chosen loss (Table 1, eq. 12);
 3. the quasi-Newton step of eq. 21, in this code's sign convention (see
    :mod:`pipeline.averaging.kernel`): ``(Aᵀ Φ A) ΔΩ = Aᵀ Φ r`` with one sparse
-   factorization of the gauge-fixed weighted Laplacian shared by the three axes;
+   factorization of the gauge-fixed weighted Laplacian shared by the three axes
+   (reused as a preconditioner while the weights change little);
 4. ``R_i ← R_i exp([Δω_i]×)``.
 
-It stops when the mean camera update is below ``tol_rad`` (1e-3 rad, paper 1 §6)
-or after ``max_iterations``. Algorithm 3 precedes it with ``l1_iterations`` ℓ1
-steps (Algorithm 2) from a spanning-tree initialization.
+**Stopping** (:mod:`~pipeline.averaging.stopping`): the cost has settled (relative
+decrease ≤ ``ftol``) and the *largest* camera update is ≤ ``xtol_scale`` × the robust
+residual scale σ̂ (or ≤ ``tol_rad`` when given), not paper 1's mean update of 1e-3 rad.
 
-At a fixed point ``ΔΩ = 0`` the right-hand side vanishes: ``Aᵀ Φ r = 0``, the
-gradient of the cost (paper 1, eq. 23, §4.3). Its norm at termination is reported
-as ``stats["gradient_norm"]``.
+**Start** (``start``). Paper 1's Algorithm 3 runs ℓ1 steps from a spanning tree
+(``"l1"``). With outliers from repeated structure, all rotating about one axis, one exact
+ℓ1 step takes a good inlier-weighted tree (4.2° median) to a wrong basin (23–26°) that
+IRLS never leaves, and COLMAP (also ℓ1 first) fails the same way; IRLS straight from the
+tree (``"tree"``) reaches the right basin. A tree drawn without weights runs through
+outliers, which the ℓ1 stage is for. ``"auto"`` (default): with inlier counts (or
+``init_weights``, or a start given as rotations) the tree branch runs, and the ℓ1 branch
+too when more than ``auto_bad_share`` of the edges end beyond max(10 σ̂, 30°); without
+weights, ``"l1"``. When both branches run (``"both"``, or ``"auto"`` on a broken tree), the
+one with the lower :func:`~pipeline.averaging.polish.selection_cost` is kept.
+
+**Polish** (``refine``, ``polish``; not in paper 1). ℓ½'s slowly decaying influence
+leaves outliers a small pull, and on real graphs the noise is heavy-tailed. ``"mixture"``
+(default) fits a Student-t + Haar-outlier mixture to the residuals by EM
+(:mod:`~pipeline.averaging.mixture`): each edge is weighted by its inlier posterior times
+its latent t precision, ν is chosen by likelihood (Gaussian data get ν = 32, i.e. least
+squares on the inliers); with inlier counts a second polish with per-edge trust
+``n_e/median n`` is kept if its likelihood is higher. ``"talwar"``: least squares on the
+edges under τ = max(3.76 σ̂, ``refine_min_deg``) (earlier versions).
+
+**Certificate** (``certify``): the final reweighted problem (fixed weights) is checked
+for global optimality by a dual certificate (:mod:`~pipeline.averaging.certificate`):
+"verified", "not verified" or "could not decide", with the cost, the edge set and the
+numbers. It proves optimality of that problem, never accuracy.
+
+At a fixed point ``AᵀΦr = 0``, the gradient of the final problem (paper 1, eq. 23);
+its norm is ``stats["gradient_norm"]``.
 """
 
 from __future__ import annotations
@@ -23,38 +48,46 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
+from pipeline.averaging.certificate import certify_weights
 from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.kernel import LaplacianSolver, check_graph, edge_residuals
 from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
+from pipeline.averaging.polish import mixture_polish, residual_angles, reweighted, selection_cost, talwar_polish
 from pipeline.averaging.result import AveragingResult, method_config, start_of
+from pipeline.averaging.stopping import StopConfig, StopRule, robust_scale
 from pipeline.core.config import option
-from pipeline.core.errors import ConfigError, ViewGraphError
+from pipeline.core.errors import ConfigError
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["IRLSConfig", "irls"]
+__all__ = ["IRLSConfig", "irls", "isotropic_start"]
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
-class IRLSConfig(L1StartConfig):
-    """Options of :func:`irls` (the ``irls`` method); see :func:`irls` for what each does."""
+class IRLSConfig(L1StartConfig, StopConfig):
+    """Options of :func:`irls` (the ``irls`` method); the module docstring says what each does."""
 
     SECTION = "averaging.irls"
     loss: str = option("l0.5", "IRLS loss of paper 1, Table 1 (l2, l1, l<p>, geman-mcclure, huber, cauchy, ...)")
     alpha_deg: float = option(5.0, "loss scale α in degrees", gt=0)
     eps_rad: float | None = option(None, "weight floor of ℓ1/ℓp (p < 2) in radians; null: α for p < 1, 1e-6 "
                                          "otherwise", gt=0)
-    max_iterations: int = option(100, "IRLS iteration cap", ge=0)
-    tol_rad: float = option(1e-3, "stop when the mean camera update is below this (radians)", ge=0)
-    refine: bool = option(True, "after convergence, a trimmed-ℓ2 polish (not in paper 1)")
-    refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
-    refine_min_deg: float = option(1.0, "lower bound of the polish's trimming threshold, degrees", ge=0)
+    start: Literal["auto", "tree", "l1", "both"] = option(
+        "auto", "tree → IRLS, tree → ℓ1 → IRLS (paper 1), both (keep the better), or auto")
+    auto_bad_share: float = option(0.25, "auto: also run the ℓ1 branch when this share of the edges ends beyond "
+                                         "max(10 σ̂, 30°)", gt=0, le=1)
+    refine: bool = option(True, "after convergence, the polish (not in paper 1)")
+    polish: Literal["mixture", "talwar"] = option("mixture", "polish: t + Haar mixture EM, or trimmed ℓ2 (Talwar)")
+    trust_inliers: bool = option(True, "mixture polish: also try per-edge trust from inlier counts (kept if likelier)")
+    refine_iterations: int = option(50, "iteration cap of the polish", ge=0)
+    refine_min_deg: float = option(1.0, "Talwar polish: lower bound of the trimming threshold, degrees", ge=0)
+    certify: bool = option(True, "dual certificate of the final reweighted problem (stats['certificate'])")
 
     def check(self) -> None:
         try:
@@ -63,173 +96,172 @@ class IRLSConfig(L1StartConfig):
             raise ConfigError(str(exc)) from None
 
 
+#: What ``irls()`` called bare is: paper 1's Algorithm 3 alone, as in the paper.
+BARE = {"refine": False, "start": "l1", "certify": False}
+
+
+def _branch(vg: ViewGraph, R0: np.ndarray, solver: LaplacianSolver, lossf: Loss, cfg: IRLSConfig, l1: bool,
+            t0: float) -> dict[str, Any]:
+    history: list[dict[str, float]] = []
+    R = R0
+    if l1 and cfg.l1_iterations > 0:
+        offset = time.perf_counter() - t0
+        R, h1 = l1_averaging(vg, R, max_iterations=cfg.l1_iterations, tol_rad=cfg.l1_tol_rad,
+                             admm_max_iterations=cfg.admm_max_iterations, solver=solver)
+        for h in h1:
+            h["time_s"] += offset
+        history.extend(h1)
+    R, it, ok = reweighted(vg, R, solver, lossf.phi, lambda th: float(lossf.rho(th).sum()), cfg.stop_rule(), "irls",
+                           t0, history)
+    return {"R": R, "history": history, "iterations": it, "converged": ok,
+            "l1_iterations": sum(1 for h in history if h.get("stage") == "l1")}
+
+
+def isotropic_start(vg: ViewGraph, cfg: IRLSConfig, init: Any, init_weights: np.ndarray | None, solver: LaplacianSolver,
+                    lossf: Loss, t0: float) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The start branches of :func:`irls` (module docstring): the chosen run and a summary of every branch."""
+    start = start_of(init, cfg)
+    R0 = initial_rotations(vg, start, weights=init_weights, seed=cfg.seed)
+    mode = cfg.start
+    if mode == "auto" and isinstance(start, str) and init_weights is None and vg.inliers is None:
+        mode = "l1"  # a tree drawn without weights runs through outliers: paper 1's ℓ1 stage is for that
+    runs: dict[str, dict[str, Any]] = {}
+    if mode in ("tree", "auto", "both"):
+        runs["tree"] = _branch(vg, R0, solver, lossf, cfg, False, t0)
+    bad = float("nan")
+    need_l1 = mode in ("l1", "both")
+    if mode == "auto":
+        th = residual_angles(vg, runs["tree"]["R"])
+        bad = float(np.mean(th > max(10.0 * robust_scale(th), np.deg2rad(30.0))))
+        need_l1 = bad > cfg.auto_bad_share
+    if need_l1:
+        runs["l1"] = _branch(vg, R0, solver, lossf, cfg, True, t0)
+    sel: dict[str, float | None] = {k: None for k in runs}
+    if len(runs) > 1:
+        thetas = {k: residual_angles(vg, v["R"]) for k, v in runs.items()}
+        s_sel = min(robust_scale(t) for t in thetas.values())
+        sel = {k: selection_cost(t, s_sel) for k, t in thetas.items()}
+    best = min(sel, key=lambda k: sel[k] or 0.0)
+    summary = {"start_used": best, "auto_bad_share_measured": bad,
+               "branches": {k: {"selection_cost": sel[k], "iterations": v["iterations"], "converged": v["converged"],
+                                "l1_iterations": v["l1_iterations"]} for k, v in runs.items()}}
+    return runs[best], summary
+
+
 def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndarray | None = None,
          init_weights: np.ndarray | None = None, **options: Any) -> AveragingResult:
-    """Robust rotation averaging, paper 1 Algorithm 3 (ℓ1 steps, then IRLS).
+    """Robust rotation averaging: a start (tree and/or ℓ1), IRLS, a polish, a certificate (module docstring).
 
-    Called bare (no ``config``), this is paper 1's Algorithm 3 alone (``refine``
-    defaults to False); the ``irls`` method of the registry, run by ``run.py`` and
-    ``python -m pipeline.average``, adds the polish (:class:`IRLSConfig` default).
+    Called bare (no ``config``), this is paper 1's Algorithm 3 alone (:data:`BARE`: start
+    ``"l1"``, no polish, no certificate); the ``irls`` method of the registry, run by
+    ``run.py`` and ``python -m pipeline.average``, has the :class:`IRLSConfig` defaults.
 
     Args:
         vg: a connected view graph (see :func:`pipeline.averaging.average` for
             disconnected ones).
-        config: the options; ``**options`` override its fields (:class:`IRLSConfig`):
-        loss: loss name, e.g. ``"l0.5"`` (ℓ½, default), ``"l2"``, ``"geman-mcclure"``.
-        alpha_deg: loss scale α in degrees (paper 1: 5°).
+        config: the options; ``**options`` override its fields (:class:`IRLSConfig`).
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
         init_weights: (M,) edge weights for the ``"mst"`` tree (default: inliers).
-        max_iterations: IRLS iteration cap.
-        tol_rad: stop when the mean camera update falls below this (radians).
-        l1_iterations: iterations of Algorithm 2 first (0 skips). Paper 1 runs 5
-            exact ℓ1 steps; ours are inexact (``admm_max_iterations`` warm-started
-            ADMM iterations each), so the default is 20 steps of 10 ADMM
-            iterations: the same ADMM work as 5 × 40, but relinearized 4× as
-            often, which matters when a spanning tree through outliers leaves the
-            start far off (kNN, N = 10,000: median start error 74° after 5 × 50,
-            2.2° after 20 × 10, in 55% of the time). The stage stops early once
-            the mean update is below ``l1_tol_rad``.
-        l1_tol_rad: stop the ℓ1 stage when its mean update is below this
-            (radians). Inexact ℓ1 steps jitter at ~1e-2 rad once converged, and
-            IRLS refines from there, so this is looser than ``tol_rad``.
-        eps_rad: residual floor inside φ for ℓ1 and ℓ_p with p < 2 (radians);
-            None: the loss default (α for p < 1, 1e-6 otherwise).
-        admm_max_iterations: ADMM iteration cap per ℓ1 step.
-        seed: seed for ``init="random"``.
-        refine: after convergence, run IRLS with the Talwar loss (ℓ2 on edges
-            whose residual is below τ, weight 0 beyond) with τ set from the
-            converged residuals: σ̂ = median(‖r‖)/1.538 (the median of a χ₃
-            variable) and τ = max(3.76 σ̂, ``refine_min_deg``) (3.76 σ̂ is the
-            99.7% quantile of σχ₃; the minimum keeps near-exact data from
-            trimming its own inliers and cutting the graph). Not in paper 1:
-            ℓ½'s slowly decaying influence leaves the outliers a small pull; this
-            trimmed ℓ2 polish removes it. ``stats["refine_threshold_deg"]``.
-        refine_iterations: IRLS cap of the refinement.
-        refine_min_deg: lower bound on τ, degrees.
 
     Returns:
-        :class:`AveragingResult` with ``residuals_rad`` and ``weights`` per edge,
-        the per-iteration ``history`` and ``stats`` (``gradient_norm``,
-        ``final_cost``, ``converged``, ``l1_iterations``, ``n_factorizations``,
-        ``init_s``).
+        :class:`AveragingResult` with ``residuals_rad``, the final problem's ``weights``
+        and ``kept`` edges, the chosen branch's ``history`` and ``stats``
+        (``gradient_norm``, ``final_cost``, ``converged``, ``start_used``, ``branches``,
+        ``polish_model``, ``certificate``, ...).
     """
-    cfg = method_config(IRLSConfig, config, options, init, bare={"refine": False})
+    cfg = method_config(IRLSConfig, config, options, init, bare=BARE)
     check_graph(vg)
     lossf = get_loss(cfg.loss, cfg.alpha_deg, cfg.eps_rad)
     t0 = time.perf_counter()
     N, M = vg.n_cameras, vg.n_edges
-    R = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
-    t_init = time.perf_counter() - t0
-    ref = int(np.argmax(vg.degrees()))
-    solver = LaplacianSolver(vg.edges, N, ref=ref)
-    history: list[dict[str, float]] = []
-    if cfg.l1_iterations > 0:
-        R, h1 = l1_averaging(
-            vg, R, max_iterations=cfg.l1_iterations, tol_rad=cfg.l1_tol_rad,
-            admm_max_iterations=cfg.admm_max_iterations, solver=solver,
-        )
-        for h in h1:
-            h["time_s"] += t_init
-        history.extend(h1)
-    R, it, converged = _reweighted_steps(vg, R, solver, lossf, cfg.max_iterations, cfg.tol_rad, "irls", t0, history)
-    refine_tau = None
-    if cfg.refine:
-        theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
-        sigma = float(np.median(theta)) / 1.538
-        refine_tau = max(3.76 * sigma, float(np.deg2rad(cfg.refine_min_deg)))
-        tal = get_loss("talwar", float(np.rad2deg(refine_tau)))
-        R, _, _ = _reweighted_steps(vg, R, solver, tal, cfg.refine_iterations, cfg.tol_rad, "refine", t0, history)
+    solver = LaplacianSolver(vg.edges, N, ref=int(np.argmax(vg.degrees())))
+    run, starts = isotropic_start(vg, cfg, init, init_weights, solver, lossf, t0)
+    R, history, it, converged = run["R"], run["history"], run["iterations"], run["converged"]
+    polish_rule = StopRule(cfg.ftol, 0.01, cfg.tol_rad, cfg.refine_iterations)
+    tau, model, trust_used, trust = None, None, None, None
+    if cfg.refine and cfg.polish == "talwar":
+        R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
+    elif cfg.refine:
+        R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
     r = edge_residuals(vg.edges, vg.R_rel, R)
-    theta = np.linalg.norm(r, axis=1)
-    phi = lossf.phi(theta)
-    grad = solver.AT @ (phi[:, None] * r)
-    elapsed = time.perf_counter() - t0
-    n_l1 = sum(1 for h in history if h.get("stage") == "l1")
+    theta = np.sqrt(np.einsum("ma,ma->m", r, r))
+    if tau is not None:
+        w = (theta <= tau).astype(np.float64)
+        kept = w > 0
+    elif model is not None:
+        kept = gamma >= 0.5
+        m = 1.0 if trust is None else trust
+        normalized = np.sqrt(m) * theta / model.s
+    else:
+        w = lossf.phi(theta)
+        kept = w >= 0.05 * float(np.max(w))  # an edge with < 5% of the full weight has hardly any say
+    grad = solver.AT @ (w[:, None] * r)
+    t_solve = time.perf_counter() - t0
+    n_l1 = run["l1_iterations"]
     if not converged and cfg.max_iterations > 0:
-        logger.warning(
-            "IRLS-%s stopped at the iteration cap (%d) with mean step %.3g rad > %.3g rad",
-            lossf.name, cfg.max_iterations, history[-1]["mean_step_rad"], cfg.tol_rad,
-        )
-    logger.info(
-        "IRLS-%s: %d cameras, %d edges, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
-        lossf.name, N, M, n_l1, it, elapsed, np.rad2deg(np.median(theta)),
-    )
+        logger.warning("IRLS-%s stopped at the iteration cap (%d) with largest step %.3g rad",
+                       lossf.name, cfg.max_iterations, history[-1]["max_step_rad"])
+    stats: dict[str, Any] = {
+        "loss": lossf.name, "alpha_deg": float(cfg.alpha_deg),
+        "gradient_norm": float(np.sqrt(np.square(grad).sum())),
+        "final_cost": float(lossf.rho(theta).sum()), "converged": converged,
+        "l1_iterations": n_l1, "irls_iterations": it,
+        "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
+        **starts,
+        "polish": (cfg.polish if cfg.refine else "none"),
+        "refine_threshold_deg": None if tau is None else float(np.rad2deg(tau)),
+        "polish_model": None if model is None else {
+            "trust": trust_used, "nu": model.nu, "s_deg": float(np.rad2deg(model.s)), "eps": model.eps,
+            "loglik": {k: v[1].loglik for k, v in fits.items()}, "n_outliers": int(np.sum(model.gamma < 0.5))},
+        "normalized_residuals": None if model is None else normalized.tolist(),
+        "n_kept": int(kept.sum()), "solve_s": t_solve,
+        "config": {"loss": lossf.name, "alpha_deg": cfg.alpha_deg, "eps_rad": lossf.eps_rad,
+                   "max_iterations": cfg.max_iterations, "ftol": cfg.ftol, "xtol_scale": cfg.xtol_scale,
+                   "tol_rad": cfg.tol_rad, "l1_iterations": cfg.l1_iterations, "l1_tol_rad": cfg.l1_tol_rad,
+                   "admm_max_iterations": cfg.admm_max_iterations, "start": cfg.start, "polish": cfg.polish,
+                   "init": cfg.init if isinstance(start_of(init, cfg), str) else "user",
+                   "seed": cfg.seed or 0, "refine": cfg.refine},
+    }
+    if cfg.certify:
+        what = _final_problem(lossf, cfg, tau, model, trust_used)
+        stats["certificate"] = certify_weights(vg, R, w, kept, what=what, method=f"IRLS-{lossf.name}", theta=theta)
+    elapsed = time.perf_counter() - t0
+    logger.info("IRLS-%s: %d cameras, %d edges, start %s, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
+                lossf.name, N, M, starts["start_used"], n_l1, it, elapsed, np.rad2deg(np.median(theta)))
     return AveragingResult(
-        method=f"irls-{lossf.name}" + ("+refine" if cfg.refine else ""),
-        names=list(vg.names),
-        R=R,
-        time_s=elapsed,
-        iterations=it,
-        dropped_names=[],
-        edge_index=np.arange(M),
-        residuals_rad=theta,
-        weights=phi,
-        history=history,
-        stats={
-            "loss": lossf.name,
-            "alpha_deg": float(cfg.alpha_deg),
-            "gradient_norm": float(np.sqrt(np.square(grad).sum())),
-            "final_cost": float(lossf.rho(theta).sum()),
-            "converged": converged,
-            "l1_iterations": n_l1,
-            "irls_iterations": it,
-            "n_factorizations": solver.n_factorizations,
-            "init_s": t_init,
-            "refine_threshold_deg": None if refine_tau is None else float(np.rad2deg(refine_tau)),
-            # the resolved options, as earlier versions recorded them (metrics.json keeps its shape)
-            "config": {"loss": lossf.name, "alpha_deg": cfg.alpha_deg, "eps_rad": lossf.eps_rad,
-                       "max_iterations": cfg.max_iterations, "tol_rad": cfg.tol_rad,
-                       "l1_iterations": cfg.l1_iterations, "l1_tol_rad": cfg.l1_tol_rad,
-                       "admm_max_iterations": cfg.admm_max_iterations,
-                       "init": cfg.init if isinstance(start_of(init, cfg), str) else "user",
-                       "seed": cfg.seed or 0, "refine": cfg.refine},
-        },
-    )
+        method=f"irls-{lossf.name}" + ("+refine" if cfg.refine else ""), names=list(vg.names), R=R, time_s=elapsed,
+        iterations=it, dropped_names=[], edge_index=np.arange(M), residuals_rad=theta, weights=w, kept=kept,
+        history=history, stats=stats)
 
 
-def _reweighted_steps(
-    vg: ViewGraph,
-    R: np.ndarray,
-    solver: LaplacianSolver,
-    lossf: Loss,
-    max_iterations: int,
-    tol_rad: float,
-    stage: str,
-    t0: float,
-    history: list[dict[str, float]],
-) -> tuple[np.ndarray, int, bool]:
-    """Paper 1, Algorithm 1: reweighted Laplacian steps until the mean update is below ``tol_rad``.
+def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSConfig, rule: StopRule, t0: float,
+             history: list[dict[str, float]]
+             ) -> tuple[np.ndarray, Any, str, np.ndarray, np.ndarray, dict[str, Any], np.ndarray | None]:
+    """The mixture polish, isotropic and (with inlier counts) with per-edge trust; the likelier one wins."""
+    trusts: dict[str, np.ndarray | None] = {"iso": None}
+    if cfg.trust_inliers and vg.inliers is not None:
+        n_in = np.maximum(np.asarray(vg.inliers, dtype=np.float64), 1.0)
+        trusts["inliers"] = n_in / np.median(n_in)
+    fits: dict[str, Any] = {}
+    R_iso = R
+    for name, m in trusts.items():  # "iso" first; the trusted polish starts from its answer
+        hist: list[dict[str, float]] = []
+        Rt, model, w, gamma = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1)
+        fits[name] = (Rt, model, hist, w, gamma)
+        if name == "iso":
+            R_iso = Rt
+    best = max(fits, key=lambda k: fits[k][1].loglik)
+    R, model, hist, w, gamma = fits[best]
+    history.extend(hist)
+    return R, model, best, w, gamma, fits, trusts[best]
 
-    Appends one record per iteration to ``history``.
 
-    Returns:
-        the rotations (N, 3, 3), the iterations taken, and whether the tolerance was met.
-    """
-    it = 0
-    for it in range(1, max_iterations + 1):
-        r = edge_residuals(vg.edges, vg.R_rel, R)
-        theta = np.linalg.norm(r, axis=1)
-        phi = lossf.phi(theta)
-        solver.factor(phi)
-        # Paper 1, eq. 21 in our sign convention: (AᵀΦA) ΔΩ = AᵀΦ r.
-        dw = solver.solve(solver.AT @ (phi[:, None] * r))
-        if not np.all(np.isfinite(dw)):
-            raise ViewGraphError(
-                f"IRLS step {it} is not finite (loss {lossf.name}); the weighted Laplacian is singular. "
-                "Check for NaN rotations or try another loss"
-            )
-        R = apply_update(R, dw)
-        norms = np.linalg.norm(dw, axis=1)
-        step = float(norms.mean())
-        history.append(
-            {
-                "stage": stage,
-                "cost": float(lossf.rho(theta).sum()),
-                "mean_step_rad": step,
-                "max_step_rad": float(norms.max()),
-                "time_s": time.perf_counter() - t0,
-            }
-        )
-        if step < tol_rad:
-            return R, it, True
-    return R, it, False
+def _final_problem(lossf: Loss, cfg: IRLSConfig, tau: float | None, model: Any, trust: str | None) -> str:
+    """What the final reweighted problem is, in words, for the certificate's statement."""
+    if tau is not None:
+        return f"the trimmed least-squares cost (Talwar at {np.rad2deg(tau):.2g}°) of IRLS-{lossf.name}"
+    if model is not None:
+        how = "inlier-count trust, " if trust == "inliers" else ""
+        return (f"the final reweighted least-squares cost of IRLS-{lossf.name} ({how}t-weights, ν={model.nu:g}, "
+                f"s={np.rad2deg(model.s):.2g}°)")
+    return f"the final reweighted least-squares cost of IRLS-{lossf.name} (α={cfg.alpha_deg:g}°)"

@@ -1,15 +1,25 @@
-"""Robust IRLS in the metric of the two-view Hessians H (anisotropic IRLS).
+"""Robust IRLS in the metric of the two-view Hessians H (anisotropic IRLS), calibrated per edge.
 
 Paper 1's IRLS (:mod:`pipeline.averaging.irls`) weighs every edge's residual
 isotropically: one scalar weight ``φ(‖r_ij‖)`` per edge. Paper 2 shows that the
 two-view uncertainty is strongly anisotropic and that weighting by H pays. This
 module joins the two: the same joint IRLS in the Lie algebra, with each edge's
 residual measured in its own Mahalanobis norm and the robust loss applied to that
-norm. It is a local method (no certificate); SDP-cSO(3) solves the least-squares
-version globally.
+norm. It is a local method; its final reweighted problem is checked by the dual
+certificate of :mod:`~pipeline.averaging.certificate`, and SDP-cSO(3) solves the
+least-squares version globally.
+
+**Calibrated** (``calibrate``, the ``irls-h`` method's default; issue 15): H is
+overconfident on real images by factors that differ from edge to edge, so the product
+runs a robust isotropic start (:func:`pipeline.averaging.irls.irls`), then for each
+candidate metric (H, H shrunk towards isotropy, H's shape with inlier-count magnitudes,
+isotropic, ...; ``metrics``) an EM fit of a Student-t + Haar mixture in that metric, and
+keeps the likeliest (:mod:`~pipeline.averaging.calibration`). What follows describes the
+step they share and the **global-scale** variant (``calibrate: false``; ``irls_h()``
+called bare), which was the method before.
 
 The residual of paper 1 (eq. 7) is ``r_ij = log(R_jᵀ R̃_ij R_i)``. With H defined
-for the left perturbation ``R_j R_iᵀ = exp([Δω]×) R̃_ij`` (DESIGN.md),
+for the left perturbation ``R_j R_iᵀ = exp([Δω]×) R̃_ij`` (docs/CONVENTIONS.md),
 ``Δω = −R_j r_ij``, so ``Δωᵀ H_ij Δω = r_ijᵀ W_ij r_ij`` with
 ``W_ij = R_jᵀ H_ij R_j``. Each iteration:
 
@@ -44,11 +54,11 @@ from the residuals of the starting point, a robust NEES calibration, and the los
 scale α is in units of ``s`` (``alpha_sigma``, default 2; not degrees, hence not
 ``alpha_deg`` as in :mod:`pipeline.averaging.irls`).
 
-**Start and polish.** As :func:`pipeline.averaging.irls.irls`: a spanning tree,
-isotropic ℓ1 steps (paper 1, Algorithm 2), then the anisotropic IRLS, then (with
-``refine``) a trimmed least-squares polish: ``s`` is re-estimated from the
-converged residuals and edges with ``t > 3.76`` (the 99.7% point of χ₃) get
-weight 0 (Talwar).
+**Start and polish (global scale).** A spanning tree, isotropic ℓ1 steps (paper 1,
+Algorithm 2), then the anisotropic IRLS, then (with ``refine``) a trimmed least-squares
+polish: ``s`` is re-estimated from the converged residuals and edges with ``t > 3.76``
+(the 99.7% point of χ₃) get weight 0 (Talwar). Stages stop as in
+:mod:`~pipeline.averaging.stopping`.
 """
 
 from __future__ import annotations
@@ -56,18 +66,20 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
+from pipeline.averaging.block import BlockLaplacianSolver, anisotropic_step, edge_metric, jl_inv, left_errors
+from pipeline.averaging.calibration import DEFAULT_METRICS, check_metric, mixture_irls, shape_metric
+from pipeline.averaging.certificate import certify_weights, metric_from_H
 from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.irls import IRLSConfig, irls
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph
 from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
 from pipeline.averaging.result import AveragingResult, method_config, start_of
-from pipeline.core import so3
+from pipeline.averaging.stopping import StopConfig, StopRule, converged, robust_scale
 from pipeline.core.config import option
 from pipeline.core.errors import ConfigError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -80,150 +92,12 @@ logger = logging.getLogger(__name__)
 CHI2_3_MEDIAN = 2.3660
 #: 99.7% point of the χ distribution with 3 degrees of freedom: the polish's trimming threshold.
 TRIM_T = 3.76
+_jl_inv = jl_inv  # the name earlier versions exported
 
 
-class BlockLaplacianSolver:
-    """Factor and solve gauge-fixed block Laplacians ``Σ_k A_kᵀ B_k A_k`` with 3×3 edge blocks.
-
-    The (3N, 3N) sparsity pattern and the map from the (M, 3, 3) blocks to matrix
-    entries are built once; :meth:`factor` scatters the blocks with
-    ``np.bincount`` and calls SuperLU once. The gauge is fixed as in
-    :class:`pipeline.averaging.kernel.LaplacianSolver`: one pinned camera per
-    connected component of the edges with a nonzero block.
-
-    Args:
-        edges: (M, 2) camera indices.
-        n: number of cameras N.
-        ref: the camera pinned when the weighted graph is connected.
-    """
-
-    def __init__(self, edges: np.ndarray, n: int, ref: int = 0) -> None:
-        edges = np.asarray(edges, dtype=np.int64)
-        M = edges.shape[0]
-        self.n, self.edges = int(n), edges
-        self._pins = LaplacianSolver(edges, n, ref=ref)._pins  # the same gauge rule
-        i, j = edges[:, 0], edges[:, 1]
-        p, q = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        p, q = p.ravel(), q.ravel()  # the 9 entries of a block, row-major
-        # 4 blocks per edge: (i,i) +B, (j,j) +B, (i,j) −B, (j,i) −B; then N identity-diagonal slots.
-        bi = np.concatenate([i, j, i, j])
-        bj = np.concatenate([i, j, j, i])
-        rows = np.concatenate([(3 * bi[:, None] + p).ravel(), 3 * np.arange(n)[:, None].repeat(3, 1).ravel()
-                               + np.tile(np.arange(3), n)])
-        cols = np.concatenate([(3 * bj[:, None] + q).ravel(), 3 * np.arange(n)[:, None].repeat(3, 1).ravel()
-                               + np.tile(np.arange(3), n)])
-        N3 = 3 * n
-        keys = cols * N3 + rows  # CSC order
-        ukeys, inv = np.unique(keys, return_inverse=True)
-        n_blk = 4 * M * 9
-        self._pos = inv[:n_blk]
-        self._sign = np.repeat([1.0, 1.0, -1.0, -1.0], M * 9)
-        # block entry (edge, p, q) in the flattened (M·9,) array of blocks
-        self._src = np.tile((np.arange(M)[:, None] * 9 + np.arange(9)).ravel(), 4)
-        self._row, self._col = ukeys % N3, ukeys // N3
-        self._diag = inv[n_blk:].reshape(n, 3)
-        self._nnz = ukeys.size
-        self._indptr = np.searchsorted(self._col, np.arange(N3 + 1)).astype(np.int32)
-        self._indices = self._row.astype(np.int32)
-        self._lu: sla.SuperLU | None = None
-        self.pinned = np.zeros(n, dtype=bool)
-        self._lu_pinned = self.pinned
-        self.n_factorizations = 0
-        self.n_cg_iterations = 0
-
-    def matrix(self, B: np.ndarray) -> sp.csc_matrix:
-        """The gauge-fixed (3N, 3N) block Laplacian for edge blocks ``B`` (M, 3, 3)."""
-        B = np.asarray(B, dtype=np.float64)
-        self.pinned = self._pins(np.trace(B, axis1=1, axis2=2))
-        data = np.bincount(self._pos, weights=self._sign * B.reshape(-1)[self._src], minlength=self._nnz)
-        if self.pinned.any():
-            cam_row, cam_col = self._row // 3, self._col // 3
-            data *= ~(self.pinned[cam_row] | self.pinned[cam_col])
-            data[self._diag[self.pinned].ravel()] = 1.0
-        return sp.csc_matrix((data, self._indices, self._indptr), shape=(3 * self.n, 3 * self.n))
-
-    def factor(self, B: np.ndarray) -> None:
-        """Factor the gauge-fixed block Laplacian for edge blocks ``B`` (M, 3, 3)."""
-        self._factorize(self.matrix(B))
-
-    def _factorize(self, A: sp.csc_matrix) -> None:
-        self._lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-        self._lu_pinned = self.pinned.copy()
-        self.n_factorizations += 1
-
-    def solve_reusing(self, B: np.ndarray, b: np.ndarray, rtol: float = 1e-7, max_cg: int = 15) -> np.ndarray:
-        """Solve the system of blocks ``B`` for ``b`` (N, 3), reusing the last factor when it serves.
-
-        IRLS weights change little from one iteration to the next, so the factor of the
-        previous matrix is a near-exact preconditioner for the current one: conjugate
-        gradients on the current matrix, preconditioned by it, reach ``rtol`` in a few
-        matrix-vector products. When they do not within ``max_cg`` iterations, or when the
-        gauge (the pinned cameras) changed, the current matrix is factored instead. The
-        solution is that of the current matrix either way (to ``rtol``).
-        """
-        A = self.matrix(B)  # sets self.pinned for B
-        pinned = self.pinned
-        if self._lu is not None and np.array_equal(pinned, self._lu_pinned):
-            bb = np.array(b, dtype=np.float64, copy=True)
-            bb[pinned] = 0.0
-            lu = self._lu
-            prec = sla.LinearOperator(A.shape, matvec=lambda v: lu.solve(np.asarray(v, dtype=np.float64)))
-            n_it = [0]
-
-            def count(_):
-                n_it[0] += 1
-
-            x, info = sla.cg(A, bb.reshape(-1), M=prec, rtol=rtol, atol=0.0, maxiter=max_cg, callback=count)
-            self.n_cg_iterations += n_it[0]
-            if info == 0 and np.all(np.isfinite(x)):
-                x = x.reshape(self.n, 3)
-                x[pinned] = 0.0
-                return x
-        self._factorize(A)
-        return self.solve(b)
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve with the current factor; ``b`` (N, 3) → (N, 3), 0 at pinned cameras."""
-        if self._lu is None:
-            raise RuntimeError("BlockLaplacianSolver.solve called before factor()")
-        b = np.array(b, dtype=np.float64, copy=True)
-        b[self.pinned] = 0.0
-        x = self._lu.solve(b.reshape(-1)).reshape(self.n, 3)
-        x[self.pinned] = 0.0
-        return x
-
-    def rhs(self, g: np.ndarray) -> np.ndarray:
-        """``Σ_k A_kᵀ g_k`` for per-edge vectors ``g`` (M, 3): −g at camera i, +g at camera j."""
-        i, j = self.edges[:, 0], self.edges[:, 1]
-        return np.stack([np.bincount(j, g[:, a], self.n) - np.bincount(i, g[:, a], self.n) for a in range(3)], axis=1)
-
-
-def edge_metric(vg: ViewGraph, R: np.ndarray) -> np.ndarray:
-    """``W_ij = R_jᵀ H_ij R_j`` (M, 3, 3): H in the frame of the residual ``log(R_jᵀ R̃_ij R_i)``."""
-    Rj = R[vg.edges[:, 1]]
-    return np.swapaxes(Rj, 1, 2) @ vg.H @ Rj
-
-
-def _squared_norms(vg: ViewGraph, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    r = edge_residuals(vg.edges, vg.R_rel, R)
-    W = edge_metric(vg, R)
-    return r, W, np.einsum("ma,mab,mb->m", r, W, r)
-
-
-def _jl_inv(w: np.ndarray) -> np.ndarray:
-    """Inverse left Jacobian of SO(3), (M, 3) → (M, 3, 3):
-    ``log(exp([a]×) exp([w]×)) = w + J_l⁻¹(w) a + O(|a|²)``.
-
-    ``J_l⁻¹(w) = I − ½[w]× + c(θ)[w]×²`` with ``c = 1/θ² − cot(θ/2)/(2θ)`` (finite at θ = π;
-    its series ``1/12 + θ²/720 + θ⁴/30240`` below 1e-3 rad).
-    """
-    th = np.sqrt(np.einsum("ma,ma->m", w, w))
-    small = th < 1e-3
-    ts = np.where(small, 1.0, th)
-    c = np.where(small, 1.0 / 12.0 + th**2 / 720.0 + th**4 / 30240.0,
-                 1.0 / ts**2 - 1.0 / (2.0 * ts * np.tan(0.5 * ts)))
-    K = so3.hat(w)
-    return np.eye(3) - 0.5 * K + c[:, None, None] * (K @ K)
+def _squared_norms(vg: ViewGraph, R: np.ndarray) -> np.ndarray:
+    _, _, dom = left_errors(vg, R)
+    return np.einsum("ma,mab,mb->m", dom, vg.H, dom)
 
 
 def _scale(q: np.ndarray) -> float:
@@ -237,99 +111,150 @@ def _scale(q: np.ndarray) -> float:
     return s2
 
 
-def _steps(vg: ViewGraph, R: np.ndarray, solver: BlockLaplacianSolver, lossf: Loss, s2: float, max_iterations: int,
-           tol_rad: float, stage: str, t0: float, history: list[dict[str, float]], reuse: bool = True
-           ) -> tuple[np.ndarray, int, bool]:
-    it = 0
-    for it in range(1, max_iterations + 1):
-        r, W, q = _squared_norms(vg, R)
+def _steps(vg: ViewGraph, R: np.ndarray, solver: BlockLaplacianSolver, lossf: Loss, s2: float, rule: StopRule,
+           stage: str, t0: float, history: list[dict[str, float]], reuse: bool = True) -> tuple[np.ndarray, int, bool]:
+    it, f_prev = 0, np.inf
+    for it in range(1, rule.max_iterations + 1):
+        q = _squared_norms(vg, R)
         t = np.sqrt(q / s2)
-        phi = lossf.phi(t)
-        # Gauss–Newton in Δω = −R_j r (module docstring): Δω ← Δω + G (δ_j − δ_i), G = J_l⁻¹(Δω) R_j.
-        Rj = R[vg.edges[:, 1]]
-        dom = -np.einsum("mab,mb->ma", Rj, r)
-        G = _jl_inv(dom) @ Rj
-        HG = vg.H @ G
-        w = (phi / s2)[:, None, None]
-        B = w * (np.swapaxes(G, 1, 2) @ HG)
-        g = solver.rhs(-np.einsum("mba,mb->ma", w * HG, dom))
-        if reuse:
-            dw = solver.solve_reusing(B, g)
-        else:
-            solver.factor(B)
-            dw = solver.solve(g)
+        f = float(lossf.rho(t).sum())
+        dw = anisotropic_step(vg, R, solver, vg.H, lossf.phi(t) / s2, reuse=reuse)
         if not np.all(np.isfinite(dw)):
             raise ViewGraphError(f"anisotropic IRLS step {it} is not finite (loss {lossf.name}); "
                                  "the weighted block Laplacian is singular. Check H for NaN or try another loss")
+        theta = np.linalg.norm(left_errors(vg, R)[0], axis=1)
         R = apply_update(R, dw)
         norms = np.linalg.norm(dw, axis=1)
-        history.append({"stage": stage, "cost": float(lossf.rho(t).sum()), "mean_step_rad": float(norms.mean()),
+        history.append({"stage": stage, "cost": f, "mean_step_rad": float(norms.mean()),
                         "max_step_rad": float(norms.max()), "time_s": time.perf_counter() - t0})
-        if norms.mean() < tol_rad:
+        if converged(f_prev, f, float(norms.max()), rule, robust_scale(theta)):
             return R, it, True
+        f_prev = f
     return R, it, False
 
 
 @dataclass(frozen=True, kw_only=True)
-class IRLSHConfig(L1StartConfig):
+class IRLSHConfig(L1StartConfig, StopConfig):
     """Options of :func:`irls_h` (the ``irls-h`` method); see :func:`irls_h` for what each does."""
 
     SECTION = "averaging.irls-h"
-    loss: str = option("l0.5", "loss of paper 1, Table 1, on the H-normalized residual")
-    alpha_sigma: float = option(2.0, "loss scale α in units of the robust residual scale s (not degrees)", gt=0)
-    max_iterations: int = option(100, "IRLS iteration cap", ge=0)
-    tol_rad: float = option(1e-5, "stop when the mean camera update is below this (radians)", ge=0)
-    refine: bool = option(True, "after convergence, least squares on the edges with t <= 3.76 (Talwar)")
-    refine_iterations: int = option(20, "iteration cap of the polish", ge=0)
-    scale: float | None = option(None, "a fixed s² (NEES scale of H) instead of the robust estimate", gt=0)
+    loss: str = option("l0.5", "loss of paper 1, Table 1 (calibrated: of the isotropic start; global scale: "
+                               "on the H-normalized residual)")
+    calibrate: bool = option(True, "per-edge calibration of H by likelihood (false: one global scale, as before)")
+    metrics: tuple[str, ...] = option(DEFAULT_METRICS, "calibrate: candidate metrics (iso, inliers, shrink:<λ>, "
+                                                       "power:<p>, shape:<p>, shape-inl:<p>)")
+    start: Literal["auto", "tree", "l1", "both"] = option("auto", "calibrate: the start branches of the isotropic "
+                                                                  "start (as irls)")
+    alpha_sigma: float = option(2.0, "global scale: loss scale α in units of the robust residual scale s", gt=0)
+    refine: bool = option(True, "global scale: after convergence, least squares on the edges with t <= 3.76")
+    refine_iterations: int = option(50, "iteration cap of the polish (global scale) or of each metric's EM", ge=0)
+    scale: float | None = option(None, "global scale: a fixed s² (NEES scale of H) instead of the robust estimate",
+                                 gt=0)
+    certify: bool = option(True, "dual certificate of the final reweighted problem (stats['certificate'])")
 
     def check(self) -> None:
         try:
             get_loss(self.loss)
+            for m in self.metrics:
+                check_metric(m)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        if not self.metrics:
+            raise ConfigError("[averaging.irls-h] metrics is empty; give at least one, e.g. shrink:0")
 
 
 def irls_h(vg: ViewGraph, config: IRLSHConfig | None = None, *, init: str | np.ndarray | None = None,
            init_weights: np.ndarray | None = None, **options: Any) -> AveragingResult:
-    """Robust rotation averaging with each edge's residual in its H metric.
+    """Robust rotation averaging with each edge's residual in its (calibrated) H metric.
+
+    Called bare (no ``config``), this is the global-scale variant (``calibrate=False``,
+    no certificate); the ``irls-h`` method of the registry calibrates (module docstring).
 
     Args:
         vg: a connected view graph with H.
         config: the options; ``**options`` override its fields (:class:`IRLSHConfig`):
         loss: loss name of :func:`pipeline.averaging.losses.get_loss` (default ℓ½).
-        alpha_sigma: loss scale α in units of the robust residual scale ``s`` (module
-            docstring), not degrees. Default 2: residuals up to 2s (≈ 1.3× the
-            median of an inlier) are in ℓ½'s quadratic core.
+        alpha_sigma: (global scale) loss scale α in units of the robust residual scale
+            ``s``, not degrees. Default 2: residuals up to 2s are in ℓ½'s quadratic core.
         init: ``"mst"``, ``"random"`` or (N, 3, 3) initial rotations.
-        max_iterations, tol_rad: IRLS cap and stop on the mean camera update
-            (radians; 1e-5 by default, 0.0006°; at N = 500, 1e-6 took 13 iterations
-            instead of 9 for the same median error).
-        l1_iterations, l1_tol_rad, admm_max_iterations: the isotropic ℓ1 start (see
-            :func:`pipeline.averaging.irls.irls`); 0 skips it.
-        seed: seed for ``init="random"``.
-        init_weights: (M,) weights of the ``"mst"`` tree (default: inliers).
-        refine: after convergence, re-estimate ``s`` and run least squares on the
-            edges with ``t ≤ 3.76`` (Talwar).
-        refine_iterations: iteration cap of the polish.
-        scale: a fixed ``s²`` (the NEES scale of H) instead of the robust estimate.
+        max_iterations, ftol, xtol_scale, tol_rad: the stopping rule.
+        l1_iterations, l1_tol_rad, admm_max_iterations, start: the isotropic start.
+        refine: (global scale) after convergence, re-estimate ``s`` and run least squares
+            on the edges with ``t ≤ 3.76`` (Talwar).
+        scale: (global scale) a fixed ``s²`` instead of the robust estimate.
+        metrics: (calibrated) the candidate metrics.
 
     Returns:
-        :class:`AveragingResult` with ``residuals_rad`` (geodesic angles), ``weights``
-        and ``stats`` (``scale_s2`` of each stage, ``normalized_residuals``,
-        ``n_trimmed``, ``converged``, iteration counts).
+        :class:`AveragingResult` with ``residuals_rad`` (geodesic angles), the final
+        problem's ``weights`` and ``kept`` edges, and ``stats``: calibrated, ``selected``
+        metric and the ``candidates`` table; global scale, ``scale_s2`` of each stage,
+        ``normalized_residuals`` and ``n_trimmed``; both, ``certificate`` when asked.
 
     Raises:
         ViewGraphError: the view graph has no H, or a step is not finite.
     """
-    cfg = method_config(IRLSHConfig, config, options, init)
+    cfg = method_config(IRLSHConfig, config, options, init, bare={"calibrate": False, "certify": False})
     check_graph(vg)
     if vg.H is None:
         raise ViewGraphError("anisotropic IRLS needs a view graph with H (two-view BA precisions); "
                              "run the two-view BA stage or use method 'irls'")
+    t0 = time.perf_counter()
+    solve = _calibrated if cfg.calibrate else _global_scale
+    res, P, what = solve(vg, cfg, init, init_weights, t0)
+    if cfg.certify:
+        res.stats["certificate"] = certify_weights(vg, res.R, res.weights, res.kept, M=metric_from_H(P), what=what,
+                                                   method=res.method)
+    res.time_s = time.perf_counter() - t0
+    return res
+
+
+def _calibrated(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.ndarray | None, t0: float
+                ) -> tuple[AveragingResult, np.ndarray, str]:
+    """Robust isotropic start, then one mixture EM per candidate metric; the likeliest wins."""
+    iso_cfg = IRLSConfig.from_dict({
+        "loss": cfg.loss, "init": cfg.init, "seed": cfg.seed, "l1_iterations": cfg.l1_iterations,
+        "l1_tol_rad": cfg.l1_tol_rad, "admm_max_iterations": cfg.admm_max_iterations, "start": cfg.start,
+        "max_iterations": cfg.max_iterations, "ftol": cfg.ftol, "xtol_scale": cfg.xtol_scale, "tol_rad": cfg.tol_rad,
+        "refine_iterations": cfg.refine_iterations, "certify": False})
+    start = irls(vg, iso_cfg, init=None if isinstance(init, str) else init, init_weights=init_weights)
+    solver = BlockLaplacianSolver(vg.edges, vg.n_cameras, ref=int(np.argmax(vg.degrees())))
+    rule = StopRule(cfg.ftol, 0.01, cfg.tol_rad, cfg.refine_iterations)
+    fits, metrics = {}, {}
+    for name in dict.fromkeys(cfg.metrics):
+        P = shape_metric(vg, name)
+        if P is not None:
+            metrics[name] = P
+            fits[name] = mixture_irls(vg, start.R, name, P, rule, solver)
+    best = max(fits, key=lambda k: fits[k].loglik)
+    f = fits[best]
+    r, _, dom = left_errors(vg, f.R)
+    theta = np.linalg.norm(r, axis=1)
+    normalized = np.sqrt(np.einsum("ma,mab,mb->m", dom, metrics[best], dom)) / f.s
+    kept = np.asarray(f.gamma) >= 0.5
+    logger.info("IRLS-H (calibrated): %d cameras, %d edges, metric %s (ν=%g, ε=%.2f), %d edges rejected, %.3f s",
+                vg.n_cameras, vg.n_edges, best, f.nu, f.eps, int((~kept).sum()), time.perf_counter() - t0)
+    res = AveragingResult(
+        method=f"irls-h-{start.stats['loss']}+calibrated", names=list(vg.names), R=f.R, time_s=0.0,
+        iterations=f.iterations, edge_index=np.arange(vg.n_edges), residuals_rad=theta, weights=f.weights, kept=kept,
+        history=start.history, stats={
+            "loss": start.stats["loss"], "calibrate": True, "selected": best, "nu": f.nu, "s": f.s, "eps": f.eps,
+            "converged": f.converged, "start_used": start.stats["start_used"],
+            "start_polish_model": start.stats["polish_model"], "l1_iterations": start.stats["l1_iterations"],
+            "irls_iterations": start.stats["irls_iterations"], "n_kept": int(kept.sum()),
+            "normalized_residuals": normalized.tolist(),
+            "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
+            "candidates": {k: {"loglik": v.loglik, "nu": v.nu, "s": v.s, "eps": v.eps, "iterations": v.iterations,
+                               "converged": v.converged, "n_outliers": int(np.sum(v.gamma < 0.5))}
+                           for k, v in fits.items()}})
+    what = f"the final reweighted cost of calibrated IRLS-H (metric {best}, t-weights, ν={f.nu:g})"
+    return res, metrics[best], what
+
+
+def _global_scale(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.ndarray | None, t0: float
+                  ) -> tuple[AveragingResult, np.ndarray, str]:
+    """The anisotropic IRLS with one robust scale s² for every edge (earlier versions' method)."""
     # get_loss takes degrees; the normalized residual t is dimensionless, used here as if radians
     lossf = get_loss(cfg.loss, float(np.rad2deg(cfg.alpha_sigma)), None)
-    t0 = time.perf_counter()
     R = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
     ref = int(np.argmax(vg.degrees()))
     history: list[dict[str, float]] = []
@@ -340,49 +265,35 @@ def irls_h(vg: ViewGraph, config: IRLSHConfig | None = None, *, init: str | np.n
         history.extend(h1)
     solver = BlockLaplacianSolver(vg.edges, vg.n_cameras, ref=ref)
     scale = cfg.scale
-    s2 = scale if scale is not None else _scale(_squared_norms(vg, R)[2])
-    R, it, converged = _steps(vg, R, solver, lossf, s2, cfg.max_iterations, cfg.tol_rad, "irls-h", t0, history)
-    s2_refine, n_trimmed = None, 0
-    refine = cfg.refine
-    if refine:
-        s2_refine = scale if scale is not None else _scale(_squared_norms(vg, R)[2])
-        tal = get_loss("talwar", float(np.rad2deg(TRIM_T)))
-        R, _, _ = _steps(vg, R, solver, tal, s2_refine, cfg.refine_iterations, cfg.tol_rad, "refine", t0, history)
-    r, W, q = _squared_norms(vg, R)
+    s2 = scale if scale is not None else _scale(_squared_norms(vg, R))
+    R, it, ok = _steps(vg, R, solver, lossf, s2, cfg.stop_rule(), "irls-h", t0, history)
+    s2_refine, n_trimmed, final = None, 0, lossf
+    if cfg.refine:
+        s2_refine = scale if scale is not None else _scale(_squared_norms(vg, R))
+        final = get_loss("talwar", float(np.rad2deg(TRIM_T)))
+        R, _, _ = _steps(vg, R, solver, final, s2_refine, StopRule(cfg.ftol, 0.01, cfg.tol_rad, cfg.refine_iterations),
+                         "refine", t0, history)
     s2_final = s2_refine if s2_refine is not None else s2
-    t = np.sqrt(q / s2_final)
-    if refine:
+    t = np.sqrt(_squared_norms(vg, R) / s2_final)
+    if cfg.refine:
         n_trimmed = int(np.sum(t > TRIM_T))
-    phi = (tal if refine else lossf).phi(t)
-    elapsed = time.perf_counter() - t0
-    if not converged and cfg.max_iterations > 0:
-        logger.warning("anisotropic IRLS-%s stopped at the iteration cap (%d) with mean step %.3g rad > %.3g rad",
-                       lossf.name, cfg.max_iterations, history[-1]["mean_step_rad"], cfg.tol_rad)
+    phi = final.phi(t)
+    kept = phi >= 0.05 * float(np.max(phi))
+    if not ok and cfg.max_iterations > 0:
+        logger.warning("anisotropic IRLS-%s stopped at the iteration cap (%d) with largest step %.3g rad",
+                       lossf.name, cfg.max_iterations, history[-1]["max_step_rad"])
     logger.info("IRLS-H-%s: %d cameras, %d edges, %d IRLS iterations, s² = %.3g, %d edges trimmed, %.3f s",
-                lossf.name, vg.n_cameras, vg.n_edges, it, s2_final, n_trimmed, elapsed)
-    n_l1 = sum(1 for h in history if h.get("stage") == "l1")
-    return AveragingResult(
-        method=f"irls-h-{lossf.name}" + ("+refine" if refine else ""),
-        names=list(vg.names),
-        R=R,
-        time_s=elapsed,
-        iterations=it,
-        edge_index=np.arange(vg.n_edges),
-        residuals_rad=np.linalg.norm(r, axis=1),
-        weights=phi,
-        history=history,
-        stats={
-            "loss": lossf.name,
-            "alpha": float(cfg.alpha_sigma),
-            "scale_s2": float(s2),
+                lossf.name, vg.n_cameras, vg.n_edges, it, s2_final, n_trimmed, time.perf_counter() - t0)
+    res = AveragingResult(
+        method=f"irls-h-{lossf.name}" + ("+refine" if cfg.refine else ""), names=list(vg.names), R=R, time_s=0.0,
+        iterations=it, edge_index=np.arange(vg.n_edges), residuals_rad=np.linalg.norm(left_errors(vg, R)[0], axis=1),
+        weights=phi / s2_final, kept=kept, history=history, stats={
+            "loss": lossf.name, "calibrate": False, "alpha": float(cfg.alpha_sigma), "scale_s2": float(s2),
             "scale_s2_refine": None if s2_refine is None else float(s2_refine),
-            "normalized_residuals": t.tolist(),
-            "n_trimmed": n_trimmed,
-            "converged": converged,
-            "l1_iterations": n_l1,
-            "irls_iterations": it,
-            "n_factorizations": solver.n_factorizations,
-            "n_cg_iterations": solver.n_cg_iterations,
-            "refine": refine,
-        },
-    )
+            "normalized_residuals": t.tolist(), "n_trimmed": n_trimmed, "converged": ok,
+            "l1_iterations": sum(1 for h in history if h.get("stage") == "l1"), "irls_iterations": it,
+            "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
+            "refine": cfg.refine, "n_kept": int(kept.sum())})
+    what = (f"the trimmed least-squares cost of IRLS-H (t ≤ {TRIM_T}, s² = {s2_final:.3g})" if cfg.refine
+            else f"the final reweighted cost of IRLS-H-{lossf.name}")
+    return res, vg.H, what

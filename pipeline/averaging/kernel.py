@@ -27,7 +27,11 @@ from pipeline.core import so3
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["edge_residuals", "apply_update", "LaplacianSolver", "check_graph"]
+#: Fewest cameras for which reusing a factor as a CG preconditioner beats refactoring (measured:
+#: castle-P30, N = 30, CG made the polish 2× slower; kNN N = 2000, 30% faster).
+REUSE_MIN_N = 300
+
+__all__ = ["REUSE_MIN_N", "edge_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor"]
 
 
 def edge_residuals(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -81,6 +85,56 @@ def check_graph(vg: ViewGraph, connected: bool = True) -> None:
         )
 
 
+def factor_symmetric(A: sp.spmatrix) -> sla.SuperLU:
+    """SuperLU factor of a symmetric positive-definite matrix: symmetric mode, minimum degree on
+    ``A + Aᵀ``, diagonal pivots only (an LDLᵀ in effect)."""
+    return sla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                    options=dict(SymmetricMode=True))
+
+
+def cg_with_factor(A: sp.spmatrix, b: np.ndarray, lu: sla.SuperLU, rtol: float, max_cg: int
+                   ) -> tuple[np.ndarray | None, int]:
+    """Conjugate gradients on ``A x = b`` preconditioned by the factor ``lu`` of a nearby matrix.
+
+    The columns of ``b`` are solved together (one sparse product and one triangular solve
+    per iteration for all of them), each with its own step lengths.
+
+    Args:
+        A: (n, n) the current symmetric positive-definite matrix.
+        b: (n,) or (n, k) right-hand side(s).
+        lu: the factor of an earlier matrix (the preconditioner).
+        rtol: relative residual tolerance, per column.
+        max_cg: iteration cap.
+
+    Returns:
+        The solution with ``b``'s shape, or None when a column did not converge; the CG
+        iterations spent.
+    """
+    B = np.asarray(b, dtype=np.float64).reshape(b.shape[0], -1)
+    X = np.zeros_like(B)
+    Rr = B.copy()
+    tol = rtol * np.linalg.norm(B, axis=0)
+    if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+        return X.reshape(b.shape), 0
+    Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+    P = Z.copy()
+    rz = np.einsum("ij,ij->j", Rr, Z)
+    for it in range(1, max_cg + 1):
+        AP = A @ P
+        pap = np.einsum("ij,ij->j", P, AP)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap != 0)
+        X += alpha * P
+        Rr -= alpha * AP
+        if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+            return (X.reshape(b.shape), it) if np.all(np.isfinite(X)) else (None, it)
+        Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+        rz_new = np.einsum("ij,ij->j", Rr, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
+        P = Z + beta * P
+        rz = rz_new
+    return None, max_cg
+
+
 class LaplacianSolver:
     """Factor and solve gauge-fixed weighted Laplacians ``Aᵀ diag(w) A`` on a fixed pattern.
 
@@ -130,7 +184,9 @@ class LaplacianSolver:
         self.AT = A.T.tocsr()
         self._lu: sla.SuperLU | None = None
         self.pinned = np.zeros(n, dtype=bool)
+        self._lu_pinned = self.pinned
         self.n_factorizations = 0
+        self.n_cg_iterations = 0
 
     def _pins(self, w: np.ndarray) -> np.ndarray:
         pinned = np.zeros(self.n, dtype=bool)
@@ -165,11 +221,35 @@ class LaplacianSolver:
 
     def factor(self, w: np.ndarray) -> None:
         """Factor the gauge-fixed Laplacian for edge weights ``w`` (M,)."""
-        L = self.matrix(w)
-        self._lu = sla.splu(
-            L, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True)
-        )
+        self._factorize(self.matrix(w))
+
+    def _factorize(self, L: sp.csc_matrix) -> None:
+        self._lu = factor_symmetric(L)
+        self._lu_pinned = self.pinned.copy()
         self.n_factorizations += 1
+
+    def solve_reusing(self, w: np.ndarray, b: np.ndarray, rtol: float = 1e-8, max_cg: int = 12) -> np.ndarray:
+        """Solve the system of weights ``w`` (M,) for ``b`` (N, 3), reusing the last factor when it serves.
+
+        IRLS weights change little between iterations, so conjugate gradients on the
+        current matrix, preconditioned by the previous SuperLU factor, converge in a few
+        steps; when they do not within ``max_cg``, or the gauge changed, the current matrix
+        is factored, as it always is below :data:`REUSE_MIN_N` cameras, where a factorization
+        is cheaper than a few preconditioned products. The answer is the current matrix's
+        either way (to ``rtol``). The
+        scalar twin of :meth:`pipeline.averaging.block.BlockLaplacianSolver.solve_reusing`.
+        """
+        L = self.matrix(w)  # sets self.pinned
+        if self.n >= REUSE_MIN_N and self._lu is not None and np.array_equal(self.pinned, self._lu_pinned):
+            bb = np.array(b, dtype=np.float64, copy=True)
+            bb[self.pinned] = 0.0
+            x, n_it = cg_with_factor(L, bb, self._lu, rtol, max_cg)
+            self.n_cg_iterations += n_it
+            if x is not None:
+                x[self.pinned] = 0.0
+                return x
+        self._factorize(L)
+        return self.solve(b)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solve with the current factor; ``b`` (N, 3) → (N, 3), 0 at pinned cameras."""

@@ -1,6 +1,7 @@
 """Peer rotation-averaging implementations, measured against ours in the benchmarks.
 
-- :func:`run_colmap`: ``pycolmap.run_rotation_averaging`` (COLMAP's C++ L1 + IRLS);
+- :func:`run_colmap`: ``pycolmap.run_rotation_averaging`` (COLMAP's C++ L1 + IRLS), also the
+  registered method ``colmap-ra``;
 - :func:`shonan`: GTSAM's ``ShonanAveraging3`` (certifiable, isotropic);
 - :func:`lm_anisotropic`: GTSAM ``BetweenFactorRot3`` with ``Gaussian.Information(H)``
   refined by Levenberg–Marquardt (local, anisotropic).
@@ -20,13 +21,17 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.averaging.colmap_ra import run_pycolmap
 from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["run_colmap", "have_gtsam", "shonan", "lm_anisotropic"]
 
 
 def run_colmap(vg: ViewGraph, **opts: Any) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """pycolmap rotation averaging (DESIGN.md recipe); ``opts`` set ``RotationEstimatorOptions`` fields.
+    """pycolmap rotation averaging; ``opts`` set ``RotationEstimatorOptions`` fields.
+
+    The ``colmap-ra`` method (:mod:`pipeline.averaging.colmap_ra`) is the same call as a
+    registered method; this keeps every option of pycolmap open to the benchmarks.
 
     Returns:
         R: (N, 3, 3) cam_from_world rotations (identity where not registered).
@@ -36,29 +41,10 @@ def run_colmap(vg: ViewGraph, **opts: Any) -> tuple[np.ndarray, np.ndarray, floa
     """
     import pycolmap
 
-    rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(1, "SIMPLE_PINHOLE", 500.0, 640, 480))
-    for i in range(vg.n_cameras):
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=vg.names[i], camera_id=1, image_id=i + 1))
-    pg = pycolmap.PoseGraph()
-    inl = vg.inliers if vg.inliers is not None else np.full(vg.n_edges, 100)
-    for (a, b), Rr, n in zip(vg.edges, vg.R_rel, inl):
-        e = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(Rr), np.zeros(3)))
-        e.num_matches = int(n)
-        pg.add_edge(int(a) + 1, int(b) + 1, e)
     o = pycolmap.RotationEstimatorOptions()
     for k, v in opts.items():
         setattr(o, k, v)
-    t = time.perf_counter()
-    ok = pycolmap.run_rotation_averaging(o, pg, rec, [])
-    dt = time.perf_counter() - t
-    R = np.tile(np.eye(3), (vg.n_cameras, 1, 1))
-    reg = np.zeros(vg.n_cameras, bool)
-    for iid, im in rec.images.items():
-        if im.has_pose:
-            R[iid - 1] = im.cam_from_world().rotation.matrix()
-            reg[iid - 1] = True
-    return R, reg, dt, bool(ok)
+    return run_pycolmap(vg, o)
 
 
 def have_gtsam() -> bool:

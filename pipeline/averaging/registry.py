@@ -27,7 +27,9 @@ error that names the allowed keys.
 
 **Defaults** (``run.py`` without ``--methods``): every method whose ``default(vg,
 run_config)`` is True, in registration order: IRLS-ℓ½; IRLS-H-ℓ½ when the view graph
-has H; SDP-cSO(3) when it has H and at most ``run.sdp_max_n`` cameras.
+has H; SDP-cSO(3) when it has H and at most ``run.sdp_max_n`` cameras; ``colmap-ra``
+(COLMAP's rotation averaging on the same view graph, the like-for-like comparison) when
+pycolmap is installed.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
+from pipeline.averaging.colmap_ra import ColmapRAConfig, colmap_ra, have_pycolmap
 from pipeline.averaging.irls import IRLSConfig, irls
 from pipeline.averaging.irls_h import IRLSHConfig, irls_h
 from pipeline.averaging.l1 import L1Config, solve_l1
@@ -305,10 +308,13 @@ def _sdp_default(vg: ViewGraph, run_config: Any) -> bool | str:
 register(Method("irls", IRLSConfig, irls, default=lambda vg, run: True, token_option="loss", error_vs_time=True,
                 help="robust IRLS of paper 1 (Algorithm 3) with a loss of Table 1, ℓ½ by default"))
 register(Method("irls-h", IRLSHConfig, irls_h, needs_H=True, default=lambda vg, run: vg.H is not None,
-                token_option="loss", error_vs_time=True,
-                help="the same IRLS with each residual in the metric of its two-view H (needs H)"))
+                token_option="loss",
+                help="IRLS with each residual in its two-view H metric, calibrated per edge (needs H)"))
 register(Method("l1", L1Config, solve_l1, help="paper 1, Algorithm 2 alone (ℓ1 steps to convergence)"))
 register(Method("weiszfeld", WeiszfeldConfig, weiszfeld, help="Hartley et al. (2011), one camera at a time"))
 register(Method("sdp", SdpConfig, solve_sdp, needs_H=lambda cfg: VARIANTS[cfg.variant][0], default=_sdp_default,
                 token_option="variant", section="sdp", takes_init=False,
-                help="paper 2's certifiable SDP (cso3 needs H; cso3-iso, o3-iso do not)"))
+                help="paper 2's certifiable SDP on the robust stage's edges (cso3 needs H; cso3-iso, o3-iso do not)"))
+register(Method("colmap-ra", ColmapRAConfig, colmap_ra, takes_init=False,
+                default=lambda vg, run: True if have_pycolmap() else "colmap-ra not run: pycolmap is not installed",
+                help="COLMAP's rotation averaging (pycolmap) on our view graph, for comparison"))

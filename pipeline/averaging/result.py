@@ -65,7 +65,9 @@ class AveragingResult:
         dropped_names: cameras of the input outside the solved component.
         edge_index: (m,) index into the input graph's edges of each edge used.
         residuals_rad: (m,) final residual angle of each edge used, or None.
-        weights: (m,) final IRLS weight of each edge used, or None.
+        weights: (m,) weight of each edge used in the method's final problem, or None.
+        kept: (m,) bool, the edges the result relies on (the rest were rejected as
+            outliers or kept only a negligible weight), or None (every edge).
         history: per-iteration records (dicts with at least ``cost``,
             ``mean_step_rad`` and ``time_s``), possibly empty.
         stats: method-specific figures (gradient norm, SDP certificate, ...),
@@ -81,6 +83,7 @@ class AveragingResult:
     edge_index: np.ndarray | None = None
     residuals_rad: np.ndarray | None = None
     weights: np.ndarray | None = None
+    kept: np.ndarray | None = None
     history: list[dict[str, float]] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
 
@@ -90,6 +93,7 @@ class AveragingResult:
             "method": self.method,
             "n_cameras": len(self.names),
             "n_edges": None if self.edge_index is None else int(len(self.edge_index)),
+            "n_kept": None if self.kept is None else int(np.sum(self.kept)),
             "n_dropped": len(self.dropped_names),
             "dropped_names": list(self.dropped_names),
             "time_s": float(self.time_s),

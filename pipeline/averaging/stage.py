@@ -34,8 +34,11 @@ from pipeline.core.atomic import write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.names import match_names
+from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.io.mat import MatData, read_input_graph
+from pipeline.averaging.evidence import camera_evidence
+from pipeline.io.graphs import GraphData, input_files, read_input_graph
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 from pipeline.io.rotations import read_rotations, write_rotations
 from pipeline.stage import Stage, StageRecord, file_fingerprint, fingerprint_of
 
@@ -50,14 +53,16 @@ class AveragingStage(Stage[Config]):
     Args:
         folder: where the outputs and the record go (``OUT/rotations``).
         spec: the method and its options (:func:`pipeline.averaging.registry.parse_method`).
-        viewgraph: the view graph: a ``.npz`` of ``ViewGraph.save`` or a supported ``.mat``.
+        viewgraph: the view graph: any input of :mod:`pipeline.io.graphs` (``.npz``, ``.mat``,
+            a 1DSfM folder, ``.g2o``, GLOMAP relative poses).
         label: the outputs' base name (default ``spec.label``).
         rotations: the rotations file (default ``folder/<label>.txt``); the stats are
             written beside it with the suffix ``.json``.
         init: a rotations file to start from (methods that take a start).
         upstream: ``(stage name, folder, record name)`` of the stage that wrote
             ``viewgraph``: its record's fingerprint is this stage's input. Without it
-            the input is the content of the file.
+            the input is the content of the file(s).
+        rotation_tol: input rotations within this of SO(3) are projected (one warning).
     """
 
     name = "averaging"
@@ -67,8 +72,10 @@ class AveragingStage(Stage[Config]):
 
     def __init__(self, folder: Path, spec: MethodSpec, viewgraph: Path, *, label: str | None = None,
                  rotations: Path | None = None, init: Path | None = None,
-                 upstream: tuple[str, Path | None, str | None] | None = None) -> None:
+                 upstream: tuple[str, Path | None, str | None] | None = None,
+                 rotation_tol: float = DEFAULT_ROTATION_TOL) -> None:
         super().__init__(folder, spec.config, record_name=label or spec.label)
+        self.rotation_tol = float(rotation_tol)
         self.spec = spec
         self.viewgraph = Path(viewgraph)
         self.rotations_path = Path(rotations) if rotations is not None else self.folder / f"{self.record_name}.txt"
@@ -84,17 +91,21 @@ class AveragingStage(Stage[Config]):
     def inputs(self) -> dict[str, str]:
         if self.upstream_ref is not None:
             vg_fp = self.upstream(*self.upstream_ref).fingerprint
-        elif not self.viewgraph.is_file():
+        elif not self.viewgraph.exists():
             raise InputFileError(f"input view graph {self.viewgraph} does not exist")
         else:
-            vg_fp = file_fingerprint(self.viewgraph)
+            files = input_files(self.viewgraph)
+            vg_fp = (file_fingerprint(files[0]) if len(files) == 1
+                     else fingerprint_of(*[(f.name, file_fingerprint(f)) for f in files]))
         out = {"viewgraph": vg_fp}
+        if self.rotation_tol != DEFAULT_ROTATION_TOL:
+            out["rotation_tol"] = repr(self.rotation_tol)
         if self.init_path is not None:
             out["init"] = file_fingerprint(self.init_path)
         return out
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
-        data = read_input_graph(self.viewgraph)
+        data = read_input_graph(self.viewgraph, self.rotation_tol)
         vg = data.vg
         init = None if self.init_path is None else load_init(self.init_path, vg)
         logger.info("averaging %s with %s: %d cameras, %d edges, options %s", self.viewgraph, self.spec.label,
@@ -113,17 +124,17 @@ class AveragingStage(Stage[Config]):
 
     def verify(self, record: StageRecord) -> None:
         names, R = read_rotations(self.rotations_path)
-        expected = _solved_names(read_input_graph(self.viewgraph).vg)
+        expected = _solved_names(read_input_graph(self.viewgraph, self.rotation_tol).vg)
         if list(names) != expected:
             missing = [n for n in expected if n not in names]
             raise CacheError(f"{self.rotations_path} holds {len(names)} camera(s) but the solved component of "
                              f"{self.viewgraph} has {len(expected)}" + (f" (missing {missing[:3]})" if missing else ""))
-        stats = json.loads(self.stats_path.read_text(encoding="utf-8"))
+        stats = read_json(self.stats_path, "the stats", CacheError)
         if not isinstance(stats, dict) or stats.get("n_cameras") != len(expected):
             raise CacheError(f"{self.stats_path} does not describe {len(expected)} cameras")
 
     # ----------------------------------------------------------------- helpers
-    def _stats(self, res: AveragingResult, vg: ViewGraph, data: MatData) -> dict[str, Any]:
+    def _stats(self, res: AveragingResult, vg: ViewGraph, data: GraphData) -> dict[str, Any]:
         stats = res.summary()
         stats.update({"input": str(self.viewgraph), "label": self.record_name, "options": self.config.as_dict(),
                       "init": str(self.init_path) if self.init_path else getattr(self.config, "init", None),
@@ -137,8 +148,9 @@ class AveragingStage(Stage[Config]):
                 {"i": vg.names[a], "j": vg.names[b], "residual_deg": float(np.rad2deg(res.residuals_rad[k])),
                  "relative_weight": float(w[k])} for (a, b), k in zip(e, order)
             ]
+        stats["evidence"] = camera_evidence(vg, res)
         if data.R_gt is not None:
-            from pipeline.evaluate import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
+            from pipeline.evaluation.metrics import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
 
             kept = np.array([vg.names.index(n) for n in res.names])
             mask = None if data.gt_mask is None else data.gt_mask[kept]

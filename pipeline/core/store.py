@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -31,12 +32,14 @@ import numpy as np
 
 from pipeline.core.atomic import save_npz_uncompressed, write_json
 from pipeline.core.errors import CacheError
+from pipeline.core.readers import read_json, read_npz
 
-__all__ = ["ItemStore", "item_key", "compute_missing"]
+__all__ = ["ItemStore", "Item", "item_key", "compute_missing"]
 
 logger = logging.getLogger(__name__)
 
 INDEX = "index.json"
+_CHUNK = re.compile(r"chunk-[0-9a-f]{16}\.npz")
 _SEP = "__"
 #: What starting a pool of processes costs, in CPU seconds per worker (spawn, and each worker importing
 #: numpy, OpenCV and the package; measured: 0.6 s). :func:`compute_missing` starts a pool only for work
@@ -70,6 +73,17 @@ def item_key(*parts: Any) -> str:
             h.update(json.dumps(p, sort_keys=True, default=str).encode())
         h.update(b"\x00")
     return h.hexdigest()[:20]
+
+
+class Item(dict):
+    """One item's arrays (``{name: array}``); ``source`` is its chunk file, and a missing array is a :class:`CacheError`."""
+
+    def __init__(self, source: Path) -> None:
+        super().__init__()
+        self.source = source
+
+    def __missing__(self, name: str) -> np.ndarray:
+        raise CacheError(f"chunk {self.source} is damaged (an item lacks its array {name!r})")
 
 
 def _chunk_name(keys: Iterable[str]) -> str:
@@ -106,14 +120,19 @@ class ItemStore:
     @staticmethod
     def read_chunk(path: Path) -> dict[str, dict[str, np.ndarray]]:
         """All items of one chunk file; :class:`CacheError` if it is damaged."""
+        data = read_npz(path, "chunk file", CacheError)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-            keys = [str(k) for k in data.pop("keys")]
-            out: dict[str, dict[str, np.ndarray]] = {k: {} for k in keys}
+            keys = data.pop("keys")
+            if keys.ndim != 1 or keys.dtype.kind != "U":
+                raise ValueError(f"keys has shape {keys.shape} and dtype {keys.dtype}")
+            out: dict[str, dict[str, np.ndarray]] = {str(k): Item(path) for k in keys}
+            if len(out) != len(keys):
+                raise ValueError("a key repeats")
             for name, v in data.items():
                 q, _, field = name.partition(_SEP)
-                out[keys[int(q)]][field] = v
+                if not (q.isascii() and q.isdigit() and int(q) < len(keys) and field):
+                    raise ValueError(f"stray array {name!r}")
+                out[str(keys[int(q)])][field] = v
         except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged chunk
             raise CacheError(f"chunk {path} is damaged ({type(exc).__name__}: {' '.join(str(exc).split())[:80]})") from None
         return out
@@ -146,6 +165,8 @@ class ItemStore:
         name = where[key]
         if name not in self._cache:
             self._cache = {name: self.read_chunk(self.folder / name)}  # keep one chunk: bounded memory
+        if key not in self._cache[name]:
+            raise CacheError(f"chunk {self.folder / name} lacks the item {key} that {self.folder / INDEX} places there")
         return self._cache[name][key]
 
     # ------------------------------------------------------------------ index
@@ -166,11 +187,15 @@ class ItemStore:
     def load_index(self) -> dict[str, str]:
         """The index written by :meth:`write_index`; :class:`CacheError` if missing or damaged."""
         path = self.folder / INDEX
+        d = read_json(path, "the index", CacheError)
         try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-            keys, chunks = list(d["keys"]), list(d["chunks"])
-            if len(keys) != len(chunks):
-                raise ValueError("keys and chunks differ in length")
+            keys, chunks = d["keys"], d["chunks"]
+            if not (isinstance(keys, list) and isinstance(chunks, list) and len(keys) == len(chunks)):
+                raise ValueError("keys and chunks are not lists of the same length")
+            if not all(isinstance(k, str) for k in keys) or len(set(keys)) != len(keys):
+                raise ValueError("keys are not unique strings")
+            if not all(isinstance(c, str) and _CHUNK.fullmatch(c) for c in chunks):
+                raise ValueError("a chunk is not named chunk-<hex>.npz")
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise CacheError(f"the index {path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None
         self._where = dict(zip(map(str, keys), map(str, chunks)))

@@ -186,7 +186,8 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
         names, R = read_rotations(res["rotations"])
         entry: dict[str, Any] = {k: v for k, v in res["stats"].items() if k not in ("history",)}
         if "certified" in entry:
-            entry["certificate"] = {k: entry.get(k) for k in CERTIFICATE_KEYS if k in entry}
+            entry["certificate"] = ({k: entry.get(k) for k in CERTIFICATE_KEYS if k in entry}
+                                    | (entry.get("certificate") or {}))
         entry["references"] = {}
         for r in refs:
             s, e = summarize_against(list(names), np.asarray(R), r, align, vg)

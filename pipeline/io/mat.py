@@ -27,6 +27,12 @@ Camera names are the 0-based indices as strings (``"0"``, ``"1"``, …).
   camera without ground truth.
 - ``H`` (3, 3, M, optional): precisions, an addition of this project written by
   :func:`write_l1_mat` when the view graph has them.
+
+**Near-rotations.** Public sets store their rotations to about 1e-6 (the Ellis Island
+graph of 1DSfM in the ℓ1 layout: ``det = 0.999999``). Blocks within ``rotation_tol``
+(default 1e-3, :mod:`pipeline.io.near_rotation`) of SO(3) are projected onto it, with
+ONE warning per file giving the count and the largest deviation; beyond it they are
+refused, naming the block.
 """
 
 from __future__ import annotations
@@ -40,16 +46,14 @@ from typing import Any
 import numpy as np
 import scipy.io as sio
 
-from pipeline.core import so3
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, project_near_rotations
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["MatData", "read_lu_sphinx", "read_l1_mat", "write_l1_mat", "read_mat", "read_input_graph"]
-
-GT_TOL = 1e-5
 
 
 @dataclass
@@ -67,42 +71,80 @@ class MatData:
     gt_mask: np.ndarray | None
 
 
+def _loadmat_arrays(path: str) -> dict[str, Any]:
+    """The variables of a .mat file: numeric arrays (sparse ones densified), others as their type name.
+
+    Runs in a sandboxed child process (:mod:`pipeline.core.sandbox`): scipy's reader
+    crashes the process (SIGSEGV) on some damaged files (scipy 1.17, two flipped bytes).
+    """
+    out: dict[str, Any] = {}
+    for k, v in sio.loadmat(path, squeeze_me=False).items():
+        if k.startswith("__"):
+            continue
+        if hasattr(v, "toarray") and not isinstance(v, np.ndarray):  # a MATLAB sparse variable
+            v = v.toarray()
+        out[k] = v if isinstance(v, np.ndarray) and v.dtype.kind in "fiub" else type(v).__name__
+    return out
+
+
 def _load(path: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    from pipeline.core.sandbox import SandboxError, run_limited  # noqa: PLC0415
+
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f".mat file {path} does not exist")
+    size = path.stat().st_size
     try:
-        data = sio.loadmat(path, squeeze_me=False)
-    except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
-        raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')") from exc
-    except Exception as exc:  # noqa: BLE001 - any reader failure means a bad file
-        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from exc
-    return path, {k: v for k, v in data.items() if not k.startswith("__")}
+        data = run_limited(_loadmat_arrays, str(path), timeout=60 + size / 1e6, memory_bytes=(3 << 30) + 64 * size,
+                           preload=("numpy", "scipy.io", __name__))
+    except SandboxError as exc:
+        if str(exc).startswith("NotImplementedError"):  # MATLAB v7.3 files are HDF5
+            raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')"
+                                 ) from None
+        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from None
+    return path, data
 
 
 def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
     a = data[key]
-    if hasattr(a, "toarray") and not isinstance(a, np.ndarray):  # a MATLAB sparse variable
-        a = a.toarray()
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
-        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {type(a).__name__}")
+        got = a if isinstance(a, str) else type(a).__name__
+        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {got}")
     a = np.asarray(a, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise InputFileError(f"{path}: variable {key!r} has NaN or inf entries")
     return a
 
 
-def _ground_truth(path: Path, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class _Projector:
+    """Projects a file's variables onto SO(3) within the tolerance and logs ONE warning for the file."""
+
+    def __init__(self, path: Path, tol: float) -> None:
+        self.path, self.tol, self.parts, self.worst = path, tol, [], 0.0
+
+    def __call__(self, R: np.ndarray, key: str, labels: list[str] | None = None) -> np.ndarray:
+        try:
+            out, rep = project_near_rotations(R, self.tol, what=f"{key} block", source=str(self.path), labels=labels,
+                                              warn=False)
+        except NearRotationError as exc:
+            raise InputFileError(f"{exc}; expected rotations (raise --rotation-tol to accept coarser ones)") from None
+        if rep.n_projected:
+            self.parts.append(f"{rep.n_projected} of {rep.n_total} {key} blocks")
+            self.worst = max(self.worst, rep.max_deviation)
+        return out
+
+    def warn(self) -> None:
+        if self.parts:
+            logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)",
+                           self.path, " and ".join(self.parts), self.worst, self.tol)
+
+
+def _ground_truth(path: Path, blocks: np.ndarray, project: _Projector) -> tuple[np.ndarray, np.ndarray]:
     """Validate (N, 3, 3) truth blocks; all-zero blocks become identity + mask False."""
     mask = np.abs(blocks).sum(axis=(1, 2)) > 0
     R = np.where(mask[:, None, None], blocks, np.eye(3))
-    ok = so3.is_rotation(R, GT_TOL)
-    if not np.all(ok):
-        k = int(np.flatnonzero(~ok)[0])
-        raise InputFileError(
-            f"{path}: Rgt block of camera {k} is not a rotation "
-            f"(det={np.linalg.det(R[k]):.6g}); expected cam_from_world rotations or an all-zero block"
-        )
+    if mask.any():
+        R[mask] = project(R[mask], "Rgt", labels=[f"of camera {k}" for k in np.flatnonzero(mask)])
     return R, mask
 
 
@@ -120,11 +162,16 @@ def _make_graph(path: Path, names: list[str], edges: np.ndarray, R_rel: np.ndarr
         raise InputFileError(f"{path}: {exc}") from exc
 
 
-def read_lu_sphinx(path: str | os.PathLike) -> MatData:
+def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                   _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the LU Sphinx layout (``Rgt``, ``Rrel``, optional ``Alpha``).
 
     Args:
         path: a ``.mat`` file.
+
+    Args:
+        path: a ``.mat`` file.
+        rotation_tol: blocks within this of SO(3) are projected (one warning), beyond refused.
 
     Returns:
         MatData with ``H_ij = tr(M_ij)·I − M_ij`` (symmetrized) when ``Alpha`` is present.
@@ -133,7 +180,7 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
         InputFileError: missing variables, shapes that are not multiples of 3,
             non-rotation blocks, or H that is not positive definite.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     if "Rrel" not in data:
         raise InputFileError(f"{path}: no variable 'Rrel'; the LU Sphinx layout needs Rrel (3N×3N), found {sorted(data)}")
     Rrel = _numeric(path, data, "Rrel")
@@ -153,7 +200,8 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
     present &= ~lower_dup
     i, j = np.nonzero(present)
     edges = np.stack([i, j], axis=1)
-    R_rel = blocks[i, j]
+    project = _Projector(path, rotation_tol)
+    R_rel = project(blocks[i, j], "Rrel", labels=[f"({a}, {b})" for a, b in zip(i, j)])
     H = None
     if "Alpha" in data:
         Alpha = _numeric(path, data, "Alpha")
@@ -161,16 +209,18 @@ def read_lu_sphinx(path: str | os.PathLike) -> MatData:
             raise InputFileError(f"{path}: Alpha.shape={Alpha.shape} but expected Rrel's shape {Rrel.shape}")
         M = Alpha.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[i, j]
         # The file stores M to single-precision symmetry; H must be symmetric.
-        M = 0.5 * (M + np.swapaxes(M, 1, 2))
-        H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
+        with np.errstate(all="ignore"):  # absurd entries give inf/NaN, which the view graph refuses
+            M = 0.5 * (M + np.swapaxes(M, 1, 2))
+            H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
         # An edge stored as (j, i) carries M_ji; from_edges turns H into that of (i, j).
     R_gt = gt_mask = None
     if "Rgt" in data:
         Rgt = _numeric(path, data, "Rgt")
         if Rgt.shape != (3 * n, 3):
             raise InputFileError(f"{path}: Rgt.shape={Rgt.shape} but expected ({3 * n}, 3) for {n} cameras")
-        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3))
+        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3), project)
     vg = _make_graph(path, [str(k) for k in range(n)], edges, R_rel, H)
+    project.warn()
     return MatData(vg, R_gt, gt_mask)
 
 
@@ -183,11 +233,13 @@ def _stack3(path: Path, a: np.ndarray, key: str) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 2, 0))
 
 
-def read_l1_mat(path: str | os.PathLike) -> MatData:
+def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the ℓ1 layout (``RR`` 3×3×M, ``I`` 2×M 1-based, optional ``Rgt`` 3×3×N).
 
     Args:
         path: a ``.mat`` file.
+        rotation_tol: blocks within this of SO(3) are projected (one warning), beyond refused.
 
     Returns:
         MatData; N is the size of ``Rgt`` when present, else the largest index in ``I``.
@@ -196,7 +248,7 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         InputFileError: missing variables, bad shapes, indices that are not
             positive integers or exceed N, non-rotation blocks.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     missing = [k for k in ("RR", "I") if k not in data]
     if missing:
         raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
@@ -208,16 +260,23 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
     if I.shape[1] != RR.shape[0]:
         raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
-    if np.any(I != np.round(I)) or (I.size and I.min() < 1):
+    if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
+    project = _Projector(path, rotation_tol)
+    RR = project(RR, "RR", labels=[f"{k + 1} (1-based)" for k in range(RR.shape[0])])
     R_gt = gt_mask = None
     if "Rgt" in data:
         Rgt = _stack3(path, _numeric(path, data, "Rgt"), "Rgt")
         n = Rgt.shape[0]
-        R_gt, gt_mask = _ground_truth(path, Rgt)
+        R_gt, gt_mask = _ground_truth(path, Rgt, project)
     else:
         n = int(edges.max()) + 1 if edges.size else 0
+        used = len(np.unique(edges))
+        if n > 10 * used + 1000:  # every camera up to the largest index would be allocated, nearly all isolated
+            raise InputFileError(f"{path}: I refers to camera {n} but only {used} distinct cameras have an edge; "
+                                 "without Rgt the largest index is the camera count, so this index is a mistake "
+                                 "(check I, or add Rgt 3x3xN)")
     if edges.size and edges.max() >= n:
         raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
     H = None
@@ -226,6 +285,7 @@ def read_l1_mat(path: str | os.PathLike) -> MatData:
         if H.shape[0] != RR.shape[0]:
             raise InputFileError(f"{path}: H has {H.shape[0]} blocks but RR has {RR.shape[0]}")
     vg = _make_graph(path, [str(k) for k in range(n)], edges, RR, H)
+    project.warn()
     return MatData(vg, R_gt, gt_mask)
 
 
@@ -258,32 +318,24 @@ def write_l1_mat(path: str | os.PathLike, vg: ViewGraph, R_gt: np.ndarray | None
     return Path(path)
 
 
-def read_mat(path: str | os.PathLike) -> MatData:
+def read_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
     """Read a ``.mat`` view graph, detecting the layout from its variables.
 
     ``Rrel`` → LU Sphinx layout; ``RR`` and ``I`` → ℓ1 layout.
     """
     p, data = _load(path)
     if "Rrel" in data:
-        return read_lu_sphinx(p)
+        return read_lu_sphinx(p, rotation_tol, _loaded=(p, data))
     if "RR" in data and "I" in data:
-        return read_l1_mat(p)
+        return read_l1_mat(p, rotation_tol, _loaded=(p, data))
     raise InputFileError(
         f"{p}: unknown .mat layout with variables {sorted(data)}; expected Rrel (+Rgt, Alpha) "
         "as in LU Sphinx, or RR and I (+Rgt) as in the ℓ1 layout"
     )
 
 
-def read_input_graph(path: str | os.PathLike) -> MatData:
-    """Read a view graph to average: a ``.npz`` from ``ViewGraph.save`` or a supported ``.mat``.
+def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+    """Read a view graph to average from any supported input (:func:`pipeline.io.graphs.read_input_graph`)."""
+    from pipeline.io.graphs import read_input_graph as read  # noqa: PLC0415 - graphs imports this module
 
-    Returns:
-        MatData (``R_gt`` is None for ``.npz`` files).
-    """
-    p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix == ".npz":
-        return MatData(ViewGraph.load(p, allow_isolated=True), None, None)
-    if suffix == ".mat":
-        return read_mat(p)
-    raise InputFileError(f"{p}: unsupported view-graph file; expected a .npz written by ViewGraph.save or a .mat file")
+    return read(path, rotation_tol)

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -104,6 +103,3 @@ def main_cli(argv: Sequence[str] | None = None) -> int:
     return peer_cli(IncrementalReferenceStage, "python -m pipeline.reference",
                     "pycolmap incremental reconstruction of an image folder (a reference)", argv)
 
-
-if __name__ == "__main__":
-    sys.exit(main_cli())

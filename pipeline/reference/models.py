@@ -169,7 +169,7 @@ def read_summary(out: Path) -> dict[str, Any]:
         reg, unreg = list(s["registered"]), dict(s["unregistered"])
         if int(s["n_registered"]) != len(reg) or not all(isinstance(n, str) for n in [*reg, *unreg]):
             raise ValueError("n_registered and the registered names disagree")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, OverflowError) as exc:
         raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run "
                          "`python -m pipeline.reference` (or `pipeline.reference.global_mapping`)") from None
     return s

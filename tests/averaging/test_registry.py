@@ -16,6 +16,7 @@ from pipeline import run  # noqa: E402
 from pipeline.averaging import Method, average, register, unregister  # noqa: E402
 from pipeline.averaging.cli import main_cli  # noqa: E402
 from pipeline.averaging.init import initial_rotations  # noqa: E402
+from pipeline.averaging.colmap_ra import have_pycolmap
 from pipeline.averaging.registry import (  # noqa: E402
     default_methods,
     get_method,
@@ -134,13 +135,15 @@ def test_default_methods_follow_H_and_size():
         sdp_max_n: int = 60
 
     labels = lambda specs: [s.label for s in specs]  # noqa: E731
+    # colmap-ra, COLMAP's averaging on the same graph, runs beside ours whenever pycolmap is there
+    colmap, why = (["colmap-ra"], []) if have_pycolmap() else ([], ["colmap-ra not run: pycolmap is not installed"])
     specs, notes = default_methods(g.vg, RunCfg())
-    assert labels(specs) == ["irls-l0.5", "irls-h-l0.5", "sdp-cso3"] and notes == []
+    assert labels(specs) == ["irls-l0.5", "irls-h-l0.5", "sdp-cso3"] + colmap and notes == why
     specs, notes = default_methods(no_H, RunCfg())
-    assert labels(specs) == ["irls-l0.5"] and notes == []
+    assert labels(specs) == ["irls-l0.5"] + colmap and notes == why
     specs, notes = default_methods(g.vg, RunCfg(sdp_max_n=5))
-    assert labels(specs) == ["irls-l0.5", "irls-h-l0.5"] and notes == ["SDP-cSO(3) not run by default: N=8 > "
-                                                                       "run.sdp_max_n=5"]
+    assert labels(specs) == ["irls-l0.5", "irls-h-l0.5"] + colmap and notes == ["SDP-cSO(3) not run by default: N=8 > "
+                                                                                "run.sdp_max_n=5"] + why
 
 
 def test_sdp_needs_H_only_for_anisotropic_variants():

@@ -187,12 +187,6 @@ def test_stage_rejects_graph_without_translations(tmp_path: Path) -> None:
         TwoViewBAStage(work, Q).run()
 
 
-def test_cli_help() -> None:
-    out = subprocess.run([sys.executable, "-m", "pipeline.two_view_ba", "--help"], capture_output=True, text=True,
-                         timeout=60)
-    assert out.returncode == 0 and "--work" in out.stdout and "--sigma-px" in out.stdout
-
-
 def test_cli_missing_work_is_one_line_error(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "pipeline.two_view_ba", "--work", str(tmp_path / "missing")],
                          capture_output=True, text=True, timeout=60)
@@ -287,9 +281,10 @@ def test_sigkill_during_ba_leaves_no_worker_alive(tmp_path: Path, when: str) -> 
 def test_stage_on_rendered_front_end(tmp_path: Path) -> None:
     """End to end on the real front end: 3 rendered views → WORK → BA graph with H, better than RANSAC."""
     from pipeline import features, matching
-    from pipeline.evaluate import edge_stats, match_reference
+    from pipeline.evaluation.compare import match_reference
+    from pipeline.evaluation.metrics import edge_stats
     from pipeline.geometry.two_view_stage import load_two_view
-    from pipeline.io.references import read_reference
+    from pipeline.reference.truth import read_reference
     from pipeline.synthetic.render import render_scene
 
     images, work = tmp_path / "images", tmp_path / "work"

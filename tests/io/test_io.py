@@ -46,8 +46,11 @@ def test_rotations_malformed(tmp_path, content: str, match: str) -> None:
 def test_rotations_missing_file_and_bad_names(tmp_path) -> None:
     with pytest.raises(InputFileError, match="does not exist"):
         read_rotations(tmp_path / "nope.txt")
-    with pytest.raises(ValueError, match="whitespace"):
-        write_rotations(tmp_path / "r.txt", ["a b"], np.eye(3)[None])
+    # a name with whitespace (or '#') is quoted, and read back as written (issue 12: names with spaces work)
+    write_rotations(tmp_path / "r.txt", ["a b", "c#d", "e"], np.stack([np.eye(3)] * 3))
+    assert read_rotations(tmp_path / "r.txt")[0] == ["a b", "c#d", "e"]
+    with pytest.raises(ValueError, match="empty"):
+        write_rotations(tmp_path / "r.txt", [""], np.eye(3)[None])
     with pytest.raises(ValueError, match=r"R.shape=\(1, 3, 3\) but expected \(2, 3, 3\)"):
         write_rotations(tmp_path / "r.txt", ["a", "b"], np.eye(3)[None])
 
@@ -228,7 +231,10 @@ def test_read_mat_and_input_graph_errors(tmp_path) -> None:
         read_mat(junk)
     with pytest.raises(InputFileError, match="does not exist"):
         read_mat(tmp_path / "missing.mat")
-    with pytest.raises(InputFileError, match="unsupported view-graph file"):
+    with pytest.raises(InputFileError, match="does not exist"):  # a .txt may be GLOMAP relative poses (issue 15)
+        read_input_graph(tmp_path / "graph.txt")
+    (tmp_path / "graph.txt").write_text("a b\n")
+    with pytest.raises(InputFileError, match="unsupported view-graph input"):
         read_input_graph(tmp_path / "graph.txt")
     vg = ViewGraph.from_absolute(["a", "b"], so3.random_rotations(2, np.random.default_rng(5)), [(0, 1)])
     data = read_input_graph(vg.save(tmp_path / "g.npz"))

@@ -29,12 +29,13 @@ from pipeline.averaging.sdp.certificate import (
     weight_matrices,
 )
 from pipeline.averaging.sdp.conic import SOLVERS, VARIANTS, ConicProblem, build_conic, check_inputs, edge_weights, unsvec
+from pipeline.averaging.sdp.refine import dual_certificate_gap, polish_rounding
 from pipeline.core import so3
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError, PipelineError
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["SdpConfig", "solve_sdp", "extract", "FALLBACK_MAX_CAMERAS", "FALLBACK_EPS", "FALLBACK_MAX_ITERS",
+__all__ = ["SdpConfig", "solve_sdp", "extract", "resolution_check", "CERT_KAPPA", "FALLBACK_MAX_CAMERAS", "FALLBACK_EPS", "FALLBACK_MAX_ITERS",
            "FALLBACK_SCS_MAX_ITERS", "FALLBACK_RESIDUAL_GAP"]
 
 logger = logging.getLogger(__name__)
@@ -54,6 +55,10 @@ FALLBACK_SCS_MAX_ITERS = 2000
 #: A solve whose gap exceeds this share of the residual cost (plus the requested relative
 #: accuracy of |d*|) is re-solved as an uncertified one is.
 FALLBACK_RESIDUAL_GAP = 1e-2
+#: Certified: the gap is at most this share of the cost's resolution (:func:`resolution_check`).
+CERT_KAPPA = 0.01
+#: The cost cannot be judged below its own rounding: 1e3·ε of Σ|tr M_e| (as the IRLS certificate).
+COST_ROUNDING = 1e3 * np.finfo(float).eps
 _SCS_SETTINGS = {
     "normalize", "scale", "adaptive_scale", "rho_x", "max_iters", "eps_abs", "eps_rel", "eps_infeas",
     "alpha", "time_limit_secs", "verbose", "acceleration_lookback", "acceleration_interval",
@@ -73,10 +78,20 @@ class SdpConfig(Config):
     eps_rel: float = option(1e-6, "relative solver tolerance (paper 2, §5)", gt=0)
     max_iterations: int | None = option(None, "solver iteration cap (null: 500 000 for SCS as in paper 2, "
                                               "200 for Clarabel)", ge=1)
-    cert_tol: float = option(1e-4, "relative gap below which a rank-3 solution is certified", gt=0)
+    cert_kappa: float = option(CERT_KAPPA, "a rank-3 solution is certified when its gap is at most this share "
+                                           "of the cost's resolution (gap_residual <= kappa·ρ)", gt=0)
+    edges: str = option("robust", "the edges the SDP sees: robust (those the robust stage keeps) or all")
+    robust_method: str = option("auto", "the robust stage: irls-h, irls or auto (irls-h when the cost is "
+                                        "anisotropic)")
+    cost: str = option("calibrated", "robust edges, anisotropic variants: calibrated (the robust stage's final "
+                                     "precisions) or raw (the two-view H)")
+    keep: str = option("auto", "robust edges: posterior (inlier posterior >= 0.5), weight (and a normalized "
+                               "residual <= 3) or auto (weight for the raw cost, else posterior)")
     form: str | None = option(None, "conic statement: primal or dual (null: primal for SCS, dual for Clarabel)")
     lmi_pairs: str = option("edges", "pairs with the conv(SO(3)) LMI: edges (observed pairs) or all")
     fallback: bool = option(True, "re-solve a small uncertified or loose problem with Clarabel at 1e-12")
+    polish: bool = option(True, "refine the rounded rotations by Newton on the same cost (never raises it) and "
+                                "bound them by their own dual certificate too (false: the solver's answer alone)")
     fallback_max_cameras: int = option(FALLBACK_MAX_CAMERAS, "largest N for the fallback", ge=0)
     fallback_scs_max_iterations: int | None = option(
         FALLBACK_SCS_MAX_ITERS, "SCS cap when the fallback applies and max_iterations is null; "
@@ -92,6 +107,10 @@ class SdpConfig(Config):
             raise ConfigError(f"unknown conic form {self.form!r}; expected 'primal' or 'dual'")
         if self.lmi_pairs not in ("edges", "all"):
             raise ConfigError(f"lmi_pairs={self.lmi_pairs!r} but expected 'edges' (observed pairs) or 'all'")
+        for key, allowed in (("edges", ("robust", "all")), ("robust_method", ("auto", "irls-h", "irls")),
+                             ("cost", ("calibrated", "raw")), ("keep", ("auto", "posterior", "weight"))):
+            if getattr(self, key) not in allowed:
+                raise ConfigError(f"[sdp] {key}={getattr(self, key)!r} but expected one of {list(allowed)}")
 
 
 def _solve_scs(prob: ConicProblem, eps_abs: float, eps_rel: float, max_iters: int | None,
@@ -174,6 +193,10 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
               **options: Any) -> AveragingResult:
     """Certifiable SDP rotation averaging (paper 2), solved directly with SCS or Clarabel.
 
+    With ``edges="robust"`` (the ``sdp`` method's default; not when called bare) the SDP
+    runs on the edges a robust stage keeps, and says so (:mod:`pipeline.averaging.sdp.robust`).
+    ``certified`` is decided against the cost's resolution (:func:`resolution_check`).
+
     Args:
         vg: a connected view graph; ``H`` on every edge for the anisotropic variants.
         variant: ``"cso3"`` (SDP-cSO(3), default), ``"cso3-iso"``, ``"o3-iso"`` or
@@ -182,7 +205,7 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
         config: the options (:class:`SdpConfig`).
         **options: fields of :class:`SdpConfig` (``eps_abs``, ``eps_rel``: paper 2, §5,
             1e-5 and 1e-6, for Clarabel ``tol_gap_abs`` and ``tol_gap_rel``/``tol_feas``;
-            ``max_iterations``; ``cert_tol``; ``form``; ``lmi_pairs``; ``fallback``,
+            ``max_iterations``; ``cert_kappa``; ``form``; ``lmi_pairs``; ``fallback``,
             ``fallback_max_cameras``, ``fallback_scs_max_iterations``; ``solver_log``). Any
             other key is a setting of the conic solver, checked by it (e.g.
             ``chordal_decomposition_enable=True`` for Clarabel, ``time_limit_secs`` for SCS).
@@ -220,8 +243,13 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
     fields = {f.name for f in dataclasses.fields(SdpConfig)}
     opts = {k: v for k, v in options.items() if k in fields}
     opts.update({k: v for k, v in (("variant", variant), ("solver", solver)) if v is not None})
-    cfg = method_config(SdpConfig, config, opts, bare={"fallback_scs_max_iterations": None})
-    return _solve(vg, cfg, {k: v for k, v in options.items() if k not in fields})
+    cfg = method_config(SdpConfig, config, opts, bare={"fallback_scs_max_iterations": None, "edges": "all"})
+    settings = {k: v for k, v in options.items() if k not in fields}
+    if cfg.edges == "robust":
+        from pipeline.averaging.sdp.robust import solve_robust  # noqa: PLC0415 - it runs the IRLS methods
+
+        return solve_robust(vg, cfg, settings, _solve)
+    return _solve(vg, cfg, settings)
 
 
 def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any]) -> AveragingResult:
@@ -238,7 +266,8 @@ def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any]) -> Averaging
     offset = float(np.sum(np.trace(weight_matrices(0.5 * (vg.H + np.swapaxes(vg.H, 1, 2))),
                                    axis1=1, axis2=2))) if aniso else 3.0 * vg.n_edges
     lmi_edges = np.argwhere(np.triu(np.ones((vg.n_cameras,) * 2, bool), 1)) if cfg.lmi_pairs == "all" else None
-    common = dict(vg=vg, C=C, scale=scale, offset=offset, cso3=cso3, lmi_edges=lmi_edges, cert_tol=cfg.cert_tol)
+    common = dict(vg=vg, C=C, scale=scale, offset=offset, cso3=cso3, lmi_edges=lmi_edges, kappa=cfg.cert_kappa,
+                  polish=cfg.polish)
     small = cfg.fallback and vg.n_cameras <= cfg.fallback_max_cameras
     max_iters = cfg.max_iterations
     if cfg.fallback_scs_max_iterations is not None and solver == "scs" and max_iters is None and small:
@@ -251,9 +280,9 @@ def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any]) -> Averaging
     method = f"sdp-{cfg.variant}"
     if not att["certified"]:
         logger.warning(
-            "%s is NOT certified optimal: rank %d (need 3), relative gap %.3g (tolerance %.1g), "
+            "%s is NOT certified optimal: rank %d (need 3), gap %.3g × the cost's resolution (need <= %g), "
             "solver status %s; the rotations are a rounding of the relaxation, not a proven optimum",
-            method, att["rank"], att["gap"], cfg.cert_tol, att["status"],
+            method, att["rank"], att["gap_vs_resolution"], cfg.cert_kappa, att["status"],
         )
     R = att["R"]
     used_fallback = att is not first
@@ -313,7 +342,12 @@ def _stats(att: dict[str, Any], first: dict[str, Any], cfg: SdpConfig, offset: f
         "solver": att["solver"],
         **{k: att[k] for k in _STAT_KEYS},
         "cost_offset": offset,
-        "cert_tol": cfg.cert_tol,
+        "cert_kappa": cfg.cert_kappa,
+        "resolution": att["resolution"],
+        "gap_vs_resolution": att["gap_vs_resolution"],
+        "cost_rounding": att["cost_rounding"],
+        "certified_by": att["certified_by"],
+        "polish_move_deg": att["polish_move_deg"],
         "certified": att["certified"],
         "status": att["status"],
         "solver_iterations": att["iterations"],
@@ -334,7 +368,7 @@ def _stats(att: dict[str, Any], first: dict[str, Any], cfg: SdpConfig, offset: f
     }
 
 def _attempt(vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bool,
-             lmi_edges: np.ndarray | None, cert_tol: float, solver: str, form: str, eps_abs: float,
+             lmi_edges: np.ndarray | None, kappa: float, polish: bool, solver: str, form: str, eps_abs: float,
              eps_rel: float, max_iters: int | None, verbose: bool, kw: dict[str, Any]) -> dict[str, Any]:
     """Build, solve, round and certify once with one solver setting; see :func:`solve_sdp`."""
     t0 = time.perf_counter()
@@ -350,6 +384,9 @@ def _attempt(vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bo
         )
     X, lb_scaled, lam_min_S = extract(prob, x, y, s)
     R, lam = round_to_rotations(X)
+    polish_move = polish_rounding(vg, C, R) if polish else None
+    if polish_move is not None:
+        R, polish_move = polish_move
     rank = numerical_rank(lam)
     lower_bound = lb_scaled * scale
     sdp_value = float(-np.sum(C * X.reshape(vg.n_cameras, 3, vg.n_cameras, 3)
@@ -357,17 +394,52 @@ def _attempt(vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bo
     primal_cost = edge_cost(vg.edges, C, R) * scale
     gap = relative_gap(primal_cost, lower_bound)
     gap_abs = primal_cost - lower_bound
+    check = resolution_check(gap_abs, primal_cost, offset, vg.n_cameras, vg.n_edges, rank, kappa)
+    check["certified_by"] = "the conic solver's dual bound" if check["certified"] else None
+    if polish and not check["certified"]:  # a sharper bound: the dual certificate of the rounded rotations
+        dual = dual_certificate_gap(vg, C, scale, R, kappa * check["resolution"] + check["cost_rounding"])
+        if dual is not None and dual < gap_abs:
+            gap_abs = dual
+            check = {**resolution_check(gap_abs, primal_cost, offset, vg.n_cameras, vg.n_edges, 3, kappa),
+                     "certified_by": "the dual certificate of the rounded rotations"}
     return {
         "solver": solver, "form": form, "R": R, "rank": rank,
         "eigenvalues": [float(v) for v in lam[:6]],
         "lower_bound": lower_bound, "sdp_value": sdp_value, "primal_cost": primal_cost,
         "gap": gap, "gap_abs": gap_abs,
-        # gap relative to the residual part of the cost rather than to |d*|, which the
-        # constant −Σ tr M_e can dominate (one edge with a huge H); informative only.
-        "gap_residual": float(gap_abs / max(primal_cost + offset, 1e-300)),
-        "certified": bool(rank == 3 and gap < cert_tol), "status": status, "iterations": iters,
+        # the gap against the part of the cost the rotations change, not |d*| (which the
+        # constant −Σ tr M_e can dominate): it decides ``certified``
+        **check, "status": status, "iterations": iters,
         "dual_lambda_min": lam_min_S, "build_s": t1 - t0, "solve_s": t2 - t1,
         "certificate_s": time.perf_counter() - t2,
         "n_variables": int(prob.A.shape[1]), "n_constraints": int(prob.A.shape[0]),
-        "eps_abs": eps_abs, "eps_rel": eps_rel,
+        "eps_abs": eps_abs, "eps_rel": eps_rel, "polish_move_deg": polish_move,
     }
+
+
+def resolution_check(gap_abs: float, primal_cost: float, offset: float, n_cameras: int, n_edges: int, rank: int,
+                     kappa: float = CERT_KAPPA) -> dict[str, Any]:
+    """Is the gap small against the accuracy the cost can resolve? (``certified`` of every SDP solve).
+
+    ``f_res = f(R̂) + Σ tr M_e ≥ 0`` is the part of the cost the rotations change; with the
+    redundancy ``ρ = (N − 1)/(M − N + 1)``, moving the rotations by one standard error costs
+    about ``ρ · f_res`` (a χ² with 3(N − 1) degrees of freedom against 3(M − N + 1) for the
+    residual), the cost's *resolution*. A rank-3 solution is certified when its gap is at
+    most ``kappa`` (1%) of that, i.e. within ~10% of a standard error (the cost is
+    quadratic there): ``gap_residual ≤ kappa · ρ``. The relative gap ``gap/|d*|`` cannot
+    tell: ``|d*| ≈ Σ tr M_e``, which one edge with a huge H makes as large as it likes (a
+    noise-free 5-camera graph with one H 1e5× the others: SCS 6.13° off at a relative gap
+    of 5e-7). Below the rounding of the cost itself (:data:`COST_ROUNDING` of ``|offset|``)
+    nothing can be told apart, so that much gap is always allowed; exact data, whose
+    resolution is 0, are certified only when solved to that rounding.
+
+    Returns:
+        ``{"certified", "resolution", "gap_vs_resolution", "gap_residual", "cost_rounding"}``.
+    """
+    f_res = max(float(primal_cost + offset), 0.0)
+    resolution = (n_cameras - 1) / max(n_edges - n_cameras + 1, 1) * f_res
+    ratio = gap_abs / resolution if resolution > 0 else float("inf")
+    floor = COST_ROUNDING * abs(offset)
+    return {"certified": bool(rank == 3 and gap_abs <= kappa * resolution + floor), "resolution": resolution,
+            "gap_vs_resolution": float(ratio), "gap_residual": float(gap_abs / max(f_res, 1e-300)),
+            "cost_rounding": floor}

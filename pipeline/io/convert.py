@@ -1,0 +1,120 @@
+"""``python -m pipeline.convert``: a view graph or rotations from one tool's file format to another's.
+
+Usage::
+
+    python -m pipeline.convert INPUT OUTPUT [--to FORMAT] [--rotation-tol T]
+
+INPUT is any view graph of :mod:`pipeline.io.graphs` (``.npz``, ``.mat``, a 1DSfM
+folder, ``.g2o``, GLOMAP relative poses) or a rotations file (ours or GLOMAP's).
+FORMAT (default: from OUTPUT's extension; ``.txt`` needs it):
+
+=====================  ===========================================================
+``npz``                our view graph (``ViewGraph.save``)
+``mat``                the ℓ1 layout (``RR``, ``I``, ``Rgt`` when known, ``H``)
+``1dsfm``              a 1DSfM folder (``list.txt``, ``cc.txt``, ``EGs.txt``,
+                       ``gt_bundle.out`` when the truth is known)
+``g2o``                ``EDGE_SE3:QUAT`` lines with H as the rotation information
+                       (GTSAM's reading; ``VERTEX_SE3:QUAT`` from ``--rotations``)
+``glomap-relpose``     GLOMAP's ``NAME1 NAME2 QW QX QY QZ TX TY TZ``
+``glomap-rotations``   GLOMAP's ``NAME QW QX QY QZ`` (from a rotations INPUT)
+``rotations``          ours, ``name r11 … r33`` (from a rotations INPUT)
+=====================  ===========================================================
+
+Every output is written atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.cli import run_cli
+from pipeline.core.errors import ConfigError, InputFileError
+from pipeline.io.graphs import FORMATS, read_input_graph
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
+
+__all__ = ["main", "main_cli", "TARGETS"]
+
+TARGETS = ("npz", "mat", "1dsfm", "g2o", "glomap-relpose", "glomap-rotations", "rotations")
+_BY_SUFFIX = {".npz": "npz", ".mat": "mat", ".g2o": "g2o", "": "1dsfm"}
+
+
+def _is_rotations(path: Path) -> bool:
+    from pipeline.io.graphs import _data_fields  # noqa: PLC0415
+
+    return path.is_file() and path.suffix.lower() not in (".npz", ".mat", ".g2o") and _data_fields(path) in (5, 10)
+
+
+def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
+         rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
+    """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
+    src, out = Path(input_path), Path(output)
+    fmt = to or _BY_SUFFIX.get(out.suffix.lower())
+    if fmt not in TARGETS:
+        raise ConfigError(f"cannot tell the format of {out} from its name; give --to with one of {list(TARGETS)}")
+    if _is_rotations(src):
+        from pipeline.io.glomap import write_glomap_rotations  # noqa: PLC0415
+        from pipeline.io.rotations import read_rotations, write_rotations  # noqa: PLC0415
+
+        names, R = read_rotations(src, rotation_tol)
+        if fmt == "glomap-rotations":
+            return write_glomap_rotations(out, names, R)
+        if fmt == "rotations":
+            return write_rotations(out, names, R, header=f"converted from {src.name}")
+        raise ConfigError(f"{src} holds rotations, not a view graph: --to glomap-rotations or rotations")
+    if fmt in ("glomap-rotations", "rotations"):
+        raise ConfigError(f"--to {fmt} needs a rotations file as INPUT; {src} is not one (10 or 5 fields a line)")
+    data = read_input_graph(src, rotation_tol)
+    vg = data.vg
+    if fmt == "npz":
+        return vg.save(out)
+    if fmt == "mat":
+        from pipeline.io.mat import write_l1_mat  # noqa: PLC0415
+
+        R_gt = None if data.R_gt is None else np.where(data.gt_mask[:, None, None], data.R_gt, np.nan)
+        return write_l1_mat(out, vg, R_gt=R_gt)
+    if fmt == "1dsfm":
+        from pipeline.io.onedsfm import write_1dsfm  # noqa: PLC0415
+
+        return write_1dsfm(out, vg, R_gt=data.R_gt, gt_mask=data.gt_mask)
+    if fmt == "g2o":
+        from pipeline.io.g2o import write_g2o  # noqa: PLC0415
+
+        R0 = None
+        if rotations is not None:
+            from pipeline.averaging.stage import load_init  # noqa: PLC0415
+
+            R0 = load_init(Path(rotations), vg)
+        return write_g2o(out, vg, R0)
+    from pipeline.io.glomap import write_glomap_relpose  # noqa: PLC0415
+
+    return write_glomap_relpose(out, vg)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m pipeline.convert",
+                                description="Convert a view graph or rotations between file formats.")
+    p.add_argument("input", type=Path, help=f"{FORMATS}; or a rotations file (ours or GLOMAP's)")
+    p.add_argument("output", type=Path, help="the file (or folder, for 1DSfM) to write")
+    p.add_argument("--to", choices=TARGETS, default=None, help="output format (default: from OUTPUT's extension)")
+    p.add_argument("--rotations", type=Path, default=None, help="g2o: rotations file for the vertices")
+    p.add_argument("--rotation-tol", type=float, default=DEFAULT_ROTATION_TOL, metavar="T",
+                   help=f"project input rotations within T of SO(3), refuse beyond (default {DEFAULT_ROTATION_TOL:g})")
+    return p
+
+
+def main_cli(argv: list[str] | None = None) -> int:
+    def body(a: argparse.Namespace) -> int:
+        if not a.input.exists():
+            raise InputFileError(f"input {a.input} does not exist")
+        print(main(a.input, a.output, a.to, a.rotations, a.rotation_tol))
+        return 0
+
+    return run_cli(body, build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())

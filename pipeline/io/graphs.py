@@ -1,0 +1,104 @@
+"""Every view-graph input a user may have, recognised by its name, extension or folder layout.
+
+==========================================  ==============================================
+input                                       read by
+==========================================  ==============================================
+``*.npz``                                   ``ViewGraph.load`` (ours)
+``*.mat`` (LU Sphinx or ℓ1 layout)          :func:`pipeline.io.mat.read_mat`
+a folder with ``EGs.txt`` and ``list.txt``  :func:`pipeline.io.onedsfm.read_1dsfm` (1DSfM;
+(or its ``EGs.txt``)                        ``gt_bundle.out`` is its ground truth)
+``*.g2o``                                   :func:`pipeline.io.g2o.read_g2o`
+text, 9 fields a line                       :func:`pipeline.io.glomap.read_glomap_relpose`
+                                            (GLOMAP's relative poses)
+==========================================  ==============================================
+
+Rotations within ``rotation_tol`` of SO(3) are projected with one warning per file,
+beyond it refused (:mod:`pipeline.io.near_rotation`). Every malformed input is one
+:class:`InputFileError` line naming the file. :func:`input_files` lists the files an
+input consists of (for the averaging stage's fingerprint).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pipeline.core.errors import InputFileError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.mat import MatData, read_mat
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
+from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm
+
+__all__ = ["read_input_graph", "input_files", "GraphData", "FORMATS"]
+
+#: One line per supported input, for messages and ``--help``.
+FORMATS = ("a view-graph .npz (ViewGraph.save), a .mat (LU Sphinx or ℓ1 layout), a 1DSfM folder (EGs.txt, "
+           "list.txt, cc.txt, gt_bundle.out), a .g2o file, or GLOMAP relative poses (NAME1 NAME2 QW QX QY QZ TX TY TZ)")
+
+GraphData = MatData
+
+
+def _data_fields(path: Path) -> int:
+    """Fields on the first non-comment line of a text file (0 if none); -1 if not text."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            for line in f:
+                parts = line.split("#", 1)[0].split()
+                if parts:
+                    return len(parts)
+    except (OSError, UnicodeDecodeError):
+        return -1
+    return 0
+
+
+def _folder_of(path: Path) -> Path | None:
+    """The 1DSfM folder ``path`` names (the folder or its EGs.txt), or None."""
+    if path.name == "EGs.txt" and is_1dsfm_folder(path.parent):
+        return path.parent
+    return path if is_1dsfm_folder(path) else None
+
+
+def input_files(path: str | os.PathLike) -> list[Path]:
+    """The files that make up input ``path`` (a 1DSfM folder is several), existing ones only."""
+    p = Path(path)
+    folder = _folder_of(p)
+    if folder is not None:
+        return [folder / n for n in ("list.txt", "EGs.txt", "cc.txt", "gt_bundle.out") if (folder / n).is_file()]
+    return [p]
+
+
+def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> GraphData:
+    """Read a view graph to average from any supported input (module docstring).
+
+    Returns:
+        :class:`GraphData` (``R_gt`` from a ``.mat``'s ``Rgt`` or a 1DSfM ``gt_bundle.out``,
+        else None).
+
+    Raises:
+        InputFileError: a missing or unrecognised input, or malformed content (one line).
+    """
+    p = Path(path)
+    folder = _folder_of(p)
+    if folder is not None:
+        d = read_1dsfm(folder, rotation_tol)
+        return GraphData(d.vg, d.R_gt, d.gt_mask)
+    if p.is_dir():
+        raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
+    if not p.is_file():
+        raise InputFileError(f"input view graph {p} does not exist")
+    suffix = p.suffix.lower()
+    if suffix == ".npz":
+        return GraphData(ViewGraph.load(p, allow_isolated=True), None, None)
+    if suffix == ".mat":
+        return read_mat(p, rotation_tol)
+    if suffix == ".g2o":
+        from pipeline.io.g2o import read_g2o  # noqa: PLC0415
+
+        return GraphData(read_g2o(p, rotation_tol).vg, None, None)
+    nf = _data_fields(p)
+    if nf == 9:
+        from pipeline.io.glomap import read_glomap_relpose  # noqa: PLC0415
+
+        return GraphData(read_glomap_relpose(p, rotation_tol), None, None)
+    raise InputFileError(f"{p}: unsupported view-graph input" + (f" ({nf} fields a line)" if nf > 0 else "")
+                         + f"; expected {FORMATS}")

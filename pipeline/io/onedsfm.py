@@ -1,0 +1,362 @@
+"""1DSfM datasets (Wilson & Snavely, ECCV 2014): reader, writer and a synthetic folder generator.
+
+Layout and conventions, established from public sources (facts, no code copied):
+
+* ``list.txt``: one image per line, ``<image path> [0 <focal px>]``; the line number (0-based)
+  is the image's index everywhere else (SfM_Init README, "Other included files").
+* ``cc.txt``: the indices of the largest connected component, one per line (SfM_Init README).
+* ``EGs.txt``: one two-view model per line, ``<i> <j> <Rij (9, row-major)> <tij (3)>``. The
+  SfM_Init README: "If Ri and Rj are the rotation matrices of cameras i and j (world-to-camera
+  maps) then in the absence of noise Rij = Ri * Rj'", and "t is the position of camera j in
+  camera i's coordinate system". So the file's ``R_ij`` is the **transpose** of this project's
+  ``R_j R_iᵀ``.
+* Bundler's camera looks down **−z** (y up); this project's (COLMAP/OpenCV) looks down +z.
+  With ``F = diag(1, −1, −1)``: ``R_cv = F R_bundler``, ``t_cv = F t_bundler``. Theia's
+  1DSfM reader (``theia/io/read_1dsfm.cc``) does exactly this to the EGs: it reads R
+  transposed and applies ``bundler_to_theia · Rᵀ · bundler_to_theia`` with
+  ``bundler_to_theia = diag(1, −1, −1)``, and ``position ← bundler_to_theia · position``.
+  Hence, for an EG line (i, j, R, t):  ``R_ij(ours) = F Rᵀ F``,  ``t_ij(ours) = F t`` (the
+  direction of camera j's centre in camera i's OpenCV frame).
+* ``gt_bundle.out``: a Bundler v0.3 file (``# Bundle file v0.3``; ``<num_cameras>
+  <num_points>``; per camera ``f k1 k2`` then 3 rows of R then t; then the points). R is
+  world-to-camera in Bundler's frame; a camera with f = 0 and an all-zero R is not
+  registered. Camera k is image k of ``list.txt``. Truth in our convention: ``F R``.
+
+Reading restricts to ``cc.txt`` (when present) and drops EGs with an endpoint outside it
+(counted in ``info``); the rotations go through the near-rotation projection (the files
+print ~6–9 significant digits).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.atomic import atomic_open
+from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
+
+__all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
+           "BUNDLER_TO_CV"]
+
+logger = logging.getLogger(__name__)
+
+#: diag(1, −1, −1): Bundler (camera looks down −z, y up) ↔ OpenCV/COLMAP (+z, y down).
+BUNDLER_TO_CV = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclass
+class OneDSfMData:
+    """A 1DSfM dataset read into the project's conventions.
+
+    Attributes:
+        vg: view graph over the cameras of ``cc.txt`` (names: image paths from list.txt),
+            ``stats["t_ij"]``: (M, 3) unit direction of camera j's centre in camera i's frame.
+        index: (N,) list.txt index of each camera of ``vg``.
+        focal: (N,) focal length from list.txt (NaN when absent).
+        R_gt: (N, 3, 3) cam_from_world truth from gt_bundle.out (identity where missing) or None.
+        gt_mask: (N,) True where gt_bundle.out registers the camera, or None.
+        info: counts (EGs read, dropped outside cc, ...).
+    """
+
+    vg: ViewGraph
+    index: np.ndarray
+    focal: np.ndarray
+    R_gt: np.ndarray | None
+    gt_mask: np.ndarray | None
+    info: dict[str, int] = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- low level
+def _read_text(path: Path, what: str) -> list[str]:
+    if not path.is_file():
+        raise InputFileError(f"1DSfM {what} file {path} does not exist")
+    try:
+        return path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
+
+
+def _numbers(path: Path, lineno: int, parts: list[str], kind=float) -> list:
+    try:
+        vals = [kind(x) for x in parts]
+    except ValueError:
+        raise InputFileError(f"{path}:{lineno}: expected {'integers' if kind is int else 'numbers'}, "
+                             f"got {' '.join(parts)[:60]!r}") from None
+    if kind is float and not np.all(np.isfinite(vals)):
+        raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+    return vals
+
+
+def _read_list(path: Path) -> tuple[list[str], np.ndarray]:
+    names, focal = [], []
+    for lineno, line in enumerate(_read_text(path, "list"), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) not in (1, 3):
+            raise InputFileError(f"{path}:{lineno}: expected '<image> [0 <focal>]' (1 or 3 fields), got {len(parts)}")
+        names.append(parts[0])
+        focal.append(_numbers(path, lineno, parts[2:3])[0] if len(parts) == 3 else np.nan)
+    if not names:
+        raise InputFileError(f"{path} lists no images")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputFileError(f"{path}: image names repeat: {dup[:3]}")
+    return names, np.array(focal, dtype=np.float64)
+
+
+def _read_cc(path: Path, n_images: int) -> np.ndarray:
+    idx = []
+    for lineno, line in enumerate(_read_text(path, "cc"), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) != 1:
+            raise InputFileError(f"{path}:{lineno}: expected one image index per line, got {len(parts)} fields")
+        v = _numbers(path, lineno, parts, float)[0]
+        if v != int(v) or not 0 <= v < n_images:
+            raise InputFileError(f"{path}:{lineno}: image index {parts[0]} is not in [0, {n_images}) of list.txt")
+        idx.append(int(v))
+    if not idx:
+        raise InputFileError(f"{path} holds no image index")
+    return np.unique(np.array(idx, dtype=np.int64))
+
+
+def _read_egs(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    ij, Rs, ts, lines = [], [], [], []
+    for lineno, line in enumerate(_read_text(path, "EGs"), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) != 14:
+            raise InputFileError(f"{path}:{lineno}: expected '<i> <j> <R 9 values> <t 3 values>' (14 fields), "
+                                 f"got {len(parts)}")
+        v = _numbers(path, lineno, parts)
+        i, j = v[0], v[1]
+        if i != int(i) or j != int(j) or not (0 <= i < n_images and 0 <= j < n_images):
+            raise InputFileError(f"{path}:{lineno}: image indices ({parts[0]}, {parts[1]}) not in [0, {n_images})")
+        if i == j:
+            raise InputFileError(f"{path}:{lineno}: an EG of image {int(i)} with itself")
+        ij.append((int(i), int(j)))
+        Rs.append(v[2:11])
+        ts.append(v[11:14])
+        lines.append(lineno)
+    if not ij:
+        raise InputFileError(f"{path} holds no EGs")
+    return np.array(ij, np.int64), np.array(Rs).reshape(-1, 3, 3), np.array(ts), lines
+
+
+def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read the cameras of a Bundler v0.3 file, converted to cam_from_world OpenCV convention.
+
+    Returns:
+        R: (K, 3, 3) ``F R_bundler`` (identity where unregistered), t: (K, 3) ``F t_bundler``,
+        f: (K,) focal lengths, registered: (K,) bool (False for f = 0 and all-zero R).
+
+    Raises:
+        InputFileError: missing file, bad header or counts, truncated camera block, a
+            registered rotation far from SO(3) (one line naming the file).
+    """
+    path = Path(path)
+    lines = _read_text(path, "bundle")
+    body = [(k + 1, ln.split()) for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    if not body:
+        raise InputFileError(f"{path}: empty Bundler file")
+    lineno, head = body[0]
+    if len(head) != 2:
+        raise InputFileError(f"{path}:{lineno}: expected '<num_cameras> <num_points>'")
+    n_cam, _ = _numbers(path, lineno, head, int)
+    if n_cam < 0 or len(body) < 1 + 5 * n_cam:
+        raise InputFileError(f"{path}: header announces {n_cam} cameras but the file has "
+                             f"{(len(body) - 1) // 5} complete camera blocks")
+    rows = []
+    for k in range(n_cam):
+        blk = body[1 + 5 * k: 6 + 5 * k]
+        for ln, parts in blk:
+            if len(parts) != 3:
+                raise InputFileError(f"{path}:{ln}: camera {k}: expected 3 numbers, got {len(parts)}")
+        rows.append([x for ln, parts in blk for x in _numbers(path, ln, parts)])
+    a = np.array(rows, dtype=np.float64).reshape(n_cam, 15)
+    f = a[:, 0]
+    Rb = a[:, 3:12].reshape(n_cam, 3, 3)
+    tb = a[:, 12:15]
+    registered = ~((f == 0) & (np.abs(Rb).sum(axis=(1, 2)) == 0))
+    R = np.broadcast_to(np.eye(3), (n_cam, 3, 3)).copy()
+    if registered.any():
+        P = projected_or_input_error(Rb[registered], rotation_tol, what="camera rotation", source=str(path),
+                                     labels=[f"camera {k}" for k in np.flatnonzero(registered)])
+        R[registered] = BUNDLER_TO_CV @ P
+    t = np.where(registered[:, None], tb @ BUNDLER_TO_CV.T, 0.0)
+    return R, t, f, registered
+
+
+def write_bundler(path: str | os.PathLike, R: np.ndarray, t: np.ndarray, f: np.ndarray,
+                  registered: np.ndarray | None = None) -> Path:
+    """Write cameras (OpenCV cam_from_world R, t) as a Bundler v0.3 file with no points.
+
+    Unregistered cameras are written as all zeros (f = 0, R = 0, t = 0).
+    """
+    R = np.asarray(R, float)
+    K = R.shape[0]
+    registered = np.ones(K, bool) if registered is None else np.asarray(registered, bool)
+    path = Path(path)
+    with atomic_open(path) as fh:
+        fh.write("# Bundle file v0.3\n")
+        fh.write(f"{K} 0\n")
+        for k in range(K):
+            if registered[k]:
+                Rb, tb, fk = BUNDLER_TO_CV @ R[k], BUNDLER_TO_CV @ t[k], f[k]
+            else:
+                Rb, tb, fk = np.zeros((3, 3)), np.zeros(3), 0.0
+            fh.write(f"{fk:.17g} 0 0\n")
+            for row in Rb:
+                fh.write(" ".join(f"{x:.17g}" for x in row) + "\n")
+            fh.write(" ".join(f"{x:.17g}" for x in tb) + "\n")
+    return path
+
+
+# ----------------------------------------------------------------------------- read / write
+def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+               use_cc: bool = True, read_truth: bool = True) -> OneDSfMData:
+    """Read a 1DSfM folder (``list.txt``, ``EGs.txt``, optional ``cc.txt`` and ``gt_bundle.out``).
+
+    Args:
+        folder: the dataset folder.
+        rotation_tol: near-rotation tolerance (``near_rotation``); the EG rotations are projected.
+        use_cc: restrict to ``cc.txt`` (when present); else to the images with an EG.
+        read_truth: read ``gt_bundle.out`` when present.
+
+    Returns:
+        :class:`OneDSfMData`.
+
+    Raises:
+        InputFileError: a missing required file, any malformed line (``file:line: ...``),
+            EG rotations beyond the tolerance, a pair given twice.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputFileError(f"1DSfM folder {folder} does not exist")
+    names, focal = _read_list(folder / "list.txt")
+    n_img = len(names)
+    ij, R_file, t_file, eg_lines = _read_egs(folder / "EGs.txt", n_img)
+    cc_path = folder / "cc.txt"
+    if use_cc and cc_path.is_file():
+        cams = _read_cc(cc_path, n_img)
+    else:
+        cams = np.unique(ij)
+    old_to_new = -np.ones(n_img, dtype=np.int64)
+    old_to_new[cams] = np.arange(cams.size)
+    keep = np.all(old_to_new[ij] >= 0, axis=1)
+    info = {"n_images_listed": n_img, "n_cameras": int(cams.size), "n_egs": int(ij.shape[0]),
+            "n_egs_outside_cc": int((~keep).sum())}
+    if info["n_egs_outside_cc"]:
+        logger.warning("%s: %d of %d EGs have an image outside cc.txt; dropped", folder / "EGs.txt",
+                       info["n_egs_outside_cc"], ij.shape[0])
+    ij, R_file, t_file = ij[keep], R_file[keep], t_file[keep]
+    lines = [ln for ln, k in zip(eg_lines, keep) if k]
+    R_file = projected_or_input_error(R_file, rotation_tol, what="EG rotation", source=str(folder / "EGs.txt"),
+                                      labels=[f"on line {ln}" for ln in lines])
+    F = BUNDLER_TO_CV
+    R_rel = F @ np.swapaxes(R_file, 1, 2) @ F         # our R_j R_iᵀ for the file's (i, j)
+    t_rel = t_file @ F.T
+    nrm = np.linalg.norm(t_rel, axis=1, keepdims=True)
+    t_rel = np.where(nrm > 0, t_rel / np.where(nrm > 0, nrm, 1.0), 0.0)
+    e = old_to_new[ij]
+    flip = e[:, 0] > e[:, 1]
+    # an EG written with i > j is stored as (j, i): camera i's centre in j's frame is t_ji = −R_ij t_ij
+    t_rel = np.where(flip[:, None], -np.einsum("mab,mb->ma", R_rel, t_rel), t_rel)
+    try:
+        vg = ViewGraph.from_edges([names[k] for k in cams], e, R_rel, stats={"t_ij": t_rel}, allow_isolated=True)
+    except ViewGraphError as exc:
+        raise InputFileError(f"{folder / 'EGs.txt'}: {exc}") from None
+    R_gt = gt_mask = None
+    gt_path = folder / "gt_bundle.out"
+    if read_truth and gt_path.is_file():
+        Rb, _, _, reg = read_bundler(gt_path, rotation_tol)
+        if Rb.shape[0] < n_img:
+            logger.warning("%s has %d cameras for %d listed images; the rest count as unregistered",
+                           gt_path, Rb.shape[0], n_img)
+        R_all = np.broadcast_to(np.eye(3), (n_img, 3, 3)).copy()
+        m_all = np.zeros(n_img, bool)
+        k = min(n_img, Rb.shape[0])
+        R_all[:k], m_all[:k] = Rb[:k], reg[:k]
+        R_gt, gt_mask = R_all[cams], m_all[cams]
+        info["n_gt_registered"] = int(gt_mask.sum())
+    return OneDSfMData(vg, cams, focal[cams], R_gt, gt_mask, info)
+
+
+def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[str] | None = None,
+                index: np.ndarray | None = None, focal: np.ndarray | None = None,
+                R_gt: np.ndarray | None = None, t_gt: np.ndarray | None = None, gt_mask: np.ndarray | None = None
+                ) -> Path:
+    """Write a view graph as a 1DSfM folder (inverse of :func:`read_1dsfm`).
+
+    Args:
+        folder: created if needed.
+        vg: the view graph; ``stats["t_ij"]`` written as the EG translations (0 if absent).
+        list_names: all images of list.txt (default: ``vg.names``); may include images not in vg.
+        index: (N,) list.txt index of each camera of vg (default: position of its name).
+        focal: (len(list_names),) focal lengths, NaN = unknown (written without "0 f").
+        R_gt, t_gt, gt_mask: (len(list_names), ...) truth for gt_bundle.out (optional).
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    list_names = list(vg.names) if list_names is None else list(list_names)
+    pos = {n: k for k, n in enumerate(list_names)}
+    index = np.array([pos[n] for n in vg.names]) if index is None else np.asarray(index)
+    focal = np.full(len(list_names), np.nan) if focal is None else np.asarray(focal, float)
+    with atomic_open(folder / "list.txt") as fh:
+        for n, f in zip(list_names, focal):
+            fh.write(n + ("\n" if not np.isfinite(f) else f" 0 {f:.17g}\n"))
+    with atomic_open(folder / "cc.txt") as fh:
+        fh.write("".join(f"{k}\n" for k in np.sort(index)))
+    F = BUNDLER_TO_CV
+    R_file = F @ np.swapaxes(vg.R_rel, 1, 2) @ F     # inverse of the reader's F Rᵀ F
+    t = np.asarray(vg.stats.get("t_ij", np.zeros((vg.n_edges, 3))), float) @ F.T
+    with atomic_open(folder / "EGs.txt") as fh:
+        for (i, j), Rk, tk in zip(index[vg.edges], R_file, t):
+            fh.write(f"{i} {j} " + " ".join(f"{x:.17g}" for x in (*Rk.ravel(), *tk)) + "\n")
+    if R_gt is not None:
+        K = len(list_names)
+        t_gt = np.zeros((K, 3)) if t_gt is None else t_gt
+        f_out = np.where(np.isfinite(focal), focal, 1000.0)
+        write_bundler(folder / "gt_bundle.out", R_gt, t_gt, f_out, gt_mask)
+    return folder
+
+
+def is_1dsfm_folder(path: str | os.PathLike) -> bool:
+    """A folder holding ``EGs.txt`` and ``list.txt`` (the 1DSfM layout)."""
+    p = Path(path)
+    return p.is_dir() and (p / "EGs.txt").is_file() and (p / "list.txt").is_file()
+
+
+def read_1dsfm_reference(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
+                         ) -> tuple[list[str], np.ndarray]:
+    """The ground truth of a 1DSfM dataset as a reference: a folder or its ``gt_bundle.out``.
+
+    Camera k of ``gt_bundle.out`` is image k of ``list.txt`` beside it; unregistered
+    cameras are left out.
+
+    Returns:
+        names (list.txt paths) and (K, 3, 3) cam_from_world rotations.
+
+    Raises:
+        InputFileError: no ``list.txt`` beside the bundle file, or a malformed file.
+    """
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    bundle = p if p.is_file() else folder / "gt_bundle.out"
+    if not (folder / "list.txt").is_file():
+        raise InputFileError(f"{bundle}: a Bundler file is a 1DSfM reference only with list.txt beside it (camera k "
+                             f"is image k of list.txt); none in {folder}")
+    names, _ = _read_list(folder / "list.txt")
+    R, _, _, registered = read_bundler(bundle, rotation_tol)
+    k = np.flatnonzero(registered[: len(names)])
+    return [names[i] for i in k], R[k]
