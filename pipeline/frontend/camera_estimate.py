@@ -13,8 +13,9 @@ Focal (:func:`estimate_focal`), a focal shared by a group of images:
    ``min_inliers`` inliers, or a homography explaining ``max_h_ratio`` of them, are left out;
 2. each pair's profile over a coarse log grid of focal lengths, the joint
    ``profile+rotcons`` cost (or ``profile``), its minimum;
-3. the profiles again on a fine grid between the coarse neighbours of that minimum,
-   and the joint minimum over both grids (with the coarse grid's weighting).
+3. the profiles again on finer grids between the neighbours of the minimum
+   (``refine_levels``), and the joint minimum over all grids (with the coarse grid's
+   weighting), refined by a parabola.
 
 An EXIF focal is a prior, not the truth: the search is first confined to
 ``[f/exif_range, f·exif_range]``; a minimum at its edge means the view graph
@@ -69,7 +70,8 @@ class CamerasConfig(Config):
     max_points: int = option(600, "inliers per pair used in the profiles (a seeded random subset)", ge=20)
     focal_range: tuple[float, ...] = option((0.3, 5.0), "focal search range, as factors of max(w, h)")
     grid_points: int = option(25, "points of the coarse log grid of focal lengths", ge=5)
-    refine_points: int = option(9, "points of the fine grid around the coarse minimum", ge=3)
+    refine_points: int = option(9, "points of each finer grid, between the neighbours of the current minimum", ge=3)
+    refine_levels: int = option(2, "finer grids after the coarse one (each narrows the spacing ~5×)", ge=0)
     exif_range: float = option(1.5, "an EXIF focal confines the search to [f/exif_range, f·exif_range]", gt=1)
     loss_px: float = option(2.0, "Cauchy scale of the Sampson distances (px)", gt=0)
     cap: float = option(25.0, "a pair's Δχ² counts fully up to about this, then logarithmically", gt=0)
@@ -210,17 +212,20 @@ def _joint(grid, cost, R, s2, edges, n, config, scales=None) -> tuple[float, np.
 
 
 def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Coarse grid, then a fine grid around its minimum; returns f, the merged grid, its cost, per-pair argmins."""
-    coarse = fk.log_grid(lo, hi, config.grid_points)
-    cost, R, s2 = _profiles(x1s, x2s, Fs, pp, coarse, config, pmap, f"{tag}-coarse")
-    f0, _, scales = _joint(coarse, cost, R, s2, edges, n, config)
-    k = int(np.argmin(np.abs(np.log(coarse / f0))))
-    fine = fk.log_grid(coarse[max(k - 1, 0)], coarse[min(k + 1, len(coarse) - 1)], config.refine_points + 2)[1:-1]
-    c2, R2, _ = _profiles(x1s, x2s, Fs, pp, fine, config, pmap, f"{tag}-fine")
-    grid = np.concatenate([coarse, fine])
-    order = np.argsort(grid)
-    grid, cost, R = grid[order], np.concatenate([cost, c2], 1)[:, order], np.concatenate([R, R2], 1)[:, order]
-    f, J, _ = _joint(grid, cost, R, s2, edges, n, config, scales)
+    """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost
+    and the pairs' own argmins."""
+    grid = fk.log_grid(lo, hi, config.grid_points)
+    cost, R, s2 = _profiles(x1s, x2s, Fs, pp, grid, config, pmap, f"{tag}-coarse")
+    f, J, scales = _joint(grid, cost, R, s2, edges, n, config)
+    for level in range(config.refine_levels):  # each level narrows the spacing by (refine_points + 1) / 2
+        k = int(np.argmin(J))
+        fine = fk.log_grid(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)], config.refine_points + 2)[1:-1]
+        fine = fine[np.abs(np.log(fine[:, None] / grid[None, :])).min(axis=1) > 1e-9]  # no point twice
+        c2, R2, _ = _profiles(x1s, x2s, Fs, pp, fine, config, pmap, f"{tag}-fine{level}")
+        grid = np.concatenate([grid, fine])
+        order = np.argsort(grid, kind="stable")
+        grid, cost, R = grid[order], np.concatenate([cost, c2], 1)[:, order], np.concatenate([R, R2], 1)[:, order]
+        f, J, _ = _joint(grid, cost, R, s2, edges, n, config, scales)
     return f, grid, J, grid[np.argmin(cost, axis=1)]
 
 
