@@ -118,14 +118,20 @@ def _colmap_cameras_txt(path: Path) -> dict[int, CameraModel]:
 
 def _colmap_images_txt(path: Path) -> dict[str, int]:
     out: dict[str, int] = {}
-    lines = [ln for ln in _text(path).splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    for k in range(0, len(lines), 2):  # IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of points
+    lines = [ln for ln in _text(path).splitlines() if not ln.lstrip().startswith("#")]
+    k = 0
+    while k < len(lines):  # IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, then a line of points (maybe empty)
         v = lines[k].split()
+        if not v:
+            k += 1
+            continue
         try:
+            [float(x) for x in v[1:8]]
             out[" ".join(v[9:])] = int(v[8])
         except (ValueError, IndexError):
             raise InputFileError(f"{path}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME' lines, got "
                                  f"{lines[k][:80]!r}") from None
+        k += 2
     return out
 
 
