@@ -49,7 +49,8 @@ from pipeline.evaluation.compare import SUBSET_PREFIX  # noqa: E402
 from pipeline.frontend.images import IMAGE_EXTENSIONS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
+# ../shared/data beside the checkout (a git worktree sits one level deeper)
+DATA = next((p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data")
 RESULTS = REPO / "benchmarks" / "results" / "intrinsics.json"
 MODES = ("none", "shared", "per_camera")
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core import so3
-from pipeline.geometry.epipolar import pose_from_essential
+from pipeline.geometry.epipolar import pose_from_essential, sampson_for_matrix
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
@@ -60,13 +60,7 @@ def log_grid(lo: float, hi: float, n: int) -> np.ndarray:
 
 def sampson_px(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Signed Sampson distances (px) of matches ``x1 ↔ x2`` (n, 2) under F (``x2ᵀ F x1 = 0``)."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Fx1 = h1 @ F.T
-    Ftx2 = h2 @ F
-    num = np.sum(h2 * Fx1, axis=1)
-    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
-    return num / np.sqrt(np.maximum(den, 1e-300))
+    return sampson_for_matrix(F, x1, x2)
 
 
 @dataclass
@@ -132,18 +126,11 @@ def homography_ratio(x1: np.ndarray, x2: np.ndarray, max_error_px: float, seed: 
 
 
 # ------------------------------------------------------------------ per-pair profile
-def _pose_sampson(R: np.ndarray, t: np.ndarray, y1: np.ndarray, y2: np.ndarray, f1: float, f2: float
+def _pose_sampson(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray, K1: np.ndarray, K2: np.ndarray
                   ) -> np.ndarray:
-    """Sampson distances in pixels of normalized matches under ``E = [t]× R`` (focals f1, f2)."""
-    E = np.cross(t[None, :], R.T).T
-    h1 = np.column_stack([y1, np.ones(len(y1))])
-    h2 = np.column_stack([y2, np.ones(len(y2))])
-    Ex = h1 @ E.T
-    Etx = h2 @ E
-    num = np.sum(h2 * Ex, axis=1)
-    # gradient in pixels: ∂/∂x2 = E x1 / f2, ∂/∂x1 = Eᵀ x2 / f1
-    den = (Ex[:, 0] ** 2 + Ex[:, 1] ** 2) / f2**2 + (Etx[:, 0] ** 2 + Etx[:, 1] ** 2) / f1**2
-    return num / np.sqrt(np.maximum(den, 1e-300))
+    """Sampson distances (px) of pixel matches under the pose (R, t) and intrinsics K1, K2."""
+    E = np.cross(t[None, :], R.T).T  # [t]× R
+    return sampson_for_matrix(np.linalg.inv(K2).T @ E @ np.linalg.inv(K1), x1, x2)
 
 
 def pair_profile(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, pp1: np.ndarray, pp2: np.ndarray,
@@ -176,9 +163,10 @@ def pair_profile(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, pp1: np.ndarray,
     c2 = c_px * c_px
     for g in range(G):  # a 1-D sweep (tens of points); the work inside is vectorized over the matches
         a, b = float(f1[g]), float(f2[g])
+        K1, K2 = K_from_focal(a, pp1), K_from_focal(b, pp2)
         y1 = (x1 - pp1) / a
         y2 = (x2 - pp2) / b
-        E = K_from_focal(b, pp2).T @ F @ K_from_focal(a, pp1)
+        E = K2.T @ F @ K1
         U, _, Vt = np.linalg.svd(E)
         R0, t0, _ = pose_from_essential(U @ np.diag([1.0, 1.0, 0.0]) @ Vt, y1, y2, sub)
         opts = {"loss_type": "CAUCHY", "loss_scale": c_px / np.sqrt(a * b), "max_iterations": iterations}
@@ -189,14 +177,14 @@ def pair_profile(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, pp1: np.ndarray,
             pose0.t = ts0 / max(np.linalg.norm(ts0), 1e-300)
             pose, _ = poselib.refine_relative_pose(y1, y2, pose0, cam, cam, opts)
             R, t = np.asarray(pose.R), np.asarray(pose.t)
-            s = _pose_sampson(R, t, y1, y2, a, b)
+            s = _pose_sampson(R, t, x1, x2, K1, K2)
             c = float(c2 * np.log1p(s * s / c2).sum())
             if best is None or c < best[0]:
                 best = (c, R, t)
         cost[g], Rs[g], ts[g] = best
         prev = (best[1], best[2])
     g = int(np.argmin(cost))
-    s = _pose_sampson(Rs[g], ts[g], (x1 - pp1) / f1[g], (x2 - pp2) / f2[g], float(f1[g]), float(f2[g]))
+    s = _pose_sampson(Rs[g], ts[g], x1, x2, K_from_focal(f1[g], pp1), K_from_focal(f2[g], pp2))
     return cost, Rs, max(float(np.median(s * s)) / CHI2_1_MEDIAN, 1e-6)
 
 
