@@ -55,14 +55,14 @@ RESULTS = REPO / "benchmarks" / "results" / "intrinsics.json"
 MODES = ("none", "shared", "per_camera")
 
 
-def _scenes() -> dict[str, tuple[Path, Path, np.ndarray]]:
+def _scenes(data: Path) -> dict[str, tuple[Path, Path, np.ndarray]]:
     """name -> (image folder, truth, true K), the true K read for scoring only."""
     out = {}
     for name in ("fountain-P11", "castle-P30"):
-        d = DATA / "strecha" / name
+        d = data / "strecha" / name
         if d.is_dir():
             out[name] = (d / "images", d / "gt_dense_cameras", np.loadtxt(d / "images" / "K.txt").reshape(3, 3))
-    t = DATA / "middlebury-templeSparseRing"
+    t = data / "middlebury-templeSparseRing"
     if t.is_dir():
         row = (t / "templeSR_par.txt").read_text().split("\n")[1].split()
         out["temple"] = (t, t / "templeSR_par.txt", np.array([float(v) for v in row[1:10]]).reshape(3, 3))
@@ -190,22 +190,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="", help="comma-separated subset: fountain,castle,temple,nees,lens")
     ap.add_argument("--draws", type=int, default=500, help="NEES draws per configuration")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: a temp folder)")
+    ap.add_argument("--data", type=Path, default=DATA, help=f"the shared data folder (default {DATA})")
+    ap.add_argument("--results", type=Path, default=RESULTS, help=f"the JSON written (default {RESULTS})")
     a = ap.parse_args(argv)
     only = set(filter(None, a.only.split(","))) or {"fountain", "castle", "temple", "nees", "lens"}
     root = a.keep or Path(tempfile.mkdtemp(prefix="bench_intrinsics_"))
-    res = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+    res = json.loads(a.results.read_text()) if a.results.exists() else {}
     res.setdefault("scenes", {})
-    for name, (images, gt, K) in _scenes().items():
+    for name, (images, gt, K) in _scenes(a.data).items():
         if name.split("-")[0] in only or name in only:
             res["scenes"][name] = scene_rows(name, images, gt, K, root)
-            write_json(RESULTS, res)
+            write_json(a.results, res)
     if "nees" in only:
         res["nees"] = nees_rows(a.draws)
-        write_json(RESULTS, res)
+        write_json(a.results, res)
     if "lens" in only:
         res["lens"] = lens_rows(root / "lens")
-        write_json(RESULTS, res)
-    print(f"results: {RESULTS}  (runs in {root})")
+        write_json(a.results, res)
+    print(f"results: {a.results}  (runs in {root})")
     return 0
 
 
