@@ -71,8 +71,13 @@ def _frontend_inputs(work: Path) -> dict[str, str]:
 def _cameras(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray]]:
     """K (N, 3, 3) and the keypoints the geometry uses: the cameras stage's (undistorted), else the features'."""
     if read_record(work, CAMERAS) is None:
-        logger.warning("two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF "
-                       "or default focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
+        from pipeline.frontend.distortion import is_camera_model_file  # noqa: PLC0415
+
+        # a K from a plain file loses nothing; an EXIF or default focal, or a file with distortion, does
+        lossy = any(not s.startswith("file:") or is_camera_model_file(s[len("file:"):]) for s in fs.K_source)
+        (logger.warning if lossy else logger.info)(
+            "two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF or default "
+            "focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
         return fs.K, list(fs.keypoints)
     cams = load_cameras(work)
     if cams.names != list(fs.names):
