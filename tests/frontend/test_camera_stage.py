@@ -108,3 +108,23 @@ def test_command_line(no_K, tmp_path) -> None:
     r = subprocess.run([sys.executable, "-m", "pipeline.cameras", "--work", str(tmp_path / "nowhere")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "error:" in r.stderr
+
+
+def test_exif_is_a_prior_not_the_truth(scene, tmp_path) -> None:
+    """JPEGs whose EXIF says a focal ~9% too long: the view graph's estimate wins, and says it had the prior."""
+    from PIL import Image
+
+    img = tmp_path / "img"
+    img.mkdir()
+    for n in scene.names:
+        exif = Image.Exif()
+        exif.get_ifd(0x8769)[0xA405] = 33  # FocalLengthIn35mmFilm
+        Image.open(scene.out / n).convert("RGB").save(img / n.replace(".png", ".jpg"), exif=exif, quality=95)
+    work = _front(img, tmp_path / "w")
+    fs = features.load_features(work)
+    assert set(fs.K_source) == {"exif"} and fs.K[0, 0, 0] > 1.05 * CFG.focal
+    CamerasStage(work, Q).run()
+    cams = load_cameras(work)
+    assert len(set(cams.K_source)) == 1 and cams.K_source[0].startswith("estimated:profile+rotcons (exif ")
+    assert cams.K_source[0].endswith(" px prior)") and not cams.known.any()
+    assert np.all(np.abs(cams.K[:, 0, 0] / CFG.focal - 1) < 0.03), cams.K[:, 0, 0]
