@@ -19,13 +19,23 @@ from pipeline.core.atomic import write_json
 from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
-from pipeline.evaluation.report import report_data, summary_table, write_report
+from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
 from pipeline.reference.types import Reference
 
 __all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "OUR_PATH"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
-OUR_PATH = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
+OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
+
+
+def _intrinsics(work: Path) -> dict[str, Any]:
+    """The cameras stage's summary (focal used, its source, distortion); empty if the stage has not run."""
+    from pipeline.frontend.camera_stage import intrinsics_summary, load_cameras  # noqa: PLC0415
+
+    try:
+        return intrinsics_summary(load_cameras(work))
+    except (PipelineError, OSError):
+        return {}
 
 
 @dataclass
@@ -72,6 +82,7 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     stages = {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()}
     data = report_data(metrics, refs, ev.camera_errors, ev.edge_errors, histories, vg, plan.notes, stages,
                        f"Rotations of {plan.images}", plan.run.plots)
+    data.intrinsics = _intrinsics(plan.work)
     return write_report(plan.out, data)
 
 
@@ -90,9 +101,12 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "n_edges": vg.n_edges, "left_out": list(left_out), "left_out_why": left_out,
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
+    metrics["intrinsics"] = _intrinsics(plan.work)
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
+        if metrics["intrinsics"]:
+            print(intrinsics_console(metrics["intrinsics"]), flush=True)
         print(f"report: {plan.out / 'report.md'}\nmetrics: {path}", flush=True)
     return path

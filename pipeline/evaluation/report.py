@@ -27,7 +27,7 @@ from pipeline.reference.types import Reference
 logger = logging.getLogger(__name__)
 
 __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summary_table", "console_table",
-           "summary_rows", "edge_rows"]
+           "summary_rows", "edge_rows", "intrinsics_lines", "intrinsics_console"]
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
@@ -73,6 +73,7 @@ class ReportData:
     sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
     title: str = "Rotation averaging report"
+    intrinsics: dict[str, Any] = field(default_factory=dict)
 
 
 def _slug(s: str) -> str:
@@ -181,6 +182,7 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"# {data.title}", ""]
+    lines += intrinsics_lines(data.intrinsics)
     if data.stages:
         total = sum(data.stages.values())
         lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
@@ -214,6 +216,33 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         f.write("\n".join(lines))
     logger.info("report: %s", path)
     return path
+
+
+def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
+    """The report's "Intrinsics" section: the focal used, where it came from, and the distortion."""
+    if not intr or not intr.get("focal"):
+        return []
+    lines = ["## Intrinsics", "", "| focal (px) | images | source |", "|---|---|---|"]
+    for f in intr["focal"]:
+        rng = "" if f["min_px"] == f["max_px"] else f" ({f['min_px']:.1f}–{f['max_px']:.1f})"
+        lines.append(f"| {f['median_px']:.1f}{rng} | {f['n_images']} | {f['source']} |")
+    lines.append("")
+    for d in intr.get("distortion", []):
+        if d["source"] != "none":
+            lines.append(f"- distortion of {d['n_images']} image(s): {', '.join(d['models'])} "
+                         f"{[list(p) for p in d['extra_params']]} ({d['source']})")
+    for g in intr.get("estimates", []):
+        for key in ("focal", "radial"):
+            note = (g.get(key) or {}).get("note")
+            if note:
+                lines.append(f"- {key}: {note}")
+    return lines + ([""] if lines[-1] else [])
+
+
+def intrinsics_console(intr: dict[str, Any]) -> str:
+    """One console line: the focal used and its source."""
+    parts = [f"{f['median_px']:.1f} px ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
+    return "focal: " + "; ".join(parts) if parts else ""
 
 
 # ------------------------------------------------------------------ console

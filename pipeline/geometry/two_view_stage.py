@@ -1,6 +1,7 @@
 """The two-view stage: the relative pose of every matched pair of a WORK folder (``python -m pipeline.two_view``).
 
-It reads the front end's features and matches, estimates each pair with
+It reads the front end's features, matches and camera models (K, and the keypoints
+undistorted where the cameras stage found distortion), estimates each pair with
 :func:`pipeline.geometry.ransac.estimate_pair` in chunks on an executor
 (:mod:`pipeline.core.parallel`), keeps every finished chunk in an item store (an
 interrupted run resumes per pair; a changed option recomputes), and writes::
@@ -10,7 +11,7 @@ interrupted run resumes per pair; a changed option recomputes), and writes::
                                "n_matches", "n_inliers_E", "n_inliers_H", "h_ratio",
                                "median_triangulation_deg", "median_parallax_px",
                                "small_baseline", "planar", "degenerate" (M,) bool
-    WORK/two_view_corr.npz     K (N, 3, 3), sizes (N, 2), offsets (M+1,), inlier pixel
+    WORK/two_view_corr.npz     K (N, 3, 3) of the cameras stage, sizes (N, 2), offsets (M+1,), inlier (undistorted) pixel
                                coordinates x_i (total, 2), x_j (total, 2), keypoint indices kp_i, kp_j (total,)
     WORK/two_view.record.json  the stage record; its summary lists the rejected pairs
                                ({pair, names, n_matches, n_inliers, reason}) and the counts
@@ -39,10 +40,11 @@ from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.features import load_features
+from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.matching import load_matches
-from pipeline.stage import StageRecord
+from pipeline.stage import StageRecord, read_record
 
 __all__ = ["TwoViewStage", "TwoViewData", "load_two_view", "write_two_view", "main_cli", "VIEWGRAPH",
            "CORRESPONDENCES"]
@@ -59,7 +61,29 @@ _CORR_ARRAYS = {"K": "f", "sizes": "iu", "offsets": "iu", "x_i": "f", "x_j": "f"
 
 def _frontend_inputs(work: Path) -> dict[str, str]:
     """Fingerprints of the front-end results this stage reads (the one place to switch to upstream records)."""
-    return {"features": load_features(work).digest, "matching": load_matches(work).digest}
+    inp = {"features": load_features(work).digest, "matching": load_matches(work).digest}
+    rec = read_record(work, CAMERAS)
+    if rec is not None:
+        inp[CAMERAS] = rec.fingerprint
+    return inp
+
+
+def _cameras(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray]]:
+    """K (N, 3, 3) and the keypoints the geometry uses: the cameras stage's (undistorted), else the features'."""
+    if read_record(work, CAMERAS) is None:
+        from pipeline.frontend.distortion import is_camera_model_file  # noqa: PLC0415
+
+        # a K from a plain file loses nothing; an EXIF or default focal, or a file with distortion, does
+        lossy = any(not s.startswith("file:") or is_camera_model_file(s[len("file:"):]) for s in fs.K_source)
+        (logger.warning if lossy else logger.info)(
+            "two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF or default "
+            "focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
+        return fs.K, list(fs.keypoints)
+    cams = load_cameras(work)
+    if cams.names != list(fs.names):
+        raise InputFileError(f"{work}: the cameras were computed for other images than the current features; "
+                             f"re-run `python -m pipeline.cameras --work {work}`")
+    return cams.K, cams.keypoints_for_geometry(fs.keypoints)
 
 
 def _frontend_image_count(work: Path) -> int:
@@ -216,12 +240,12 @@ class TwoViewStage(PairStage[TwoViewConfig]):
         scale = np.ones(len(fs.names))
         if max_size > 0:
             scale = np.maximum(fs.sizes.max(axis=1) / max_size, 1.0)
+        K, kp = _cameras(work, fs)
 
         def task(p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
             a, b = ms.pairs[p]
             m = ms.matches[p]
-            return (fs.keypoints[a][m[:, 0]], fs.keypoints[b][m[:, 1]], fs.K[a], fs.K[b],
-                    float(0.5 * (scale[a] + scale[b])))
+            return (kp[a][m[:, 0]], kp[b][m[:, 1]], K[a], K[b], float(0.5 * (scale[a] + scale[b])))
 
         fp = config.fingerprint()
         keys = [item_key(fp, *task(p)) for p in range(len(ms.pairs))]
@@ -232,7 +256,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             n_computed = compute_missing(store, keys, task, functools.partial(_estimate_chunk, config=config),
                                          workers=config.workers, chunk_size=config.chunk_size, on_chunk=bar.update)
         geoms = [_geometry_from_item(store.get(k)) for k in keys]
-        paths, summary = self._write(fs, ms, geoms)
+        paths, summary = self._write(fs, ms, geoms, K, kp)
         summary["n_computed"] = n_computed
         paths += store.write_index(keys)
         vg_iso = summary["isolated"]
@@ -244,7 +268,8 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             logger.warning("%d camera(s) have no accepted pair: %s", len(vg_iso), ", ".join(vg_iso[:5]))
         return paths, summary
 
-    def _write(self, fs: Any, ms: Any, geoms: Sequence[PairGeometry]) -> tuple[list[Path], dict[str, Any]]:
+    def _write(self, fs: Any, ms: Any, geoms: Sequence[PairGeometry], K: np.ndarray, kp: list[np.ndarray]
+               ) -> tuple[list[Path], dict[str, Any]]:
         """Assemble and write the view graph and correspondences; returns the paths and the summary."""
         acc = [p for p, g in enumerate(geoms) if g.ok]
         rejected = [
@@ -274,14 +299,14 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             m = ms.matches[p][g.inlier_mask]
             kp_i.append(m[:, 0])
             kp_j.append(m[:, 1])
-            xi.append(fs.keypoints[a][m[:, 0]])
-            xj.append(fs.keypoints[b][m[:, 1]])
+            xi.append(kp[a][m[:, 0]])
+            xj.append(kp[b][m[:, 1]])
         counts = np.array([len(k) for k in kp_i], np.int64)
 
         def cat(arrs: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
             return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
 
-        paths = write_two_view(self.folder, vg, fs.K, fs.sizes, np.concatenate([[0], np.cumsum(counts)]),
+        paths = write_two_view(self.folder, vg, K, fs.sizes, np.concatenate([[0], np.cumsum(counts)]),
                                cat(xi, (0, 2), np.float64), cat(xj, (0, 2), np.float64), cat(kp_i, (0,), np.int32),
                                cat(kp_j, (0,), np.int32))
         reasons: dict[str, int] = {}
