@@ -19,6 +19,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
+from pipeline.evaluation.flags import evidence_console, run_evidence
 from pipeline.evaluation.report import report_data, summary_table, write_report
 from pipeline.reference.types import Reference
 
@@ -51,9 +52,21 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
         sub = truth_on_registered(plan.truth, peer, vg)
         refs += ([sub] if sub is not None else []) + [peer]
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peer, plan.run.align)
+    metrics["evidence"] = _evidence(plan.out, metrics["methods"])
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs)
+
+
+def _evidence(out: Path, methods: dict[str, Any]) -> dict[str, Any]:
+    """The view graph's flags and messages joined with each method's per-camera support ({} without a summary)."""
+    from pipeline.graph.stage import load_graph_summary  # noqa: PLC0415
+
+    try:
+        graph = load_graph_summary(out)
+    except PipelineError:
+        return {}
+    return run_evidence(graph, methods)
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,
@@ -88,5 +101,8 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     path = write_json(plan.out / "metrics.json", metrics)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
+        lines = evidence_console(metrics.get("evidence") or {})
+        if lines:
+            print(lines, flush=True)
         print(f"report: {plan.out / 'report.md'}\nmetrics: {path}", flush=True)
     return path
