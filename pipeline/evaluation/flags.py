@@ -13,33 +13,82 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["CERTIFICATE_NOTE", "run_evidence", "evidence_markdown", "evidence_console"]
+import numpy as np
+
+__all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "method_disagreement", "run_evidence", "evidence_markdown",
+           "evidence_console"]
+
+#: Methods that disagree by more than this on a camera (degrees) flag it: at least one of them is wrong there.
+DISAGREEMENT_DEG = 2.0
 
 CERTIFICATE_NOTE = ("a certificate proves that a method's rotations are optimal for its cost on the pairs it used; "
                     "it does not check that those pairs are right")
-_SUPPORT = {"single edge": "rests on one pair that the method kept (the others down-weighted or rejected)",
-            "rejected edges only": "every pair of it was rejected or down-weighted by the method"}
+_SUPPORT = {"single edge": "rests on one pair the method kept, the others down-weighted or rejected",
+            "rejected edges only": "the method rejected or down-weighted every pair of it"}
 
 
-def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]]) -> dict[str, Any]:
+def method_disagreement(rotations: dict[str, tuple[list[str], np.ndarray]]) -> dict[str, tuple[float, str]]:
+    """Per camera, the largest angle between two methods' rotations, and which two (no truth involved).
+
+    Each pair of methods is aligned on the cameras they share by the geodesic median (robust to a few
+    cameras one method got wrong), then compared camera by camera.
+
+    Args:
+        rotations: ``{label: (names, (n, 3, 3) cam_from_world)}``.
+    Returns:
+        ``{name: (degrees, "a vs b")}`` for every camera two methods solved.
+    """
+    from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: PLC0415
+
+    out: dict[str, tuple[float, str]] = {}
+    labels = list(rotations)
+    for a in range(len(labels)):
+        for b in range(a + 1, len(labels)):
+            na, Ra = rotations[labels[a]]
+            pos = {n: k for k, n in enumerate(rotations[labels[b]][0])}
+            common = [k for k, n in enumerate(na) if n in pos]
+            if len(common) < 2:
+                continue
+            Rb = rotations[labels[b]][1][[pos[na[k]] for k in common]]
+            d = rotation_errors_deg(np.asarray(Ra)[common], Rb, align="l1")
+            for k, x in zip(common, d):
+                if x > out.get(na[k], (-1.0, ""))[0]:
+                    out[na[k]] = (float(x), f"{labels[a]} vs {labels[b]}")
+    return out
+
+
+def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
+                 disagreement: dict[str, tuple[float, str]] | None = None) -> dict[str, Any]:
     """The ``evidence`` entry of metrics.json.
 
     Args:
         graph: the view-graph stage's summary (``flags``, ``messages``, ``left_out``, ``names``, ``pairs``, ...).
         methods: metrics.json's ``methods`` (each with the ``evidence`` the averaging stage wrote).
+        disagreement: :func:`method_disagreement` of the methods' rotations; cameras beyond
+            :data:`DISAGREEMENT_DEG` are flagged.
     Returns:
         ``{"messages", "flags": {name: [reasons]}, "cameras": {name: {"status", "flags"}}, "n_flagged",
         "n_cycles", "left_out", "pairs": counts by status and step, "certificate_note"}``.
     """
     flags: dict[str, list[str]] = {n: list(v) for n, v in (graph.get("flags") or {}).items()}
+    support: dict[tuple[str, str], list[str]] = {}
     for label, m in methods.items():
         for cam in (m.get("evidence") or {}).get("cameras", []):
-            why = _SUPPORT.get(cam.get("support", ""))
-            if why:
-                flags.setdefault(cam["name"], []).append(f"{label}: {why}")
+            if cam.get("support", "") in _SUPPORT:
+                support.setdefault((cam["name"], cam["support"]), []).append(label)
+    for (name, kind), labels in support.items():
+        if kind == "single edge" and any(w.startswith("rests on a single pair") for w in flags.get(name, [])):
+            continue  # the graph has one pair there: every method rests on it
+        flags.setdefault(name, []).append(f"{_SUPPORT[kind]} ({', '.join(labels)})")
+    for n, (deg, which) in (disagreement or {}).items():
+        if deg > DISAGREEMENT_DEG:
+            flags.setdefault(n, []).append(f"the methods disagree by {deg:.1f}° on it ({which}): at least one is "
+                                           "wrong there")
     cameras: dict[str, dict[str, Any]] = {}
     for n in graph.get("names", []):
         cameras[n] = {"status": "flagged" if n in flags else "checked", "flags": flags.get(n, [])}
+        if disagreement and n in disagreement:
+            cameras[n]["methods_disagree_deg"] = round(disagreement[n][0], 4)
     for n, why in (graph.get("left_out") or {}).items():
         cameras[n] = {"status": "left out", "flags": [why]}
     counts: dict[str, int] = {}

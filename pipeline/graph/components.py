@@ -30,7 +30,7 @@ def left_out_reasons(vg_all: ViewGraph, rejected: list[dict]) -> dict[str, str]:
         nm = vg_all.names[k]
         if deg[k] == 0:
             why = by_image.get(nm, [])
-            common = "; ".join(w for w, _ in Counter(why).most_common(3))
+            common = ", ".join(f"{w} ×{c}" for w, c in Counter(w.split(" (")[0] for w in why).most_common(3))
             reasons[nm] = (f"no accepted image pair ({len(why)} pair(s) rejected: {common})"
                            if why else "no accepted image pair (no match with any image)")
         else:
