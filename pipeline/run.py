@@ -15,7 +15,8 @@ recomputed), each also a command of its own:
 2. matching      ``python -m pipeline.matching``     → OUT/work/matches.json + matches/
 3. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
 4. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
-5. view graph    largest connected component          → OUT/viewgraph.npz (+ why each image is left out)
+5. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
+                 (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras)
 6. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
 7. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
 8. evaluation and report                              → OUT/metrics.json, OUT/report.md

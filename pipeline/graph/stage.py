@@ -13,14 +13,18 @@ Writes
   e.g. no cycle: the result cannot be verified); the checks' figures.
 
 With ``checks: false`` every pair of the BA graph is kept, as before this stage checked them.
+Command line::
+
+    python -m pipeline.viewgraph --work WORK --out OUT [--config YAML] [--min-inliers 15] ...
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -36,7 +40,7 @@ from pipeline.stage import Stage, StageRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "GRAPH", "SUMMARY"]
+__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "main_cli", "GRAPH", "SUMMARY"]
 
 GRAPH = "viewgraph.npz"
 SUMMARY = "viewgraph.json"
@@ -160,3 +164,25 @@ def load_graph_summary(out: Path) -> dict[str, Any]:
         return s
     except (OSError, ValueError, AttributeError, UnicodeDecodeError) as exc:
         raise CacheError(f"{path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    """``python -m pipeline.viewgraph --work WORK --out OUT``: check WORK's BA graph, write OUT/viewgraph.npz."""
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.viewgraph",
+                                description="Check the two-view BA's view graph of WORK (pair evidence, cycles, "
+                                            "robust filter), keep its largest component, flag the cameras nothing "
+                                            "checks; writes OUT/viewgraph.npz and OUT/viewgraph.json.")
+    p.add_argument("--work", type=Path, required=True, help="the WORK folder of the front end")
+    p.add_argument("--out", type=Path, required=True, help="where viewgraph.npz and viewgraph.json go")
+    p.add_argument("--config", type=Path, default=None, help="YAML config; its 'viewgraph' section is used")
+    add_config_args(p, ViewGraphConfig)
+    p.add_argument("--overwrite", action="store_true", help="recompute even if an intact, up-to-date result exists")
+
+    def body(a: argparse.Namespace) -> int:
+        ViewGraphStage(a.out, config_from_args(ViewGraphConfig, a, a.config), work=a.work).run(a.overwrite)
+        print(Path(a.out) / GRAPH)
+        return 0
+
+    return run_cli(body, p, argv)

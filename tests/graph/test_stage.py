@@ -80,3 +80,20 @@ def test_a_cycle_free_graph_says_its_result_cannot_be_verified(tmp_path):
     (tmp_path / "out" / "viewgraph.json").write_text("{not json")
     with pytest.raises(CacheError, match="viewgraph.json"):
         load_graph_summary(tmp_path / "out")
+
+
+def test_command_help():
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "pipeline.viewgraph", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--min-inliers" in r.stdout and "--work" in r.stdout
+
+
+def test_command_without_a_front_end_fails_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "pipeline.viewgraph", "--work", str(tmp_path), "--out", str(tmp_path)],
+                       capture_output=True, text=True)
+    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and "two_view" in r.stderr
