@@ -9,10 +9,11 @@ BA's). In order:
    that its cameras share a centre, tested by third cameras;
 3. short cycles (:func:`~pipeline.graph.loops.cycle_filter`): triangles and 4-cycles, the
    edge most cycles disagree with removed first, with per-edge σ = ``max(σ_weak, sigma_floor_deg)``;
-4. longer cycles (:func:`~pipeline.graph.loops.cycle_check`): each edge in no consistent
-   short cycle against the cheapest other path, σ = ``max(h_inflation·σ_weak, sigma_floor_deg)``;
+4. longer cycles (:func:`~pipeline.graph.loops.cycle_check`): each edge in no short cycle
+   against the cheapest other path, σ = ``max(h_inflation·σ_weak, sigma_floor_deg)`` (an edge
+   whose short cycles are inconsistent is not confirmed by a longer, looser one);
 5. pairs still unconfirmed are dropped unless strong (provisional ones always);
-6. the robust solution: IRLS-ℓ½ on the kept graph's largest component; an edge whose residual
+6. the robust solution: IRLS-ℓ½ on each component of the kept graph; an edge whose residual
    exceeds ``max(robust_floor_deg, robust_k_sigma·h_inflation·σ_weak)`` is rejected. It sees
    what only long cycles see (a repeated structure's pair whose cycles it makes consistent).
 
@@ -153,7 +154,8 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     info["kappa2"], info["n_short_cycles"] = float(cf.kappa2), len(cf.cycles)
     confirmed = cf.confirmed.copy()
     sig_path = np.maximum(cfg.h_inflation * sw, cfg.sigma_floor_deg)
-    pc = cycle_check(vg.edges, vg.R_rel, N, chk.kept, chk.kept & ~confirmed, sig_path, confirmed,
+    # only edges in no short cycle: one whose short cycles disagree is not confirmed by a longer, looser one
+    pc = cycle_check(vg.edges, vg.R_rel, N, chk.kept, chk.kept & ~confirmed & (cf.n_cycles == 0), sig_path, confirmed,
                      k_sigma=cfg.path_k_sigma, min_deg=cfg.path_min_deg, max_path_deg=cfg.path_max_deg)
     info["path"] = _reject(chk, pc.checked & ~pc.consistent & pc.path_confirmed, "path", lambda ix: [
         f"disagrees by {pc.discrepancy_deg[k]:.1f}° (threshold {pc.threshold_deg[k]:.1f}°) with the path of "
@@ -171,7 +173,7 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
 
 
 def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, cfg: ViewGraphConfig) -> int:
-    """Step 6: reject the kept edges whose IRLS-ℓ½ residual is far beyond their σ."""
+    """Step 6: reject the kept edges whose IRLS-ℓ½ residual is far beyond their σ, in every component with a cycle."""
     from pipeline.averaging.irls import IRLSConfig  # noqa: PLC0415 - the graph checks use one averaging method
     from pipeline.averaging.solve import average  # noqa: PLC0415
 
@@ -179,12 +181,14 @@ def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, 
     if not len(keep):
         return 0
     sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], allow_isolated=True)
-    comp, restr = sub.largest_component()
-    if comp.n_edges < 2:
-        return 0
-    res = average(comp, "irls", IRLSConfig(certify=False))
+    labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
-    r[keep[restr.edge_kept[res.edge_index]]] = np.degrees(res.residuals_rad)
+    for c in range(int(labels.max()) + 1):  # one solve per component (a few): the left-out ones are checked too
+        comp, restr = sub.subgraph(labels == c)
+        if comp.n_edges < comp.n_cameras:  # a tree: no residual to judge
+            continue
+        res = average(comp, "irls", IRLSConfig(certify=False))
+        r[keep[restr.edge_kept[res.edge_index]]] = np.degrees(res.residuals_rad)
     thr = np.maximum(cfg.robust_floor_deg, cfg.robust_k_sigma * cfg.h_inflation * sigma_weak_deg)
     bad = np.isfinite(r) & (r > thr)
     return _reject(chk, bad, "robust", lambda ix: [

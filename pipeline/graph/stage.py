@@ -73,7 +73,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     name = "viewgraph"
     title = "view graph and its checks"
     config_cls = ViewGraphConfig
-    version = 2
+    version = 3
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)
