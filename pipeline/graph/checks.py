@@ -63,6 +63,8 @@ class ViewGraphConfig(Config):
     wide_parallax_deg: float = option(75.0, "weak or strong pairs whose rays meet at more than this are not kept "
                                             "(confirmed normal pairs are)", gt=0)
     max_cycle_length: int = option(4, "short cycles checked: 3 (triangles) or 4 (also 4-cycles)", ge=3, le=4)
+    max_four_cycles: int = option(2_000_000, "budget of 4-cycles (dense graphs of thousands of cameras have "
+                                             "millions): beyond it each diagonal keeps its first few", ge=0)
     cycle_k_sigma: float = option(3.0, "a cycle is consistent when its angle <= k·κ·σ_C", gt=0)
     cycle_min_deg: float = option(1.0, "a cycle below this angle is always consistent, degrees", ge=0)
     cycle_max_deg: float = option(10.0, "a cycle above this angle is never consistent, degrees", gt=0)
@@ -148,7 +150,7 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
         f"{med[k]:.0f}° apart (median)" for k in ix])
     cf = cycle_filter(vg.edges, vg.R_rel, N, np.maximum(sw, cfg.sigma_floor_deg), max_len=cfg.max_cycle_length,
                       k_sigma=cfg.cycle_k_sigma, min_deg=cfg.cycle_min_deg, max_deg=cfg.cycle_max_deg,
-                      max_bad_fraction=cfg.max_bad_fraction, active=chk.kept)
+                      max_bad_fraction=cfg.max_bad_fraction, active=chk.kept, max_four_cycles=cfg.max_four_cycles)
     info["cycles"] = _reject(chk, ~cf.kept, "cycles", lambda ix: [
         f"{cf.n_bad[k]} of its {cf.n_cycles[k]} short cycles are inconsistent" for k in ix])
     info["kappa2"], info["n_short_cycles"] = float(cf.kappa2), len(cf.cycles)

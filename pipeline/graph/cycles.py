@@ -109,12 +109,28 @@ def find_triangles(edges: np.ndarray, n: int, active: np.ndarray | None = None) 
     return Cycles(E.reshape(-1, 4), F.reshape(-1, 4), np.full(len(E), 3))
 
 
-def find_cycles(edges: np.ndarray, n: int, active: np.ndarray | None = None, max_len: int = 4) -> Cycles:
+def _cap(size: np.ndarray, budget: int) -> int:
+    """The largest number c of centres per diagonal with ``Σ C(min(s, c), 2) ≤ budget`` (at least 2)."""
+    lo, hi = 2, max(int(size.max()), 2)
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        m = np.minimum(size, mid)
+        lo, hi = (mid, hi) if int(np.sum(m * (m - 1) // 2)) <= budget else (lo, mid - 1)
+    return lo
+
+
+def find_cycles(edges: np.ndarray, n: int, active: np.ndarray | None = None, max_len: int = 4,
+                max_four_cycles: int = 2_000_000) -> Cycles:
     """Triangles and, with ``max_len`` ≥ 4, 4-cycles of the active edges, each once (module docstring).
+
+    The number of 4-cycles grows with the cube of the degree (a ring of 3000 cameras each paired with
+    its 40 nearest has 14 million); beyond ``max_four_cycles`` each diagonal keeps its first few
+    centres (the same number for every diagonal), so the count stays within the budget.
 
     Args:
         edges: (M, 2) with i < j; n: number of cameras; active: (M,) bool (default all).
         max_len: 3 (triangles only) or 4.
+        max_four_cycles: the budget of 4-cycles (module docstring).
     Returns:
         :class:`Cycles`: the triangles first, then the 4-cycles ``u → v₁ → w → v₂ → u``.
     """
@@ -137,6 +153,11 @@ def find_cycles(edges: np.ndarray, n: int, active: np.ndarray | None = None, max
     key, v, u, w, e_vu, e_vw = key[order], v[order], u[order], w[order], e_vu[order], e_vw[order]
     starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     size = np.diff(np.r_[starts, len(key)])
+    if len(size) and int(np.sum(size * (size - 1) // 2)) > max_four_cycles:
+        first = np.arange(len(key)) - np.repeat(starts, size) < _cap(size, max_four_cycles)
+        key, v, u, w, e_vu, e_vw = key[first], v[first], u[first], w[first], e_vu[first], e_vw[first]
+        starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        size = np.diff(np.r_[starts, len(key)])
     grp_end = np.repeat(starts + size, size)
     later = grp_end - np.arange(len(key)) - 1
     p = np.repeat(np.arange(len(key)), later)

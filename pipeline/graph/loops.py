@@ -78,7 +78,7 @@ def _blame(cyc_edges: np.ndarray, frac: np.ndarray, M: int) -> np.ndarray:
 def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
                  k_sigma: float = 3.0, min_deg: float = 1.0, max_deg: float | None = 10.0,
                  max_bad_fraction: float = 0.5, min_cycles: int = 1, calibrate: bool = True,
-                 active: np.ndarray | None = None) -> CycleResult:
+                 active: np.ndarray | None = None, max_four_cycles: int = 2_000_000) -> CycleResult:
     """Greedy removal of the edges that most short cycles disagree with (module docstring).
 
     Args:
@@ -90,13 +90,14 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
         max_bad_fraction, min_cycles: when an edge is judged.
         calibrate: estimate κ²; otherwise κ² = 1.
         active: (M,) bool edges to consider (default all).
+        max_four_cycles: the budget of 4-cycles (:func:`~pipeline.graph.cycles.find_cycles`).
     Returns:
         :class:`CycleResult`.
     """
     edges = np.asarray(edges, np.int64).reshape(-1, 2)
     M = len(edges)
     kept = np.ones(M, bool) if active is None else np.asarray(active, bool).copy()
-    cyc = find_cycles(edges, n_cameras, kept, max_len)
+    cyc = find_cycles(edges, n_cameras, kept, max_len, max_four_cycles)
     ang = cycle_angles(R_rel, cyc)
     sC2 = cycle_variance(np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2, cyc)
     kappa2 = 1.0

@@ -81,6 +81,19 @@ def test_edge_index_and_a_large_sparse_graph():
     assert (cyc.length == 4).sum() > 0
 
 
+def test_4_cycles_stay_within_their_budget():
+    rng = np.random.default_rng(3)
+    n = 30
+    E = _random_graph(rng, n, 0.5)
+    full = find_cycles(E, n)
+    n4 = int((full.length == 4).sum())
+    capped = find_cycles(E, n, max_four_cycles=n4 // 10)
+    q = capped.length == 4
+    assert 0 < q.sum() <= n4 // 10 and (capped.length == 3).sum() == (full.length == 3).sum()
+    whole = {frozenset(r.tolist()) for r in full.edges[full.length == 4]}
+    assert {frozenset(r.tolist()) for r in capped.edges[q]} <= whole  # a subset of the true 4-cycles
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_bridges_match_brute_force(seed):
     rng = np.random.default_rng(seed)
