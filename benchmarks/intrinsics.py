@@ -1,6 +1,7 @@
 """Unknown intrinsics and lens distortion (issue 13, acceptance items 1, 2 and 5).
 
-    python benchmarks/intrinsics.py [--only fountain,castle,temple,nees,lens] [--draws 500] [--keep DIR]
+    python benchmarks/intrinsics.py [--only fountain,castle,temple,nees,lens] [--modes none,shared,per_camera]
+                                    [--draws 500] [--keep DIR]
 
 1. **Scenes without K** (fountain-P11, castle-P30, templeSparseRing from ``../shared/data``):
    each runs ``run.py``'s ``main()`` on a folder of symlinks to its images alone (no
@@ -92,15 +93,18 @@ def _row(m: dict, f_true: float) -> dict:
                                  "median_deg_on_pycolmap_images": None if sub is None else sub.get("median_deg")}
     p = m.get("pycolmap") or {}
     row["pycolmap_noK"] = {k: p.get(k) for k in ("median_deg", "n_registered", "n_images", "time_s")}
+    row["peers_noK"] = {lb: {k: q.get(k) for k in ("median_deg", "n_registered", "n_images", "time_s")}
+                        for lb, q in (m.get("peers") or {}).items()}
+    row["refine_focal_px"] = {k: v.get("focal_px_median") for k, v in m["methods"].items() if v.get("method") == "refine"}
     return row
 
 
-def scene_rows(name: str, images: Path, gt: Path, K: np.ndarray, root: Path) -> dict:
+def scene_rows(name: str, images: Path, gt: Path, K: np.ndarray, root: Path, modes: tuple[str, ...] = MODES) -> dict:
     from pipeline.run import main  # noqa: PLC0415
 
     imgs = images_only(images, root / name / "images")
     out: dict = {}
-    for mode in MODES:
+    for mode in modes:
         dst = root / name / f"out-{mode}"
         if mode != "none" and not dst.exists():
             shutil.copytree(root / name / "out-none", dst)  # front end and reference reused; BA onwards again
@@ -188,6 +192,8 @@ def lens_rows(root: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", default="", help="comma-separated subset: fountain,castle,temple,nees,lens")
+    ap.add_argument("--modes", default=",".join(MODES), help=f"two_view_ba.refine_focal modes of the scene runs "
+                    f"({', '.join(MODES)}; 'none' is the default config and always runs first)")
     ap.add_argument("--draws", type=int, default=500, help="NEES draws per configuration")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: a temp folder)")
     ap.add_argument("--data", type=Path, default=DATA, help=f"the shared data folder (default {DATA})")
@@ -199,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     res.setdefault("scenes", {})
     for name, (images, gt, K) in _scenes(a.data).items():
         if name.split("-")[0] in only or name in only:
-            res["scenes"][name] = scene_rows(name, images, gt, K, root)
+            modes = ("none", *[m for m in a.modes.split(",") if m in MODES and m != "none"])
+            res["scenes"][name] = res["scenes"].get(name, {}) | scene_rows(name, images, gt, K, root, modes)
             write_json(a.results, res)
     if "nees" in only:
         res["nees"] = nees_rows(a.draws)

@@ -16,7 +16,8 @@ recomputed), each also a command of its own:
 3. cameras       ``python -m pipeline.cameras``      → OUT/work/cameras.json (K, distortion, their sources)
 4. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
 5. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
-6. view graph    largest connected component          → OUT/viewgraph.npz (+ why each image is left out)
+6. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
+                 (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras)
 7. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
 8. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
 9. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)

@@ -9,8 +9,8 @@ interrupted run resumes per pair; a changed option recomputes), and writes::
     WORK/two_view.npz          the ViewGraph (allow_isolated=True): edges, R_rel = R_j R_iᵀ (cam2_from_cam1),
                                inliers, stats "t" (M, 3) unit translation (x_j = R_ij x_i + t),
                                "n_matches", "n_inliers_E", "n_inliers_H", "h_ratio",
-                               "median_triangulation_deg", "median_parallax_px",
-                               "small_baseline", "planar", "degenerate" (M,) bool
+                               "median_triangulation_deg", "median_parallax_px", "n_static" (matches
+                               the zero-motion test removed), "small_baseline", "planar", "degenerate" (M,) bool
     WORK/two_view_corr.npz     K (N, 3, 3) of the cameras stage, sizes (N, 2), offsets (M+1,), inlier (undistorted) pixel
                                coordinates x_i (total, 2), x_j (total, 2), keypoint indices kp_i, kp_j (total,)
     WORK/two_view.record.json  the stage record; its summary lists the rejected pairs
@@ -287,6 +287,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "h_ratio": np.array([g.n_inliers_H / max(g.n_inliers_E, 1) for g in G], float),
             "median_triangulation_deg": np.array([g.median_triangulation_deg for g in G], float),
             "median_parallax_px": np.array([g.median_parallax_px for g in G], float),
+            "n_static": np.array([g.n_static for g in G], np.int64),
             "small_baseline": np.array([g.small_baseline for g in G], bool),
             "planar": np.array([g.planar for g in G], bool),
         }
@@ -321,6 +322,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "n_degenerate": int(stats["degenerate"].sum()),
             "n_small_baseline": int(stats["small_baseline"].sum()),
             "n_planar": int(stats["planar"].sum()),
+            "n_static_removed": int((stats["n_static"] > 0).sum()),
             "isolated": [fs.names[k] for k in np.flatnonzero(vg.degrees() == 0)],
             "rejected_reasons": reasons,
             "rejected": rejected,

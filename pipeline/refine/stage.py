@@ -45,6 +45,7 @@ __all__ = ["RefineStage", "recommended_start", "run_refine", "refine_for_run", "
            "main_cli", "MODEL", "PREFERRED"]
 
 MODEL = "sparse"
+GRAPH = "viewgraph.npz"  # the checked view graph (pipeline.graph.stage) beside the rotations
 ROTATIONS = "rotations"
 #: The recommended starts, best first: IRLS-H-ℓ½ where the view graph has H, else IRLS-ℓ½. The
 #: refined result hardly depends on the start (r14: < 1e-4° between both); what matters is a
@@ -92,8 +93,26 @@ def _intrinsics(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray], list
     return cams.K, cams.keypoints_for_geometry(fs.keypoints), list(cams.K_source)
 
 
-def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str], np.ndarray]:
+def _checked_pairs(vg: Any, graph: Path | None) -> Any:
+    """The two-view BA graph ``vg`` cut to the pairs the view-graph stage kept (``graph``, OUT/viewgraph.npz)."""
+    from pipeline.core.viewgraph import ViewGraph  # noqa: PLC0415
+
+    if graph is None or not Path(graph).is_file():
+        return vg
+    g = ViewGraph.load(graph, allow_isolated=True)
+    kept = {(g.names[a], g.names[b]) for a, b in g.edges.tolist()}
+    keep = np.array([(vg.names[a], vg.names[b]) in kept or (vg.names[b], vg.names[a]) in kept
+                     for a, b in vg.edges.tolist()], bool)
+    return ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], H=vg.H[keep],
+                     inliers=None if vg.inliers is None else vg.inliers[keep],
+                     stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
+
+
+def load_inputs(work: Path, rotations: Path, graph: Path | None = None) -> tuple[dict[str, Any], list[str], np.ndarray]:
     """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
+
+    Only the pairs of the checked view graph ``graph`` (OUT/viewgraph.npz: what the view-graph
+    stage kept, so no pair its checks rejected) make tracks; every two-view BA pair without it.
 
     Returns:
         the inputs (over every image of the features; NaN rotations for images the file
@@ -105,7 +124,7 @@ def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str],
 
     fs = load_features(work, descriptors=False)
     tv = load_two_view(work)
-    vg = load_ba_viewgraph(work)
+    vg = _checked_pairs(load_ba_viewgraph(work), graph)
     n = len(fs.names)
     if tv.vg.n_cameras != n or vg.n_cameras != n:
         raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
@@ -177,11 +196,14 @@ class RefineStage(Stage[RefineConfig]):
         ups = ("features", "cameras", "two_view", "two_view_ba") if read_record(self.work, "cameras") is not None \
             else ("features", "two_view", "two_view_ba")
         out.update({up: self.upstream(up, self.work).fingerprint for up in ups})
+        graph = read_record(self.folder, "viewgraph")  # the checked pairs, when the view-graph stage ran here
+        if graph is not None:
+            out["viewgraph"] = graph.fingerprint
         return out
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
         logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
-        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
+        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH)
         self.known_K = inputs["known_K"]
         res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
         paths: list[Path] = []
