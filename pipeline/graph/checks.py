@@ -34,7 +34,7 @@ from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.graph.loops import colocation_check, cycle_check, cycle_filter
-from pipeline.graph.tiers import TierConfig, evidence_tiers, pair_evidence
+from pipeline.graph.tiers import evidence_tiers, pair_evidence
 
 __all__ = ["ViewGraphConfig", "GraphChecks", "check_view_graph", "REJECTION_STEPS"]
 
@@ -90,9 +90,6 @@ class ViewGraphConfig(Config):
             raise ConfigError(f"[viewgraph] cycle_min_deg={self.cycle_min_deg} but expected <= "
                               f"cycle_max_deg={self.cycle_max_deg}")
 
-    def tiers(self) -> TierConfig:
-        return TierConfig(**{f: getattr(self, f) for f in TierConfig.__dataclass_fields__})
-
 
 @dataclass
 class GraphChecks:
@@ -134,7 +131,7 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     cfg = config or ViewGraphConfig()
     M, N = vg.n_edges, vg.n_cameras
     ev = pair_evidence(vg)
-    tiers = evidence_tiers(ev, cfg.tiers())
+    tiers = evidence_tiers(ev, cfg)
     tier = np.where(tiers.strong, "strong", np.where(tiers.provisional, "provisional",
                                                      np.where(tiers.candidate, "normal", ""))).astype(object)
     chk = GraphChecks(np.ones(M, bool), np.full(M, "", object), np.full(M, "", object), tier, np.zeros(M, bool),

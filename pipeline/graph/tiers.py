@@ -34,29 +34,13 @@ pairs (turntable views 90–135° apart matched by chance) and to the strong tie
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["TierConfig", "PairEvidence", "pair_evidence", "gate_pairs", "Tiers", "evidence_tiers"]
-
-
-@dataclass(frozen=True, kw_only=True)
-class TierConfig:
-    """Thresholds of the gates and tiers (module docstring); the view-graph stage fills it from its config."""
-
-    min_inliers: int = 15
-    min_inlier_ratio: float = 0.25
-    provisional_min_inliers: int = 12
-    h_inflation: float = 3.0
-    max_sigma_deg: float = 3.0
-    strong_min_inliers: int = 30
-    strong_min_ratio: float = 0.4
-    strong_max_sigma_deg: float = 3.0
-    strong_max_cond: float = 50.0
-    min_parallax_deg: float = 5.0
-    wide_parallax_deg: float = 75.0
+__all__ = ["PairEvidence", "pair_evidence", "gate_pairs", "Tiers", "evidence_tiers"]
 
 
 @dataclass
@@ -98,8 +82,11 @@ def pair_evidence(vg: ViewGraph) -> PairEvidence:
     return PairEvidence(n, n / np.maximum(m, 1), tri, sb, sw, cond)
 
 
-def gate_pairs(ev: PairEvidence, config: TierConfig, min_inliers: int | None = None) -> np.ndarray:
-    """(M,) reason each pair fails the gates ("" if it passes), the first failed gate."""
+def gate_pairs(ev: PairEvidence, config: Any, min_inliers: int | None = None) -> np.ndarray:
+    """(M,) reason each pair fails the gates ("" if it passes), the first failed gate.
+
+    ``config``: the view-graph stage's :class:`~pipeline.graph.checks.ViewGraphConfig` (its gate options).
+    """
     cfg = config
     k = cfg.min_inliers if min_inliers is None else min_inliers
     reason = np.full(len(ev.n_inliers), "", dtype=object)
@@ -128,9 +115,9 @@ class Tiers:
     reason: np.ndarray
 
 
-def evidence_tiers(ev: PairEvidence, config: TierConfig | None = None) -> Tiers:
-    """The tier of every pair (module docstring)."""
-    cfg = config or TierConfig()
+def evidence_tiers(ev: PairEvidence, config: Any) -> Tiers:
+    """The tier of every pair (module docstring); ``config``: a :class:`~pipeline.graph.checks.ViewGraphConfig`."""
+    cfg = config
     reason = gate_pairs(ev, cfg)
     relaxed = gate_pairs(ev, cfg, cfg.provisional_min_inliers)
     ok, ok_relaxed = reason == "", relaxed == ""

@@ -9,7 +9,7 @@ from pipeline.core import so3
 from pipeline.core.errors import ConfigError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.graph.checks import ViewGraphConfig, check_view_graph
-from pipeline.graph.tiers import TierConfig, evidence_tiers, pair_evidence
+from pipeline.graph.tiers import evidence_tiers, pair_evidence
 
 
 def _vg(E, Rm, n, inl=100, matches=160, tri=10.0, sigma_deg=0.3, small=None):
@@ -48,7 +48,7 @@ def test_gates_and_tiers():
     ]
     for (inl, m, tri, sig, sb), (tier, why) in cases:
         vg = _vg(E, np.eye(3)[None], 2, inl, m, tri, sig, [sb])
-        t = evidence_tiers(pair_evidence(vg), TierConfig())
+        t = evidence_tiers(pair_evidence(vg), ViewGraphConfig())
         got = "strong" if t.strong[0] else "provisional" if t.provisional[0] else "normal" if t.candidate[0] else ""
         assert (got, t.reason[0]) == (tier, why), (inl, m, tri, sig, sb)
 
@@ -94,4 +94,4 @@ def test_config_checks():
         ViewGraphConfig(provisional_min_inliers=20)
     with pytest.raises(ConfigError, match="max_cycle_length"):
         ViewGraphConfig(max_cycle_length=5)
-    assert ViewGraphConfig().tiers().min_inliers == 15
+    assert ViewGraphConfig().min_inliers == 15
