@@ -31,8 +31,10 @@ from pipeline.frontend.pairs import select_pairs
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.graph.stage import ViewGraphConfig
+from pipeline.reference.global_mapping import GlobalReferenceConfig
 from pipeline.reference.incremental import ReferenceConfig
 from pipeline.reference.types import Reference
+from pipeline.refine.refine import RefineConfig
 
 logger = logging.getLogger(__name__)
 
@@ -51,7 +53,9 @@ class RunConfig(Config):
     methods: tuple[str, ...] = option((), "averaging methods; empty: the registry's defaults for the view graph")
     sdp_max_n: int = option(60, "largest view graph (cameras) on which SDP-cSO(3) runs by default", ge=0)
     sdp_solver: Literal["scs", "clarabel"] = option("scs", "conic solver of the SDP")
-    reference: bool = option(True, "run the pycolmap reference")
+    reference: bool = option(True, "run the pycolmap references (incremental; GLOMAP too with global_reference)")
+    refine: bool = option(True, "refine the recommended (or refine.start) method's rotations with pycolmap")
+    global_reference: bool = option(True, "run pycolmap's global SfM (GLOMAP) beside the incremental reference")
     align: Literal["l2", "l1"] = option("l2", "global alignment of the evaluation")
     scene_views: int = option(8, "views of the default rendered scene (no IMAGE_DIR)", ge=2)
     scene_seed: int = option(0, "seed of the default rendered scene", ge=0)
@@ -61,7 +65,7 @@ class RunConfig(Config):
 
 STAGE_CONFIGS: dict[str, type[Config]] = {
     c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, TwoViewConfig, BAConfig, ViewGraphConfig,
-                           ReferenceConfig, EvaluationConfig)}
+                           ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
 
 
 @dataclass
@@ -154,6 +158,8 @@ def load_configs(config: Path | None = None, methods: list[str] | None = None
     try:
         check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], path or "config")
         configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
+        configs["global_reference"] = GlobalReferenceConfig.sharing_database(configs["reference"],  # one database
+                                                                             yaml_data.get("global_reference"))
         run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
         overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
         return yaml_data, configs, parse_methods(methods or run_cfg.methods, yaml_data, overrides), overrides

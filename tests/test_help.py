@@ -31,6 +31,8 @@ EXPECTED = {
     "pipeline.evaluate": ["--reference", "--align", "--rotations"],
     "pipeline.synthetic.render": ["--views", "--seed", "--out"],
     "pipeline.convert": ["--to", "--rotation-tol"],
+    "pipeline.refine": ["--out"],
+    "pipeline.reference.global_mapping": ["--images", "--out", "--K"],
 }
 
 

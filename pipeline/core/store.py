@@ -24,12 +24,13 @@ import json
 import logging
 import os
 import re
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.atomic import save_npz_uncompressed, write_json
 from pipeline.core.errors import CacheError
 from pipeline.core.readers import read_json, read_npz
 
@@ -40,6 +41,24 @@ logger = logging.getLogger(__name__)
 INDEX = "index.json"
 _CHUNK = re.compile(r"chunk-[0-9a-f]{16}\.npz")
 _SEP = "__"
+#: What starting a pool of processes costs, in CPU seconds per worker (spawn, and each worker importing
+#: numpy, OpenCV and the package; measured: 0.6 s). :func:`compute_missing` starts a pool only for work
+#: of at least ``POOL_MIN_SHARE`` times that: shorter work runs on threads of this process, which start
+#: at once. ``ROTAVG_POOL_STARTUP_S`` overrides the cost (0: a pool whenever workers > 1).
+POOL_STARTUP_S = 0.6
+POOL_MIN_SHARE = 4.0
+
+
+def _pool_pays_off(rest_cpu_s: float, workers: int) -> bool:
+    """Whether ``rest_cpu_s`` CPU seconds of work are worth starting ``workers`` processes for.
+
+    On free cores a pool returns its start-up once the work is about twice it; the
+    margin ``POOL_MIN_SHARE`` keeps the start-up a small part of the work, since on a
+    busy machine it is pure extra work. CPU time, not wall time, so that the load of
+    other processes does not change the choice.
+    """
+    startup = float(os.environ.get("ROTAVG_POOL_STARTUP_S", POOL_STARTUP_S))
+    return startup <= 0 or rest_cpu_s >= POOL_MIN_SHARE * startup * workers
 
 
 def item_key(*parts: Any) -> str:
@@ -92,7 +111,7 @@ class ItemStore:
             for name, v in results[k].items():
                 arrays[f"{q}{_SEP}{name}"] = np.asarray(v)
         path = self.folder / _chunk_name(keys)
-        save_npz(path, **arrays)
+        save_npz_uncompressed(path, **arrays)  # zlib took most of the stores' write time (descriptors barely compress)
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
@@ -198,7 +217,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         work: ``work(tasks)`` returns the results of a chunk of tasks, in order; a
             module-level function (or a ``functools.partial`` of one), run on the
             executor of :func:`pipeline.core.parallel.make_executor`.
-        workers: workers of the executor (1, or a single chunk, runs in this process).
+        workers: workers of the executor (1 or a single chunk runs in this process; work shorter than
+            starting a pool of processes runs on threads of this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
 
@@ -217,12 +237,29 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
     if not chunks:
         return 0
-    executor = make_executor(min(workers, len(chunks)))
+
+    def finish(idx: list[int], results: list[Mapping[str, Any]]) -> None:
+        store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
+        if on_chunk is not None:
+            on_chunk(len(idx))
+
+    n_workers = min(workers, len(chunks) - 1)
+    backend = "processes"
+    if n_workers > 1:
+        # the first chunk runs here and times the work: a pool of processes pays off only when the rest
+        # is long beside starting it; otherwise threads, which start at once and run in parallel where
+        # the work releases the GIL (OpenCV, BLAS)
+        t0 = time.thread_time()
+        finish(chunks[0], work([make_task(k) for k in chunks[0]]))
+        rest = (time.thread_time() - t0) * (len(chunks) - 1)
+        chunks = chunks[1:]
+        if not _pool_pays_off(rest, n_workers):
+            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(chunks), rest)
+            backend = "threads"
+    executor = make_executor(max(n_workers, 1), backend)
     try:
         for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
-            store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
-            if on_chunk is not None:
-                on_chunk(len(idx))
+            finish(idx, results)
     finally:
         executor.close()
     return len(todo)
