@@ -99,23 +99,27 @@ def _row(m: dict, f_true: float) -> dict:
     return row
 
 
-def scene_rows(name: str, images: Path, gt: Path, K: np.ndarray, root: Path, modes: tuple[str, ...] = MODES) -> dict:
+def scene_rows(name: str, images: Path, gt: Path, K: np.ndarray, root: Path, modes: tuple[str, ...] = MODES,
+               min_keypoints: int | None = None) -> dict:
     from pipeline.run import main  # noqa: PLC0415
 
     imgs = images_only(images, root / name / "images")
     out: dict = {}
+    tag = "" if min_keypoints is None else f"-minkp{min_keypoints}"
     for mode in modes:
-        dst = root / name / f"out-{mode}"
+        dst = root / name / f"out-{mode}{tag}"
         if mode != "none" and not dst.exists():
-            shutil.copytree(root / name / "out-none", dst)  # front end and reference reused; BA onwards again
-        cfg = root / name / f"{mode}.yaml"
-        cfg.write_text(f"run:\n  plots: false\ntwo_view_ba:\n  refine_focal: {mode}\n")
+            shutil.copytree(root / name / f"out-none{tag}", dst)  # front end and reference reused; BA onwards again
+        cfg = root / name / f"{mode}{tag}.yaml"
+        feats = "" if min_keypoints is None else f"features:\n  min_keypoints: {min_keypoints}\n"
+        cfg.write_text(f"run:\n  plots: false\n{feats}two_view_ba:\n  refine_focal: {mode}\n")
         t0 = time.perf_counter()
         m = json.loads(Path(main(imgs, dst, cfg, gt=gt, reference=True, quiet=True)).read_text())
-        out[mode] = _row(m, float(K[0, 0])) | {"wall_s": time.perf_counter() - t0}
-        r = out[mode]
+        key = mode if min_keypoints is None else f"{mode}, features.min_keypoints={min_keypoints}"
+        out[key] = _row(m, float(K[0, 0])) | {"wall_s": time.perf_counter() - t0}
+        r = out[key]
         meds = {k: round(v["median_deg"], 4) for k, v in r["methods"].items()}
-        print(f"{name:13s} refine_focal={mode:10s} f {r['focal_px']:8.1f} px ({r['focal_error_pct']:+.2f}%, "
+        print(f"{name:13s} refine_focal={mode:10s}{tag} f {r['focal_px']:8.1f} px ({r['focal_error_pct']:+.2f}%, "
               f"{', '.join(r['focal_source'])})  ours {meds}  pycolmap no K {r['pycolmap_noK']['median_deg']:.4f} "
               f"({r['pycolmap_noK']['n_registered']}/{r['pycolmap_noK']['n_images']})  {r['wall_s']:.0f} s", flush=True)
     return out
@@ -194,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="", help="comma-separated subset: fountain,castle,temple,nees,lens")
     ap.add_argument("--modes", default=",".join(MODES), help=f"two_view_ba.refine_focal modes of the scene runs "
                     f"({', '.join(MODES)}; 'none' is the default config and always runs first)")
+    ap.add_argument("--min-keypoints", type=int, default=None, help="features.min_keypoints of the scene runs "
+                    "(default: the config's; 0 turns the low-texture re-detection off)")
     ap.add_argument("--draws", type=int, default=500, help="NEES draws per configuration")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: a temp folder)")
     ap.add_argument("--data", type=Path, default=DATA, help=f"the shared data folder (default {DATA})")
@@ -206,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, (images, gt, K) in _scenes(a.data).items():
         if name.split("-")[0] in only or name in only:
             modes = ("none", *[m for m in a.modes.split(",") if m in MODES and m != "none"])
-            res["scenes"][name] = res["scenes"].get(name, {}) | scene_rows(name, images, gt, K, root, modes)
+            rows = scene_rows(name, images, gt, K, root, modes, a.min_keypoints)
+            res["scenes"][name] = res["scenes"].get(name, {}) | rows
             write_json(a.results, res)
     if "nees" in only:
         res["nees"] = nees_rows(a.draws)
