@@ -42,6 +42,10 @@ def test_without_K_the_report_states_the_estimated_focal(tmp_path: Path, fast_co
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Intrinsics" in report and f"| {focal[0]['median_px']:.1f} | 6 | estimated:profile+rotcons |" in report
     assert max(_errors(path).values()) < 1.0
+    # refine starts from the estimated focal and refines it (no file gave it)
+    refined = [v for v in m["methods"].values() if v.get("method") == "refine"]
+    assert len(refined) == 1 and refined[0]["status"] == "ok" and refined[0]["focal_refined"] is True
+    assert abs(refined[0]["focal_px_median"] / cfg.focal - 1) < 0.01
 
 
 @pytest.fixture(scope="module")
