@@ -163,7 +163,8 @@ class ItemStore:
 
 def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[int], Any],
                     work: Callable[[list[Any]], list[Mapping[str, Any]]], *, workers: int = 1, chunk_size: int = 8,
-                    on_chunk: Callable[[int], None] | None = None) -> int:
+                    on_chunk: Callable[[int], None] | None = None, backend: str = "processes",
+                    scheduler: str | None = None) -> int:
     """Compute the items of ``keys`` that ``store`` lacks, chunk by chunk, writing each finished chunk at once.
 
     Args:
@@ -176,6 +177,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         workers: workers of the executor (1, or a single chunk, runs in this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
+        backend, scheduler: the executor (:func:`pipeline.core.parallel.make_executor`);
+            ``"dask"`` starts a local cluster of ``workers`` processes unless ``scheduler`` is set.
 
     Returns:
         The number of items computed.
@@ -192,7 +195,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
     if not chunks:
         return 0
-    executor = make_executor(min(workers, len(chunks)))
+    local = backend != "dask" and scheduler is None
+    executor = make_executor(min(workers, len(chunks)) if local else workers, backend, scheduler)
     try:
         for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
             store.write_chunk({keys[k]: r for k, r in zip(idx, results)})

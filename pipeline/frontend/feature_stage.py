@@ -38,7 +38,6 @@ from tqdm import tqdm
 
 from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError
-from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend.features import FeatureConfig, extract_sift
 from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
@@ -165,9 +164,9 @@ class FeaturesStage(Stage[FeatureConfig]):
         done = set() if self.overwrite else store.done(keys.values())
         todo = [n for n in s["names"] if keys[n] not in done]
         skipped = [{"name": n, "reason": w} for n, w in s["bad"].items()]
-        tasks = [(str(self.images / n), n, keys[n], cfg.as_dict()) for n in todo]
+        tasks = [(str((self.images / n).resolve()), n, keys[n], cfg.as_dict()) for n in todo]
         n_kp: list[int] = []
-        with make_executor(min(cfg.workers, max(len(tasks), 1)), "threads") as ex:
+        with cfg.open_executor(len(tasks), "threads") as ex:
             bar = tqdm(ex.map(_extract_task, tasks), total=len(tasks), desc="features", unit="img",
                        disable=not self.progress)
             for key, name, arrays, reason in bar:

@@ -29,13 +29,14 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
+from pipeline.core.parallel import ExecutorOptions
 
 __all__ = ["MatchingConfig", "root_sift", "match_descriptors", "FlannIndex", "match_prepared"]
 
 
 @dataclass(frozen=True, kw_only=True)
-class MatchingConfig(Config):
+class MatchingConfig(ExecutorOptions):
     """Matching options (YAML section ``matching``)."""
 
     SECTION = "matching"

@@ -37,7 +37,6 @@ from tqdm import tqdm
 
 from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError
-from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
@@ -46,7 +45,7 @@ from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MatchingStage", "MatchSet", "load_matches", "main", "main_cli", "MANIFEST", "STORE"]
+__all__ = ["MatchingStage", "MatchSet", "load_matches", "load_manifest", "main", "main_cli", "MANIFEST", "STORE"]
 
 MANIFEST = "matches.json"
 STORE = "matches"
@@ -137,11 +136,11 @@ class MatchingStage(Stage[MatchingConfig]):
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
         store = ItemStore(self.folder / STORE)
         done = set() if self.overwrite else store.done(keys)
-        fdir = self.folder / feature_stage.STORE
+        fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
         todo = [(keys[p], fkeys[a], str(fdir / where[fkeys[a]]), fkeys[b], str(fdir / where[fkeys[b]]))
                 for p, (a, b) in enumerate(pairs) if keys[p] not in done]
         chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict()) for s in range(0, len(todo), cfg.chunk_size)]
-        with make_executor(min(cfg.workers, max(len(chunks), 1)), "threads") as ex, \
+        with cfg.open_executor(len(chunks), "threads") as ex, \
                 tqdm(total=len(todo), desc="matching", unit="pair", disable=not self.progress) as bar:
             for res in ex.map(_match_chunk, chunks):
                 store.write_chunk({pk: {"matches": m} for pk, m in res})
@@ -180,6 +179,11 @@ def _load_manifest(work: Path) -> dict:
         return m
     except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
         raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run pipeline.matching") from None
+
+
+def load_manifest(work: Path) -> dict:
+    """The matches manifest of ``work`` (names, pairs, item keys, config), checked."""
+    return _load_manifest(work)
 
 
 def load_matches(work: Path) -> MatchSet:
