@@ -20,7 +20,8 @@ An image's item key hashes the result-affecting options and the image file's
 name, size and mtime: a changed image or option is extracted again, an unchanged
 one never. Command line::
 
-    python -m pipeline.features --images DIR --work WORK [--K FILE] [--max-image-size 1600]
+    python -m pipeline.features --images DIR --work WORK [--K FILE | --database DB] [--max-image-size 1600]
+                                [--executor auto|serial|threads|processes|dask] [--scheduler ADDRESS]
 """
 
 from __future__ import annotations
@@ -256,9 +257,20 @@ def load_features(work: Path, descriptors: bool = True) -> FeatureSet:
 
 
 def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: Path | None = None,
-         overwrite: bool = False, progress: bool = True) -> Path:
-    """Run the stage (reusing an intact cached result); returns the manifest path."""
-    FeaturesStage(work, config, images=images, K_path=K_path, progress=progress).run(overwrite)
+         overwrite: bool = False, progress: bool = True, database: Path | None = None) -> Path:
+    """Run the stage (reusing an intact cached result); returns the manifest path.
+
+    With ``database`` (a COLMAP database of ``images``) its cameras and keypoints are taken instead
+    (:mod:`pipeline.frontend.database_stage`), and the matching stage then takes its verified matches.
+    """
+    if database is not None:
+        from pipeline.frontend.database_stage import DatabaseFeaturesStage  # noqa: PLC0415 - it imports this module
+
+        if K_path is not None:
+            raise InputFileError("--database DB takes the intrinsics from the database; drop --K")
+        DatabaseFeaturesStage(work, config, images=images, database=database, progress=progress).run(overwrite)
+    else:
+        FeaturesStage(work, config, images=images, K_path=K_path, progress=progress).run(overwrite)
     return Path(work) / MANIFEST
 
 
@@ -271,12 +283,15 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, required=True, help="WORK folder for the front end's outputs")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3x3) or a per-image cameras file")
     p.add_argument("--config", type=Path, default=None, help="YAML config; its 'features' section is used")
+    p.add_argument("--database", type=Path, default=None, metavar="DB",
+                   help="a COLMAP database of these images: take its cameras and keypoints (and, in the matching "
+                        "stage, its verified matches) instead of extracting SIFT")
     p.add_argument("--overwrite", action="store_true", help="re-extract even cached images")
     add_config_args(p, FeatureConfig)
 
     def body(a: argparse.Namespace) -> int:
         cfg = config_from_args(FeatureConfig, a, a.config)
-        print(main(a.images, a.work, cfg, a.K, overwrite=a.overwrite, progress=not a.quiet))
+        print(main(a.images, a.work, cfg, a.K, overwrite=a.overwrite, progress=not a.quiet, database=a.database))
         return 0
 
     return run_cli(body, p, argv)

@@ -41,8 +41,8 @@ class MatchingConfig(ExecutorOptions):
 
     SECTION = "matching"
 
-    pairs: str = option("exhaustive", "which pairs to match: exhaustive, sequential:K, or a pairs file "
-                        "(lines 'name_a name_b')")
+    pairs: str = option("exhaustive", "which pairs to match: exhaustive, sequential:K, database (the pairs a COLMAP "
+                        "database verified: --database DB, or database:DB), or a pairs file (lines 'name_a name_b')")
     ratio: float = option(0.8, "Lowe's ratio-test threshold on L2 distances", gt=0, le=1)
     mutual: bool = option(True, "keep only mutual nearest neighbours")
     method: Literal["auto", "flann", "bf"] = option("auto", "nearest-neighbour search (see pipeline.frontend.matching)")

@@ -39,6 +39,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
+from pipeline.frontend.colmap_db import database_fingerprint
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
 from pipeline.frontend.pairs import parse_selector, select_pairs
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
@@ -123,6 +124,8 @@ class MatchingStage(Stage[MatchingConfig]):
         kind, arg = parse_selector(self.config.pairs)
         if kind == "file":
             inp["pairs_file"] = fingerprint_of(Path(arg).read_bytes().decode("utf-8", "replace"))  # type: ignore[arg-type]
+        if kind == "database" and arg is not None:
+            inp["pairs_database"] = database_fingerprint(Path(arg))  # type: ignore[arg-type]
         return inp
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
@@ -130,11 +133,14 @@ class MatchingStage(Stage[MatchingConfig]):
         logger.info("matching: %s", cfg)
         fm = feature_stage.load_manifest(self.folder)
         names, fkeys = list(fm["names"]), list(fm["keys"])
+        fp = cfg.fingerprint()
+        store = ItemStore(self.folder / STORE)
+        if fm.get("database"):  # features from a COLMAP database: its verified inlier matches
+            pairs, keys, n_read = self._from_database(fm, store)
+            return self._finish(names, pairs, keys, store, n_read)
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
         pairs = select_pairs(cfg.pairs, names)
-        fp = cfg.fingerprint()
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
-        store = ItemStore(self.folder / STORE)
         done = set() if self.overwrite else store.done(keys)
         fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
         todo = [(keys[p], fkeys[a], str(fdir / where[fkeys[a]]), fkeys[b], str(fdir / where[fkeys[b]]))
@@ -145,15 +151,29 @@ class MatchingStage(Stage[MatchingConfig]):
             for res in ex.map(_match_chunk, chunks):
                 store.write_chunk({pk: {"matches": m} for pk, m in res})
                 bar.update(len(res))
+        return self._finish(names, pairs, keys, store, len(todo))
+
+    def _from_database(self, fm: dict, store: ItemStore) -> tuple[np.ndarray, list[str], int]:
+        from pipeline.frontend.database_stage import database_matches  # noqa: PLC0415
+
+        fp, fkeys = self.config.fingerprint(), list(fm["keys"])
+        kind, _ = parse_selector(self.config.pairs)
+        selected = None if kind == "database" else select_pairs(self.config.pairs, list(fm["names"]))
+        with tqdm(desc="matches from the database", unit="pair", disable=not self.progress) as bar:
+            return database_matches(fm, selected, lambda a, b: item_key(fp, fkeys[a], fkeys[b]), store,
+                                    self.overwrite, bar.update)
+
+    def _finish(self, names: list[str], pairs: np.ndarray, keys: list[str], store: ItemStore,
+                n_computed: int) -> tuple[list[Path], dict[str, Any]]:
         files = store.write_index(keys)
         counts = [len(store.get(k)["matches"]) for k in keys] if keys else []
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
-            "config": cfg.as_dict(), "n_pairs": len(keys), "n_computed": len(todo),
-            "n_reused": len(keys) - len(todo)})
-        logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), len(todo),
-                    len(keys) - len(todo), int(np.median(counts)) if counts else 0)
-        return [path, *files], {"n_pairs": len(keys), "n_computed": len(todo)}
+            "config": self.config.as_dict(), "n_pairs": len(keys), "n_computed": n_computed,
+            "n_reused": len(keys) - n_computed})
+        logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), n_computed,
+                    len(keys) - n_computed, int(np.median(counts)) if counts else 0)
+        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed}
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)
