@@ -124,11 +124,14 @@ def local_cluster(workers: int | None = None) -> Iterator[LocalDaskCluster]:
         cluster.close()
 
 
-def check_scheduler(address: str, timeout: float = CONNECT_TIMEOUT_S) -> int:
-    """The number of workers of the Dask scheduler at ``address``; :class:`PipelineError` if unreachable or empty."""
+def check_scheduler(address: str, timeout: float | None = None) -> int:
+    """The number of workers of the Dask scheduler at ``address``; :class:`PipelineError` if unreachable or empty.
+
+    ``timeout``: seconds to wait for the connection (default :data:`CONNECT_TIMEOUT_S`).
+    """
     distributed = _import_distributed()
     try:
-        with distributed.Client(address, timeout=timeout, set_as_default=False) as client:
+        with distributed.Client(address, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False) as client:
             n = len(client.scheduler_info()["workers"])
     except (OSError, TimeoutError, ValueError) as exc:
         raise PipelineError(f"cannot reach the Dask scheduler at {address!r} ({' '.join(str(exc).split())[:100]}); "

@@ -118,8 +118,14 @@ def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypa
     assert list(tmp_path.iterdir()) == []  # no dask-scratch-space in the working folder
 
 
-def test_unreachable_scheduler_is_one_line():
-    from pipeline.core.dask_executor import check_scheduler
+def test_unreachable_scheduler_is_one_line_before_any_stage(tmp_path, monkeypatch, capsys):
+    from pipeline.core import dask_executor
+    from pipeline.run import main_cli
 
     with pytest.raises(PipelineError, match=r"cannot reach the Dask scheduler at 'tcp://127.0.0.1:9'"):
-        check_scheduler("tcp://127.0.0.1:9", timeout=2)
+        dask_executor.check_scheduler("tcp://127.0.0.1:9", timeout=1)
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 1)
+    assert main_cli(["--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path / "o"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "cannot reach the Dask scheduler" in err and "Traceback" not in err
+    assert not (tmp_path / "o" / "work").exists()
