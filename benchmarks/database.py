@@ -41,7 +41,9 @@ from pipeline.frontend.intrinsics import parse_intrinsics_file  # noqa: E402
 from pipeline.reference.database import pinhole_params  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "strecha" / "fountain-P11"
+# ../shared/data beside the checkout (a worktree under wt/ has it two levels up)
+DATA = next((d / "shared" / "data" / "strecha" / "fountain-P11" for d in REPO.parents[:2]
+             if (d / "shared" / "data").is_dir()), REPO.parent / "shared" / "data" / "strecha" / "fountain-P11")
 RESULTS = REPO / "benchmarks" / "results" / "database.json"
 
 

@@ -151,12 +151,13 @@ def _executor_configs(configs: dict[str, Config], executor: str | None, schedule
     """Apply ``--executor``/``--scheduler`` to the per-item sections; check every scheduler address up front."""
     for s in PER_ITEM:
         configs[s] = configs[s].replace(executor=executor, scheduler=scheduler)
-    addresses = sorted({configs[s].scheduler for s in PER_ITEM if configs[s].scheduler})  # type: ignore[attr-defined]
-    if addresses or any(configs[s].executor == "dask" for s in PER_ITEM):  # type: ignore[attr-defined]
-        from pipeline.core.dask_executor import check_scheduler  # noqa: PLC0415 - imports dask
+    dask = [configs[s] for s in PER_ITEM if configs[s].backend("auto") == "dask"]  # type: ignore[attr-defined]
+    if dask:
+        from pipeline.core import dask_executor  # noqa: PLC0415 - imports dask only when asked for
 
-        for address in addresses:
-            check_scheduler(address)
+        dask_executor.require_distributed()
+        for address in sorted({c.scheduler for c in dask if c.scheduler}):  # type: ignore[attr-defined]
+            dask_executor.check_scheduler(address)
 
 
 def prepare(images: Path | None = None, out: Path | None = None, config: Path | None = None,

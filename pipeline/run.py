@@ -47,6 +47,7 @@ from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import remove_stale_temporaries  # noqa: E402
 from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
+from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.matching_stage import MatchingStage  # noqa: E402
@@ -178,7 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--database", type=Path, default=None, metavar="DB",
                    help="a COLMAP database (COLMAP, pycolmap, hloc, GLOMAP) of IMAGE_DIR: its cameras, keypoints and "
                         "verified matches replace our features and matching")
-    p.add_argument("--executor", choices=["auto", "serial", "threads", "processes", "dask"], default=None,
+    p.add_argument("--executor", choices=BACKENDS, default=None,
                    help="where the per-image and per-pair stages run (default: each section's 'executor')")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="address of an existing Dask scheduler for the per-image and per-pair stages")

@@ -33,7 +33,8 @@ from typing import Any, Callable, Iterator, Sequence, TypeVar
 from pipeline.core.errors import PipelineError
 from pipeline.core.parallel import die_with_parent
 
-__all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "single_thread"]
+__all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "single_thread",
+           "require_distributed"]
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -44,7 +45,8 @@ _ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THR
 CONNECT_TIMEOUT_S = 10
 
 
-def _import_distributed() -> Any:
+def require_distributed() -> Any:
+    """The ``distributed`` module; :class:`PipelineError` with the install command if it is missing."""
     try:
         import distributed  # noqa: PLC0415 - optional at import time of the package
     except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
@@ -83,7 +85,7 @@ class LocalDaskCluster:
     """
 
     def __init__(self, workers: int | None = None) -> None:
-        distributed = _import_distributed()
+        distributed = require_distributed()
         self.workers = max(1, int(workers or os.cpu_count() or 1))
         self.scratch = tempfile.mkdtemp(prefix="rotavg-dask-")
         try:
@@ -129,7 +131,7 @@ def check_scheduler(address: str, timeout: float | None = None) -> int:
 
     ``timeout``: seconds to wait for the connection (default :data:`CONNECT_TIMEOUT_S`).
     """
-    distributed = _import_distributed()
+    distributed = require_distributed()
     try:
         with distributed.Client(address, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False) as client:
             n = len(client.scheduler_info()["workers"])
@@ -154,7 +156,7 @@ class DaskExecutor:
     """
 
     def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
-        distributed = _import_distributed()
+        distributed = require_distributed()
         self._local: LocalDaskCluster | None = None
         try:
             if scheduler is None:
