@@ -19,6 +19,7 @@ they need.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -31,7 +32,7 @@ import numpy as np
 from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError
 
-__all__ = ["ItemStore", "item_key", "compute_missing"]
+__all__ = ["ItemStore", "item_key", "compute_missing", "write_results"]
 
 logger = logging.getLogger(__name__)
 
@@ -82,6 +83,11 @@ class ItemStore:
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
+
+    def adopt(self, name: str, keys: Iterable[str]) -> None:
+        """Register the chunk file ``name`` that a worker wrote into this folder, holding ``keys``."""
+        if self._where is not None:
+            self._where.update({k: name for k in keys})
 
     # ------------------------------------------------------------------- read
     @staticmethod
@@ -161,6 +167,21 @@ class ItemStore:
         return list((self._where if self._where is not None else self.load_index()).keys())
 
 
+def write_results(folder: str, keys: Sequence[str], work: Callable[[list[Any]], list[Mapping[str, Any]]],
+                  tasks: list[Any]) -> str:
+    """Worker: ``work(tasks)`` written as one chunk of the store at ``folder``; returns the chunk's file name.
+
+    The worker writes its own results (compression and all), so that the process
+    that hands out the work only records which chunk holds which keys.
+    """
+    return ItemStore(folder).write_chunk(dict(zip(keys, work(tasks)))).name
+
+
+def _write_packed(job: tuple[list[str], list[Any]], folder: str,
+                  work: Callable[[list[Any]], list[Mapping[str, Any]]]) -> str:
+    return write_results(folder, job[0], work, job[1])
+
+
 def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[int], Any],
                     work: Callable[[list[Any]], list[Mapping[str, Any]]], *, workers: int = 1, chunk_size: int = 8,
                     on_chunk: Callable[[int], None] | None = None, backend: str = "processes",
@@ -183,7 +204,7 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     Returns:
         The number of items computed.
     """
-    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - parallel imports nothing of ours
+    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - keeps this module's imports light
 
     done = store.done(keys)
     todo: list[int] = []
@@ -197,11 +218,14 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         return 0
     local = backend != "dask" and scheduler is None
     executor = make_executor(min(workers, len(chunks)) if local else workers, backend, scheduler)
+    # absolute: the workers may run in another folder or on another machine (with the same file system)
+    write = functools.partial(_write_packed, folder=str(store.folder.resolve()), work=work)
+    jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
     try:
-        for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
-            store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
+        for (chunk_keys, _), name in zip(jobs, executor.map(write, jobs)):
+            store.adopt(name, chunk_keys)
             if on_chunk is not None:
-                on_chunk(len(idx))
+                on_chunk(len(chunk_keys))
     finally:
         executor.close()
     return len(todo)

@@ -96,16 +96,17 @@ class _Prepared:
 _PREPARED = _Prepared(_CACHE_IMAGES)
 
 
-def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any]]) -> list[tuple[str, np.ndarray]]:
-    """Worker: match a chunk of pairs ``(pair key, key a, chunk a, key b, chunk b)``."""
-    tasks, cfg = args
+def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any], str]) -> tuple[str, list[str]]:
+    """Worker: match a chunk of pairs ``(pair key, key a, chunk a, key b, chunk b)`` and write it as one chunk of
+    the matches store (folder ``args[2]``); returns the chunk's file name and its pair keys."""
+    tasks, cfg, folder = args
     config = MatchingConfig(**cfg)
-    out = []
+    out = {}
     for pk, ka, ca, kb, cb in tasks:
         qa, ia = _PREPARED.get(ka, ca, config)
         qb, ib = _PREPARED.get(kb, cb, config)
-        out.append((pk, match_prepared(qa, qb, ia, ib, config)))
-    return out
+        out[pk] = {"matches": match_prepared(qa, qb, ia, ib, config)}
+    return ItemStore(folder).write_chunk(out).name, list(out)
 
 
 class MatchingStage(Stage[MatchingConfig]):
@@ -145,12 +146,13 @@ class MatchingStage(Stage[MatchingConfig]):
         fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
         todo = [(keys[p], fkeys[a], str(fdir / where[fkeys[a]]), fkeys[b], str(fdir / where[fkeys[b]]))
                 for p, (a, b) in enumerate(pairs) if keys[p] not in done]
-        chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict()) for s in range(0, len(todo), cfg.chunk_size)]
+        folder = str(store.folder.resolve())
+        chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict(), folder) for s in range(0, len(todo), cfg.chunk_size)]
         with cfg.open_executor(len(chunks), "threads") as ex, \
                 tqdm(total=len(todo), desc="matching", unit="pair", disable=not self.progress) as bar:
-            for res in ex.map(_match_chunk, chunks):
-                store.write_chunk({pk: {"matches": m} for pk, m in res})
-                bar.update(len(res))
+            for name, pair_keys in ex.map(_match_chunk, chunks):
+                store.adopt(name, pair_keys)
+                bar.update(len(pair_keys))
         return self._finish(names, pairs, keys, store, len(todo))
 
     def _from_database(self, fm: dict, store: ItemStore) -> tuple[np.ndarray, list[str], int]:
