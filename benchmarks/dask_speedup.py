@@ -26,7 +26,7 @@ than one. So every repeat also measures
   cores if nothing else ran, i.e. how evenly the work is spread and how little
   of it is serial.
 
-    OMP_WAIT_POLICY=PASSIVE python benchmarks/dask_speedup.py [--views 16] [--repeats 3]
+    OMP_WAIT_POLICY=PASSIVE python benchmarks/dask_speedup.py [--views 16] [--width 1024] [--repeats 3]
 
 Writes ``benchmarks/results/dask_speedup.json``.
 """
@@ -56,7 +56,7 @@ from pipeline.geometry.ba_solver import BAConfig  # noqa: E402
 from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
 from pipeline.geometry.ransac import TwoViewConfig  # noqa: E402
 from pipeline.geometry.two_view_stage import TwoViewStage  # noqa: E402
-from pipeline.synthetic.render import render_scene  # noqa: E402
+from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dask_speedup.json"
 OUTPUTS = ("two_view.npz", "two_view_corr.npz", "viewgraph.npz")
@@ -128,14 +128,16 @@ def same_outputs(a: Path, b: Path) -> bool:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--views", type=int, default=16, help="rendered views (all pairs are matched)")
-    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--width", type=int, default=1024, help="image width (height 3/4 of it), px")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--chunk-size", type=int, default=4, help="pairs per task, every stage")
     ap.add_argument("--out", type=Path, default=RESULTS)
     a = ap.parse_args(argv)
     root = Path(tempfile.mkdtemp(prefix="dask-speedup-"))
     try:
-        scene = render_scene(n_views=a.views, seed=7, out=root / "scene")
+        cfg = SceneConfig(width=a.width, height=a.width * 3 // 4, focal=0.875 * a.width,
+                          texture_px_per_unit=220.0 * a.width / 640)
+        scene = render_scene(n_views=a.views, seed=7, out=root / "scene", config=cfg)
         base = root / "features"
         FeaturesStage(base, FeatureConfig(), images=scene.out, K_path=scene.out / "cameras.txt", progress=False).run()
         serial = fresh_copy(base, root / "serial")

@@ -83,16 +83,20 @@ class FeatureSet:
     signatures: np.ndarray | None = None
 
 
-def _extract_task(args: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, dict[str, np.ndarray] | None, str]:
-    """Worker: read one image and extract SIFT; ``(key, name, arrays or None, reason)``."""
-    path, name, key, cfg = args
+def _extract_task(args: tuple[str, str, str, dict[str, Any], str]) -> tuple[str, str, int | None, str]:
+    """Worker: read one image, extract SIFT and write it as one chunk of the store at ``args[4]``.
+
+    Returns ``(key, name, number of keypoints or None, chunk file name or the reason it was skipped)``.
+    """
+    path, name, key, cfg, folder = args
     gray, reason = read_gray(path)
     if gray is None:
         return key, name, None, reason
     kp = extract_sift(gray, FeatureConfig(**cfg))
-    return key, name, {"keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations,
-                       "responses": kp.responses, "descriptors": kp.descriptors,
-                       "size": np.array([gray.shape[1], gray.shape[0]])}, ""
+    chunk = ItemStore(folder).write_chunk({key: {
+        "keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations, "responses": kp.responses,
+        "descriptors": kp.descriptors, "size": np.array([gray.shape[1], gray.shape[0]])}})
+    return key, name, len(kp.xy), chunk.name
 
 
 class FeaturesStage(Stage[FeatureConfig]):
@@ -165,18 +169,19 @@ class FeaturesStage(Stage[FeatureConfig]):
         done = set() if self.overwrite else store.done(keys.values())
         todo = [n for n in s["names"] if keys[n] not in done]
         skipped = [{"name": n, "reason": w} for n, w in s["bad"].items()]
-        tasks = [(str((self.images / n).resolve()), n, keys[n], cfg.as_dict()) for n in todo]
+        folder = str(store.folder.resolve())  # workers write their chunks (absolute: they may run elsewhere)
+        tasks = [(str((self.images / n).resolve()), n, keys[n], cfg.as_dict(), folder) for n in todo]
         n_kp: list[int] = []
         with cfg.open_executor(len(tasks), "threads") as ex:
             bar = tqdm(ex.map(_extract_task, tasks), total=len(tasks), desc="features", unit="img",
                        disable=not self.progress)
-            for key, name, arrays, reason in bar:
-                if arrays is None:
-                    skipped.append({"name": name, "reason": reason})
-                    logger.warning("skipping %s: it %s", self.images / name, reason)
+            for key, name, n, chunk_or_reason in bar:
+                if n is None:
+                    skipped.append({"name": name, "reason": chunk_or_reason})
+                    logger.warning("skipping %s: it %s", self.images / name, chunk_or_reason)
                     continue
-                store.write_chunk({key: arrays})
-                n_kp.append(len(arrays["keypoints"]))
+                store.adopt(chunk_or_reason, [key])
+                n_kp.append(n)
         failed = {d["name"] for d in skipped}
         usable = [n for n in s["names"] if n not in failed]
         if len(usable) < 2:
