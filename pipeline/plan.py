@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,22 +19,27 @@ from typing import Any, Iterator, Literal
 
 from pipeline.averaging import registry
 from pipeline.averaging.registry import MethodSpec, parse_methods
+from pipeline.core.atomic import TMP_TAG
 from pipeline.core.config import Config, check_sections, load_yaml, option, stage_config
-from pipeline.core.errors import InputFileError, PipelineError
+from pipeline.core.errors import ConfigError, InputFileError, PipelineError
 from pipeline.core.names import match_names
 from pipeline.evaluation.compare import EvaluationConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.pairs import select_pairs
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.graph.stage import ViewGraphConfig
+from pipeline.reference.global_mapping import GlobalReferenceConfig
 from pipeline.reference.incremental import ReferenceConfig
 from pipeline.reference.types import Reference
+from pipeline.refine.refine import RefineConfig
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RunConfig", "Plan", "prepare", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out", "PER_ITEM"]
+__all__ = ["RunConfig", "Plan", "prepare", "load_configs", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out",
+           "PER_ITEM"]
 
 # configs/ sits beside the package in a checkout; without it the dataclass defaults apply
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
@@ -48,7 +54,9 @@ class RunConfig(Config):
     methods: tuple[str, ...] = option((), "averaging methods; empty: the registry's defaults for the view graph")
     sdp_max_n: int = option(60, "largest view graph (cameras) on which SDP-cSO(3) runs by default", ge=0)
     sdp_solver: Literal["scs", "clarabel"] = option("scs", "conic solver of the SDP")
-    reference: bool = option(True, "run the pycolmap reference")
+    reference: bool = option(True, "run the pycolmap references (incremental; GLOMAP too with global_reference)")
+    refine: bool = option(True, "refine the recommended (or refine.start) method's rotations with pycolmap")
+    global_reference: bool = option(True, "run pycolmap's global SfM (GLOMAP) beside the incremental reference")
     align: Literal["l2", "l1"] = option("l2", "global alignment of the evaluation")
     scene_views: int = option(8, "views of the default rendered scene (no IMAGE_DIR)", ge=2)
     scene_seed: int = option(0, "seed of the default rendered scene", ge=0)
@@ -59,7 +67,7 @@ class RunConfig(Config):
 PER_ITEM = ("features", "matching", "two_view", "two_view_ba")  # the sections whose work runs on an executor
 STAGE_CONFIGS: dict[str, type[Config]] = {
     c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, TwoViewConfig, BAConfig, ViewGraphConfig,
-                           ReferenceConfig, EvaluationConfig)}
+                           ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
 
 
 @dataclass
@@ -116,6 +124,13 @@ class Plan:
                 self.configs.update(saved)
                 self.features.config = self.configs["features"]
 
+    def note_skipped(self, manifest: dict[str, Any]) -> None:
+        """A note for each image the features stage left out (those it could not decode, too)."""
+        for d in manifest.get("skipped", []):
+            note = f"image {d['name']} left out: it {d['reason']}"
+            if note not in self.notes:
+                self.notes.append(note)
+
     def config(self, section: str, **runtime: Any) -> Any:
         """The typed config of ``section``, with runtime options (progress) applied where it has them."""
         cfg = self.configs[section]
@@ -128,20 +143,27 @@ def default_out(images: Path | None) -> Path:
 
 
 def _check_writable(out: Path) -> None:
+    """The output folder can be written; a check that leaves nothing behind (folders it made are removed)."""
     if out.exists() and not out.is_dir():
         raise PipelineError(f"the output folder {out} is a file; choose a folder with --out DIR")
+    made = [p for p in [out, *out.parents] if not p.exists()]
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write_probe"
+        probe = out / f".write-probe{TMP_TAG}{os.getpid()}"  # tagged: a later run removes it if we are killed
         probe.write_text("ok")
         probe.unlink()
     except OSError as exc:
         raise PipelineError(f"cannot write to the output folder {out} ({exc.strerror or exc}); "
                             "choose a writable folder with --out DIR") from None
+    finally:
+        for p in made:  # innermost first; the run creates the folder when it starts
+            with contextlib.suppress(OSError):
+                p.rmdir()
 
 
 def _check_truth(truth: Reference, gt: Path, names: list[str]) -> None:
-    idx = match_names(names, list(truth.names), what=f"--gt {gt}")  # an ambiguous stem is an error here
+    # an ambiguous stem is an error here, and so are two images that match one true camera
+    idx = match_names(names, list(truth.names), what=f"--gt {gt}", unique=True)
     if (idx >= 0).sum() < 2:
         raise InputFileError(f"--gt {gt} names none or one of the {len(names)} images (e.g. {names[:3]}; it has "
                              f"{list(truth.names)[:3]}); pass the true cameras of these images")
@@ -160,6 +182,36 @@ def _executor_configs(configs: dict[str, Config], executor: str | None, schedule
             dask_executor.check_scheduler(address)
 
 
+def load_configs(config: Path | None = None, methods: list[str] | None = None
+                 ) -> tuple[dict[str, Any], dict[str, Config], list[MethodSpec], dict[str, dict[str, Any]]]:
+    """Read the YAML config (default ``configs/default.yaml``) and build every typed config and method spec.
+
+    Returns:
+        The YAML data, ``{section: config}``, the method specs of ``methods`` (or of
+        ``run.methods``; empty: the registry's defaults apply) and the overrides that
+        the ``run`` section gives the methods.
+    Raises:
+        PipelineError: one line naming the file, section and key of the first problem.
+    """
+    path = config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None)
+    yaml_data = load_yaml(path)
+    try:
+        check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], path or "config")
+        configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
+        configs["global_reference"] = GlobalReferenceConfig.sharing_database(configs["reference"],  # one database
+                                                                             yaml_data.get("global_reference"))
+        run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
+        overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
+        return yaml_data, configs, parse_methods(methods or run_cfg.methods, yaml_data, overrides), overrides
+    except ConfigError as exc:  # a "[section] key=value" message, or run.methods, comes from the file: name it
+        msg = str(exc)
+        if path is not None and msg.startswith("["):
+            msg = f"{msg} (in {path})"
+        elif path is not None and not methods and msg.startswith("unknown method"):
+            msg = f"[run] methods: {msg} (in {path})"
+        raise ConfigError(msg) from None
+
+
 def prepare(images: Path | None = None, out: Path | None = None, config: Path | None = None,
             methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
             reference: bool | None = None, overwrite: bool = False, quiet: bool = False,
@@ -170,16 +222,12 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     features and matching (``images`` is then the folder it was made from).
     ``executor``, ``scheduler``: where the per-item stages run (overriding their sections).
     """
-    yaml_data = load_yaml(config if config is not None else (DEFAULT_CONFIG if DEFAULT_CONFIG.exists() else None))
-    check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], config or "config")
-    configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
+    yaml_data, configs, given, overrides = load_configs(config, methods)
     _executor_configs(configs, executor, scheduler)
     if database is not None and (images is None or K is not None):
         raise PipelineError("--database DB needs the image folder it was made from (run.py --database DB IMAGE_DIR) "
                             "and takes the intrinsics from the database (drop --K)")
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
-    overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
-    given = parse_methods(methods or run_cfg.methods, yaml_data, overrides)
     out = Path(out) if out is not None else default_out(images)
     _check_writable(out)
     notes: list[str] = []
@@ -207,6 +255,7 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     else:
         features = FeaturesStage(out / "work", configs["features"], images=images, K_path=K, progress=not quiet)
     scan = features.scan()  # names, headers and K, checked without decoding a pixel
+    select_pairs(configs["matching"].pairs, scan["names"])  # type: ignore[attr-defined]  # a pairs file's names
     truth = None
     if gt is not None:
         from pipeline.reference.truth import read_reference  # noqa: PLC0415

@@ -18,8 +18,10 @@ recomputed), each also a command of its own:
 4. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
 5. view graph    largest connected component          → OUT/viewgraph.npz (+ why each image is left out)
 6. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
-7. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
-8. evaluation and report                              → OUT/metrics.json, OUT/report.md
+7. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
+8. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
+9. GLOMAP        ``python -m pipeline.reference.global_mapping`` → OUT/reference-global/ (pycolmap global)
+10. evaluation and report                             → OUT/metrics.json, OUT/report.md
 
 Methods come from the registry (:mod:`pipeline.averaging.registry`). With no
 IMAGE_DIR a small scene is rendered into OUT/scene and its cameras are the truth.
@@ -55,14 +57,16 @@ from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
 from pipeline.geometry.two_view_stage import TwoViewStage  # noqa: E402
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
 from pipeline.plan import Plan, prepare  # noqa: E402
+from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
 from pipeline.reference.incremental import IncrementalReferenceStage  # noqa: E402
 from pipeline.reference.models import load_reference  # noqa: E402
+from pipeline.refine.stage import refine_for_run  # noqa: E402
 from pipeline.stage import Stage, StageRecord  # noqa: E402
 
 logger = logging.getLogger("run")
 
-STEPS = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "reference", "evaluation",
-         "report")
+STEPS = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine", "reference",
+         "global_reference", "evaluation", "report")
 
 
 class Runner:
@@ -146,6 +150,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         runner = Runner(plan)
         work, progress = plan.work, {"progress": plan.progress}
         runner.stage(plan.features)
+        plan.note_skipped(load_manifest(work))
         runner.stage(MatchingStage(work, plan.config("matching"), progress=plan.progress))
         runner.stage(TwoViewStage(work, plan.config("two_view", **progress)))
         runner.stage(TwoViewBAStage(work, plan.config("two_view_ba", **progress)))
@@ -158,8 +163,16 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                               f"left out: {', '.join(left_out)}")
             plan.notes.extend(f"left out of the view graph: {n}: {w}" for n, w in left_out.items())
         specs, results = _averaging(plan, runner, vg)
-        peer = _reference(plan, runner, list(load_manifest(work)["names"]))
-        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peer))
+        if plan.run.refine:  # the recommended method's rotations finished by pycolmap: rows <method>+refine
+            results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
+                plan.out, plan.configs["refine"], list(results), work, plan.overwrite, plan.notes)))
+        names = list(load_manifest(work)["names"])
+        peer = _reference(plan, runner, names)
+        glomap = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
+            plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
+            plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
+        peers = [p for p in (peer, glomap) if p is not None]
+        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
         runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
         return write_metrics(plan, ev, vg, left_out, runner, t_start)
 

@@ -26,6 +26,7 @@ fingerprint, so a re-run after any change upstream recomputes it.
 from __future__ import annotations
 
 import abc
+import contextlib
 import hashlib
 import json
 import logging
@@ -37,6 +38,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 from pipeline.core.atomic import remove_stale_temporaries, write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.readers import read_json
 
 __all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "file_fingerprint", "RECORD_SUFFIX"]
 
@@ -111,15 +113,15 @@ def read_record(folder: Path, name: str, record_name: str | None = None) -> Stag
     path = Path(folder) / f"{record_name or name}{RECORD_SUFFIX}"
     if not path.is_file():
         return None
+    d = read_json(path, "the record", CacheError)
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(d, dict) or d.get("format") != RECORD_FORMAT or d.get("stage") != name:
             raise ValueError("not a stage record")
         outputs = {str(k): int(v) for k, v in dict(d["outputs"]).items()}
         return StageRecord(stage=name, version=int(d["version"]), fingerprint=str(d["fingerprint"]),
                            config=dict(d.get("config") or {}), inputs={str(k): str(v) for k, v in dict(d["inputs"]).items()},
                            outputs=outputs, summary=dict(d.get("summary") or {}), time_s=float(d.get("time_s", 0.0)))
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+    except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise CacheError(f"the record {path} is damaged ({' '.join(str(exc).split())[:80]})") from None
 
 
@@ -219,10 +221,17 @@ class Stage(abc.ABC, Generic[C]):
                 logger.info("%s: up to date, nothing to compute; skipping (reusing %s; --overwrite redoes it)",
                             self.name, self.record_path)
                 return rec
+        made = [p for p in [self.folder, *self.folder.parents] if not p.exists()]
         self.folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(self.folder)
         t0 = time.perf_counter()
-        paths, summary = self.compute()
+        try:
+            paths, summary = self.compute()
+        except BaseException:
+            for p in made:  # a stage that failed on its input leaves no empty folder behind
+                with contextlib.suppress(OSError):
+                    p.rmdir()
+            raise
         dt = time.perf_counter() - t0
         outputs = {}
         for p in paths:

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import shutil
+import time
 from pathlib import Path
 
 import pytest
@@ -39,3 +41,45 @@ def fast_config(tmp_path_factory) -> Path:
     p = tmp_path_factory.mktemp("cfg") / "fast.yaml"
     p.write_text("run:\n  plots: false\n")
     return p
+
+
+# ----------------------------------------- a tiny rendered scene and a finished run on it
+TINY_VIEWS = 6
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """6 rendered views of 240×180 pixels with their true cameras (``cameras.txt``)."""
+    out = tmp_path_factory.mktemp("tiny_scene")
+    from pipeline.synthetic.render import SceneConfig, render_scene
+
+    render_scene(TINY_VIEWS, 0, out, config=SceneConfig(width=240, height=180, focal=210.0, supersample=1))
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_config(tmp_path_factory) -> Path:
+    """run.py options for fast cases: IRLS only, no reference, no plots, no process pools."""
+    p = tmp_path_factory.mktemp("tiny_cfg") / "tiny.yaml"
+    p.write_text("run:\n  methods: [irls]\n  reference: false\n  plots: false\n"
+                 "features:\n  workers: 1\nmatching:\n  workers: 1\n"
+                 "two_view:\n  workers: 1\ntwo_view_ba:\n  workers: 1\n")
+    return p
+
+
+@pytest.fixture(scope="session")
+def baseline(tiny_scene, tiny_config, tmp_path_factory) -> Path:
+    """A finished ``run.py`` on the tiny scene (with ``--gt``): the OUT folder to copy, damage and re-run."""
+    from pipeline import run
+
+    out = tmp_path_factory.mktemp("baseline") / "out"
+    t0 = time.perf_counter()
+    run.main(tiny_scene, out, config=tiny_config, gt=tiny_scene / "cameras.txt", quiet=True, reference=False)
+    assert (out / "metrics.json").is_file(), f"baseline run failed after {time.perf_counter() - t0:.1f} s"
+    return out
+
+
+@pytest.fixture
+def run_copy(baseline, tmp_path) -> Path:
+    """This test's own copy of the finished OUT folder (every stage up to date)."""
+    return Path(shutil.copytree(baseline, tmp_path / "out", copy_function=shutil.copy2))

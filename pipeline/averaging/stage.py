@@ -34,6 +34,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.names import match_names
+from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.averaging.evidence import camera_evidence
 from pipeline.io.graphs import GraphData, input_files, read_input_graph
@@ -128,7 +129,7 @@ class AveragingStage(Stage[Config]):
             missing = [n for n in expected if n not in names]
             raise CacheError(f"{self.rotations_path} holds {len(names)} camera(s) but the solved component of "
                              f"{self.viewgraph} has {len(expected)}" + (f" (missing {missing[:3]})" if missing else ""))
-        stats = json.loads(self.stats_path.read_text(encoding="utf-8"))
+        stats = read_json(self.stats_path, "the stats", CacheError)
         if not isinstance(stats, dict) or stats.get("n_cameras") != len(expected):
             raise CacheError(f"{self.stats_path} does not describe {len(expected)} cameras")
 

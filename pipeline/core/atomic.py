@@ -19,7 +19,7 @@ from typing import IO, Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "save_npz", "save_figure",
+__all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "save_npz", "save_npz_uncompressed", "save_figure",
            "remove_stale_temporaries", "TMP_TAG"]
 
 TMP_TAG = ".rotavg-tmp-"
@@ -114,6 +114,13 @@ def save_npz(path: str | os.PathLike, **arrays: Any) -> Path:
     """``np.savez_compressed`` written atomically to exactly ``path``."""
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
+    return Path(path)
+
+
+def save_npz_uncompressed(path: str | os.PathLike, **arrays: Any) -> Path:
+    """``np.savez`` written atomically to exactly ``path``: for caches written often, where zlib costs more than disk."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        np.savez(tmp, **arrays)
     return Path(path)
 
 

@@ -14,8 +14,8 @@ What the type annotation says is enforced strictly, because YAML is forgiving:
 
 - ``bool`` accepts only ``true``/``false``; the string ``"false"`` is an error
   (it would otherwise be truthy);
-- ``int`` accepts integers (not booleans, not ``1.5``; an integral float such as
-  ``8192.0`` is accepted as 8192);
+- ``int`` accepts integers (not booleans, not ``1.5``; an integral number such as
+  ``8192.0`` or ``1e3`` is accepted as 8192 and 1000);
 - ``float`` accepts finite numbers only (no ``.nan``/``.inf``), and not strings
   such as ``"1e-0"`` (which YAML 1.1 reads as a string);
 - ``Literal[...]`` accepts one of its values; ``tuple[str, ...]`` accepts a list,
@@ -49,6 +49,7 @@ __all__ = ["Config", "option", "load_yaml", "config_from_dict", "stage_config", 
 C = TypeVar("C", bound="Config")
 _FLOAT = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 _MISSING = dataclasses.MISSING
+_MAX_INT = 2 ** 31 - 1
 
 
 def option(default: Any = _MISSING, help: str = "", *, ge: float | None = None, gt: float | None = None,
@@ -121,10 +122,15 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         hint = " (write true or false without quotes)" if isinstance(value, str) else ""
         raise ConfigError(f"{where}={value!r} but expected true or false{hint}")
     if tp is int:
+        given = value
+        if isinstance(value, str) and _FLOAT.match(value.strip()):
+            value = float(value)  # YAML 1.1 reads 1e3 as a string; an integral number is accepted below
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}={value!r} but expected an integer")
+            raise ConfigError(f"{where}={given!r} but expected an integer")
         if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
-            raise ConfigError(f"{where}={value!r} but expected an integer")
+            raise ConfigError(f"{where}={given!r} but expected an integer")
+        if abs(value) > _MAX_INT:  # C libraries (OpenCV, pycolmap) take 32-bit integers
+            raise ConfigError(f"{where}={given!r} but expected an integer of magnitude at most {_MAX_INT}")
         return int(value)
     if tp is float:
         if isinstance(value, str) and _FLOAT.match(value.strip()):
@@ -225,6 +231,8 @@ def load_yaml(path: str | os.PathLike | None) -> dict[str, dict[str, Any]]:
     if path is None:
         return {}
     path = Path(path)
+    if path.is_dir():
+        raise InputFileError(f"config file {path} is a folder, not a file")
     if not path.is_file():
         raise InputFileError(f"config file {path} does not exist")
     try:
@@ -232,9 +240,16 @@ def load_yaml(path: str | os.PathLike | None) -> dict[str, dict[str, Any]]:
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except yaml.YAMLError as exc:
-        raise InputFileError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
-    if not isinstance(data, dict) or not all(isinstance(v, dict) or v is None for v in data.values()):
-        raise InputFileError(f"{path}: expected a mapping of section name to a mapping of options")
+        raise InputFileError(f"{path} is not valid YAML: {' '.join(str(exc).split())[:160]}") from None
+    except RecursionError:
+        raise InputFileError(f"{path} is not a config: it is nested too deeply") from None
+    if not isinstance(data, dict):
+        raise InputFileError(f"{path}: expected a mapping of section name to a mapping of options, "
+                             f"got a {type(data).__name__}")
+    for k, v in data.items():
+        if not (isinstance(v, dict) or v is None):
+            raise InputFileError(f"{path}: section {str(k)!r} must be a mapping of options (key: value), "
+                                 f"got {type(v).__name__} {str(v)[:40]!r}")
     return {str(k): (v or {}) for k, v in data.items()}
 
 

@@ -4,10 +4,18 @@ A name matches another exactly, or else by file stem: ``"0001"`` matches
 ``"0001.jpg"`` and ``"img/0001.png"`` matches ``"0001.jpg"``. A stem that two
 names on the other side share is ambiguous: :func:`match_names` raises, naming
 both, unless ``ambiguous="skip"``, which leaves such names unmatched.
+
+Names in our text formats (rotations, cameras, intrinsics and pairs files) are
+one field each: :func:`quote_name` writes a name that holds whitespace, ``#`` or
+a double quote in double quotes (JSON string syntax), and :func:`split_fields`
+reads such a line back. So ``IMG 0001.JPG`` works end to end, and every file
+without quotes reads exactly as before.
 """
 
 from __future__ import annotations
 
+import json
+import re
 from pathlib import PurePosixPath
 from typing import Literal
 
@@ -15,7 +23,40 @@ import numpy as np
 
 from pipeline.core.errors import InputFileError
 
-__all__ = ["stem", "match_names", "rows_by_name"]
+__all__ = ["stem", "match_names", "rows_by_name", "quote_name", "split_fields"]
+
+_TOKEN = re.compile(r'"(?:[^"\\\n]|\\.)*"|[^\s"#]+|#|"')
+
+
+def quote_name(name: str) -> str:
+    """``name`` as one field of a text file: as is, or quoted when it holds whitespace, ``#`` or ``"``."""
+    name = str(name)
+    if name and not any(c.isspace() or c in '#"' for c in name):
+        return name
+    return json.dumps(name, ensure_ascii=False)
+
+
+def split_fields(line: str, where: str = "line") -> list[str]:
+    """The fields of one line of a text file: split at whitespace, ``#`` starts a comment, ``"…"`` is one field.
+
+    Raises:
+        InputFileError: a quoted field is not closed (``where`` names the file and line).
+    """
+    if '"' not in line:
+        return line.split("#", 1)[0].split()
+    out: list[str] = []
+    for m in _TOKEN.finditer(line):
+        tok = m.group()
+        if tok == "#":
+            break
+        if tok[0] == '"':
+            try:
+                tok = json.loads(tok)
+            except ValueError:
+                raise InputFileError(f"{where}: a quoted name is not closed or has a bad escape; write names "
+                                     'with spaces as "name with spaces"') from None
+        out.append(tok)
+    return out
 
 
 def stem(name: str) -> str:
@@ -25,7 +66,7 @@ def stem(name: str) -> str:
 
 
 def match_names(names: list[str], other: list[str], *, what: str = "the reference",
-                ambiguous: Literal["error", "skip"] = "error") -> np.ndarray:
+                ambiguous: Literal["error", "skip"] = "error", unique: bool = False) -> np.ndarray:
     """(N,) index into ``other`` of each of ``names``, or −1 where none matches.
 
     Args:
@@ -35,6 +76,9 @@ def match_names(names: list[str], other: list[str], *, what: str = "the referenc
         ambiguous: ``"error"`` raises :class:`InputFileError` when one of
             ``names`` matches only by a stem that several of ``other`` share;
             ``"skip"`` leaves it unmatched.
+        unique: each name of ``other`` may be matched by one of ``names`` only (a
+            reference: ``a.png`` and ``a.jpg`` must not both get the camera ``a``);
+            :class:`InputFileError` otherwise.
     """
     other = [str(o) for o in other]
     exact = {n: k for k, n in enumerate(other)}
@@ -53,6 +97,14 @@ def match_names(names: list[str], other: list[str], *, what: str = "the referenc
         elif len(cand) > 1 and ambiguous == "error":
             raise InputFileError(f"image {n!r} matches several names of {what} by its stem "
                                  f"({', '.join(repr(other[k]) for k in cand[:3])}); rename them so that stems are unique")
+    if unique:
+        hit = out[out >= 0]
+        counts = np.bincount(hit, minlength=len(other)) if hit.size else np.zeros(0, np.int64)
+        if np.any(counts > 1):
+            k = int(np.argmax(counts > 1))
+            both = [repr(str(n)) for n, i in zip(names, out) if i == k][:2]
+            raise InputFileError(f"images {' and '.join(both)} both match {other[k]!r} of {what}; give it the "
+                                 "full file names (with extensions) so that each image has its own entry")
     return out
 
 

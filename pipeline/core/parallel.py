@@ -67,23 +67,42 @@ class SerialExecutor:
 
 
 class ThreadExecutor:
-    """A thread pool in this process."""
+    """A thread pool in this process.
+
+    While it is open, BLAS runs single-threaded (threadpoolctl): the pool's threads are
+    the parallelism, and OpenBLAS threads inside each of them only oversubscribe the cores
+    (measured on 2 loaded cores: a 1500×1500 descriptor product took 2.7× the CPU and 1.6×
+    the wall time with 2 BLAS threads). The products are the same either way.
+    """
 
     def __init__(self, workers: int) -> None:
         self.workers = max(1, int(workers))
         self._pool = ThreadPoolExecutor(max_workers=self.workers)
+        self._blas = _single_threaded_blas() if self.workers > 1 else None
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
         return self._pool.map(fn, items)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._blas is not None:
+            self._blas.restore_original_limits()
+            self._blas = None
 
     def __enter__(self) -> "ThreadExecutor":
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+def _single_threaded_blas() -> Any:
+    """BLAS limited to one thread until ``.restore_original_limits()``; None without threadpoolctl."""
+    try:
+        from threadpoolctl import threadpool_limits  # noqa: PLC0415
+    except ImportError:  # pragma: no cover - an optional speed-up
+        return None
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def _watch_parent(ppid: int) -> None:

@@ -264,8 +264,9 @@ def is_rotation(R: np.ndarray, tol: float = 1e-6) -> np.ndarray:
     R = _check_matrices(R)
     finite = np.all(np.isfinite(R), axis=(-2, -1))
     Rf = np.where(finite[..., None, None], R, 0.0)
-    orth = np.max(np.abs(np.swapaxes(Rf, -1, -2) @ Rf - np.eye(3)), axis=(-2, -1)) <= tol
-    return finite & orth & (np.linalg.det(Rf) > 0)
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries overflow: not a rotation, no warning
+        orth = np.max(np.abs(np.swapaxes(Rf, -1, -2) @ Rf - np.eye(3)), axis=(-2, -1)) <= tol
+        return finite & orth & (np.linalg.det(Rf) > 0)
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:

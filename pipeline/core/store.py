@@ -24,20 +24,42 @@ import hashlib
 import json
 import logging
 import os
+import re
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from pipeline.core.atomic import save_npz, write_json
+from pipeline.core.atomic import save_npz_uncompressed, write_json
 from pipeline.core.errors import CacheError
+from pipeline.core.readers import read_json, read_npz
 
-__all__ = ["ItemStore", "item_key", "compute_missing", "write_results"]
+__all__ = ["ItemStore", "Item", "item_key", "compute_missing", "write_results"]
 
 logger = logging.getLogger(__name__)
 
 INDEX = "index.json"
+_CHUNK = re.compile(r"chunk-[0-9a-f]{16}\.npz")
 _SEP = "__"
+#: What starting a pool of processes costs, in CPU seconds per worker (spawn, and each worker importing
+#: numpy, OpenCV and the package; measured: 0.6 s). :func:`compute_missing` starts a pool only for work
+#: of at least ``POOL_MIN_SHARE`` times that: shorter work runs on threads of this process, which start
+#: at once. ``ROTAVG_POOL_STARTUP_S`` overrides the cost (0: a pool whenever workers > 1).
+POOL_STARTUP_S = 0.6
+POOL_MIN_SHARE = 4.0
+
+
+def _pool_pays_off(rest_cpu_s: float, workers: int) -> bool:
+    """Whether ``rest_cpu_s`` CPU seconds of work are worth starting ``workers`` processes for.
+
+    On free cores a pool returns its start-up once the work is about twice it; the
+    margin ``POOL_MIN_SHARE`` keeps the start-up a small part of the work, since on a
+    busy machine it is pure extra work. CPU time, not wall time, so that the load of
+    other processes does not change the choice.
+    """
+    startup = float(os.environ.get("ROTAVG_POOL_STARTUP_S", POOL_STARTUP_S))
+    return startup <= 0 or rest_cpu_s >= POOL_MIN_SHARE * startup * workers
 
 
 def item_key(*parts: Any) -> str:
@@ -52,6 +74,17 @@ def item_key(*parts: Any) -> str:
             h.update(json.dumps(p, sort_keys=True, default=str).encode())
         h.update(b"\x00")
     return h.hexdigest()[:20]
+
+
+class Item(dict):
+    """One item's arrays (``{name: array}``); ``source`` is its chunk file, and a missing array is a :class:`CacheError`."""
+
+    def __init__(self, source: Path) -> None:
+        super().__init__()
+        self.source = source
+
+    def __missing__(self, name: str) -> np.ndarray:
+        raise CacheError(f"chunk {self.source} is damaged (an item lacks its array {name!r})")
 
 
 def _chunk_name(keys: Iterable[str]) -> str:
@@ -79,7 +112,7 @@ class ItemStore:
             for name, v in results[k].items():
                 arrays[f"{q}{_SEP}{name}"] = np.asarray(v)
         path = self.folder / _chunk_name(keys)
-        save_npz(path, **arrays)
+        save_npz_uncompressed(path, **arrays)  # zlib took most of the stores' write time (descriptors barely compress)
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
@@ -93,14 +126,19 @@ class ItemStore:
     @staticmethod
     def read_chunk(path: Path) -> dict[str, dict[str, np.ndarray]]:
         """All items of one chunk file; :class:`CacheError` if it is damaged."""
+        data = read_npz(path, "chunk file", CacheError)
         try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-            keys = [str(k) for k in data.pop("keys")]
-            out: dict[str, dict[str, np.ndarray]] = {k: {} for k in keys}
+            keys = data.pop("keys")
+            if keys.ndim != 1 or keys.dtype.kind != "U":
+                raise ValueError(f"keys has shape {keys.shape} and dtype {keys.dtype}")
+            out: dict[str, dict[str, np.ndarray]] = {str(k): Item(path) for k in keys}
+            if len(out) != len(keys):
+                raise ValueError("a key repeats")
             for name, v in data.items():
                 q, _, field = name.partition(_SEP)
-                out[keys[int(q)]][field] = v
+                if not (q.isascii() and q.isdigit() and int(q) < len(keys) and field):
+                    raise ValueError(f"stray array {name!r}")
+                out[str(keys[int(q)])][field] = v
         except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged chunk
             raise CacheError(f"chunk {path} is damaged ({type(exc).__name__}: {' '.join(str(exc).split())[:80]})") from None
         return out
@@ -133,6 +171,8 @@ class ItemStore:
         name = where[key]
         if name not in self._cache:
             self._cache = {name: self.read_chunk(self.folder / name)}  # keep one chunk: bounded memory
+        if key not in self._cache[name]:
+            raise CacheError(f"chunk {self.folder / name} lacks the item {key} that {self.folder / INDEX} places there")
         return self._cache[name][key]
 
     # ------------------------------------------------------------------ index
@@ -153,11 +193,15 @@ class ItemStore:
     def load_index(self) -> dict[str, str]:
         """The index written by :meth:`write_index`; :class:`CacheError` if missing or damaged."""
         path = self.folder / INDEX
+        d = read_json(path, "the index", CacheError)
         try:
-            d = json.loads(path.read_text(encoding="utf-8"))
-            keys, chunks = list(d["keys"]), list(d["chunks"])
-            if len(keys) != len(chunks):
-                raise ValueError("keys and chunks differ in length")
+            keys, chunks = d["keys"], d["chunks"]
+            if not (isinstance(keys, list) and isinstance(chunks, list) and len(keys) == len(chunks)):
+                raise ValueError("keys and chunks are not lists of the same length")
+            if not all(isinstance(k, str) for k in keys) or len(set(keys)) != len(keys):
+                raise ValueError("keys are not unique strings")
+            if not all(isinstance(c, str) and _CHUNK.fullmatch(c) for c in chunks):
+                raise ValueError("a chunk is not named chunk-<hex>.npz")
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise CacheError(f"the index {path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None
         self._where = dict(zip(map(str, keys), map(str, chunks)))
@@ -195,7 +239,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         work: ``work(tasks)`` returns the results of a chunk of tasks, in order; a
             module-level function (or a ``functools.partial`` of one), run on the
             executor of :func:`pipeline.core.parallel.make_executor`.
-        workers: workers of the executor (1, or a single chunk, runs in this process).
+        workers: workers of the executor (1 or a single chunk runs in this process; work shorter than
+            starting a pool of processes runs on threads of this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
         backend, scheduler: the executor (:func:`pipeline.core.parallel.make_executor`);
@@ -216,16 +261,32 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
     if not chunks:
         return 0
-    local = backend != "dask" and scheduler is None
-    executor = make_executor(min(workers, len(chunks)) if local else workers, backend, scheduler)
     # absolute: the workers may run in another folder or on another machine (with the same file system)
     write = functools.partial(_write_packed, folder=str(store.folder.resolve()), work=work)
     jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
+
+    def finish(chunk_keys: list[str], name: str) -> None:
+        store.adopt(name, chunk_keys)
+        if on_chunk is not None:
+            on_chunk(len(chunk_keys))
+
+    local = backend != "dask" and scheduler is None
+    n_workers = min(workers, len(jobs) - 1) if local else workers
+    if local and backend == "processes" and n_workers > 1:
+        # the first chunk runs here and times the work: a pool of processes pays off only when the rest
+        # is long beside starting it; otherwise threads, which start at once and run in parallel where
+        # the work releases the GIL (OpenCV, BLAS)
+        t0 = time.thread_time()
+        finish(jobs[0][0], write(jobs[0]))
+        rest = (time.thread_time() - t0) * (len(jobs) - 1)
+        jobs = jobs[1:]
+        if not _pool_pays_off(rest, n_workers):
+            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(jobs), rest)
+            backend = "threads"
+    executor = make_executor(max(n_workers, 1), backend, scheduler)
     try:
         for (chunk_keys, _), name in zip(jobs, executor.map(write, jobs)):
-            store.adopt(name, chunk_keys)
-            if on_chunk is not None:
-                on_chunk(len(chunk_keys))
+            finish(chunk_keys, name)
     finally:
         executor.close()
     return len(todo)

@@ -1,6 +1,6 @@
 """The view graph: named cameras, relative rotations, and optional precisions.
 
-Conventions (``../shared/DESIGN.md``): edge ``k = (i, j)`` with ``i < j`` carries
+Conventions (``docs/CONVENTIONS.md``): edge ``k = (i, j)`` with ``i < j`` carries
 ``R_ij = R_j R_iᵀ`` (cam_from_world ``R``); the optional precision ``H_ij`` (1/rad²)
 is that of ``Δω`` in ``R_j R_iᵀ = exp([Δω]×) R̃_ij``.
 
@@ -33,6 +33,7 @@ from scipy.sparse.csgraph import connected_components
 from pipeline.core import so3
 from pipeline.core.atomic import save_npz
 from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.readers import read_npz
 
 __all__ = ["ViewGraph", "Restriction"]
 
@@ -153,9 +154,11 @@ class ViewGraph:
         if not np.all(ok):
             k = int(np.flatnonzero(~ok)[0])
             R = self.R_rel[k]
+            with np.errstate(all="ignore"):
+                det, dev = np.linalg.det(R), np.abs(R.T @ R - np.eye(3)).max()
             raise ViewGraphError(
                 f"R_rel of edge {k} {tuple(self.edges[k].tolist())} is not a rotation "
-                f"(det={np.linalg.det(R):.6g}, max|RᵀR−I|={np.abs(R.T @ R - np.eye(3)).max():.3g}, "
+                f"(det={det:.6g}, max|RᵀR−I|={dev:.3g}, "
                 f"tolerance {ROTATION_TOL}); project it with so3.project_to_so3"
             )
         if self.H is not None:
@@ -172,9 +175,11 @@ class ViewGraph:
                     f"H of edge {k} {tuple(self.edges[k].tolist())} is not symmetric "
                     f"(relative asymmetry {asym[k]:.3g}); H must be a symmetric positive-definite precision"
                 )
-            lam = np.linalg.eigvalsh(0.5 * (self.H + np.swapaxes(self.H, 1, 2)))
-            if np.any(lam[:, 0] <= 0):
-                k = int(np.argmin(lam[:, 0]))
+            with np.errstate(all="ignore"):  # entries near the float limit overflow: not a precision either
+                lam = np.linalg.eigvalsh(0.5 * (self.H + np.swapaxes(self.H, 1, 2)))
+            bad = ~(lam[:, 0] > 0) | ~np.isfinite(lam).all(axis=1)
+            if np.any(bad):
+                k = int(np.flatnonzero(bad)[0])
                 raise ViewGraphError(
                     f"H of edge {k} {tuple(self.edges[k].tolist())} is not positive definite "
                     f"(smallest eigenvalue {lam[k, 0]:.3g}); H must be a precision in 1/rad²"
@@ -316,30 +321,43 @@ class ViewGraph:
 
     @classmethod
     def load(cls, path: str | os.PathLike, allow_isolated: bool = False) -> "ViewGraph":
-        """Read a file written by :meth:`save`; malformed files raise :class:`InputFileError`."""
+        """Read a file written by :meth:`save`.
+
+        Raises:
+            InputFileError: a missing, unreadable or foreign file, or arrays of the wrong shape or type
+                (one line naming the file).
+            ViewGraphError: arrays that break an invariant of the graph (naming the file).
+        """
         path = Path(path)
-        if not path.is_file():
-            raise InputFileError(f"view graph file {path} does not exist")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                data = {k: z[k] for k in z.files}
-        except Exception as exc:  # noqa: BLE001 - any reader failure means a bad file
-            raise InputFileError(f"{path} is not a readable view-graph .npz file ({exc}); re-run the stage that wrote it") from exc
-        if str(data.get("format", "")) != FORMAT:
+        data = read_npz(path, "view-graph .npz file", InputFileError)
+        if "format" not in data or data["format"].shape != () or str(data["format"]) != FORMAT:
             raise InputFileError(f"{path} is not a view-graph file (missing format tag {FORMAT!r})")
         if "format_version" not in data:
             raise InputFileError(f"{path} lacks the array 'format_version'; re-run the stage that wrote it")
-        if int(data["format_version"]) > FORMAT_VERSION:
-            raise InputFileError(f"{path} has format_version {int(data['format_version'])}; this code reads <= {FORMAT_VERSION}")
+        fv = data["format_version"]
+        if fv.shape != () or fv.dtype.kind not in "iu":
+            raise InputFileError(f"{path}: format_version has shape {fv.shape} and dtype {fv.dtype}, expected one "
+                                 "integer; re-run the stage that wrote it")
+        if int(fv) > FORMAT_VERSION:
+            raise InputFileError(f"{path} has format_version {int(fv)}; this code reads <= {FORMAT_VERSION}")
         for key in ("names", "edges", "R_rel"):
             if key not in data:
                 raise InputFileError(f"{path} lacks the array {key!r}")
-        return cls(
-            names=[str(n) for n in data["names"]],
-            edges=data["edges"],
-            R_rel=data["R_rel"],
-            H=data.get("H"),
-            inliers=data.get("inliers"),
-            stats={k[len("stat__"):]: v for k, v in data.items() if k.startswith("stat__")},
-            allow_isolated=allow_isolated,
-        )
+        # (trailing shape, kinds, what): the leading sizes are checked against each other by validate()
+        layout = {"names": ((), "U", "a list of names"), "edges": ((2,), "iu", "(M, 2) integer camera indices"),
+                  "R_rel": ((3, 3), "fiu", "(M, 3, 3) rotations"), "H": ((3, 3), "fiu", "(M, 3, 3) precisions"),
+                  "inliers": ((), "iu", "(M,) integer counts")}
+        for key, (tail, kinds, what) in layout.items():
+            a = data.get(key)
+            if a is not None and (a.ndim != 1 + len(tail) or a.shape[1:] != tail or a.dtype.kind not in kinds):
+                raise InputFileError(f"{path}: {key} has shape {a.shape} and dtype {a.dtype}, expected {what}; "
+                                     "re-run the stage that wrote it")
+        stats = {k[len("stat__"):]: v for k, v in data.items() if k.startswith("stat__")}
+        for key, a in stats.items():
+            if a.dtype.kind not in "biuf":
+                raise InputFileError(f"{path}: stat {key!r} has dtype {a.dtype}, expected numbers")
+        try:
+            return cls(names=[str(n) for n in data["names"]], edges=data["edges"], R_rel=data["R_rel"],
+                       H=data.get("H"), inliers=data.get("inliers"), stats=stats, allow_isolated=allow_isolated)
+        except ViewGraphError as exc:
+            raise ViewGraphError(f"{path}: {exc}") from None

@@ -1,8 +1,8 @@
 """The evaluation of one run of ``run.py``: every method against every reference, then metrics.json and the report.
 
 :func:`evaluate_run` scores every averaging method against the truth (when given),
-the truth restricted to the images pycolmap registered (when it left some out:
-the like-for-like comparison) and pycolmap's reconstruction. :func:`write_report_md`
+the truth restricted to the images each pycolmap peer registered (when it left some
+out: the like-for-like comparison) and the peers' reconstructions (incremental, GLOMAP). :func:`write_report_md`
 adds the error-against-time curves, writes ``OUT/report.md`` (and its plots);
 :func:`write_metrics` writes ``OUT/metrics.json`` (atomically) and prints the summary table.
 """
@@ -24,8 +24,8 @@ from pipeline.reference.types import Reference
 
 __all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "OUR_PATH"]
 
-# the stages of our own path, from images to rotations (what a time ratio against a peer counts)
-OUR_PATH = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging")
+# the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
+OUR_PATH = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
 
 
 @dataclass
@@ -38,8 +38,12 @@ class RunEvaluation:
     refs: list[Reference]
 
 
-def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Reference | None) -> RunEvaluation:
-    """Every method of ``results`` against the truth of ``plan`` and the pycolmap ``peer``."""
+def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Reference | list[Reference] | None
+                 ) -> RunEvaluation:
+    """Every method of ``results`` against the truth of ``plan`` and the pycolmap peers (incremental, GLOMAP).
+
+    Each peer that leaves images out adds the truth restricted to its images (the like-for-like comparison).
+    """
     from pipeline.geometry.two_view_stage import load_two_view  # noqa: PLC0415
 
     try:
@@ -47,10 +51,12 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
     except (PipelineError, OSError):
         ransac_vg = None
     refs: list[Reference] = [plan.truth] if plan.truth is not None else []
-    if peer is not None and len(peer.names) >= 2:
-        sub = truth_on_registered(plan.truth, peer, vg)
-        refs += ([sub] if sub is not None else []) + [peer]
-    metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peer, plan.run.align)
+    peers = [] if peer is None else [peer] if isinstance(peer, Reference) else list(peer)
+    for p in peers:
+        if len(p.names) >= 2:
+            sub = truth_on_registered(plan.truth, p, vg)
+            refs += ([sub] if sub is not None else []) + [p]
+    metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs)

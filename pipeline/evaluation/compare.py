@@ -39,9 +39,9 @@ from pipeline.reference.types import Reference
 logger = logging.getLogger(__name__)
 
 __all__ = ["SUBSET_PREFIX", "EvaluationConfig", "match_reference", "summarize_against", "truth_on_registered",
-           "evaluate_all", "evaluate_files", "main_cli"]
+           "subset_prefix", "subset_label", "peer_metrics", "evaluate_all", "evaluate_files", "main_cli"]
 
-SUBSET_PREFIX = "truth, pycolmap's"
+SUBSET_PREFIX = "truth, pycolmap's"  # the truth on the incremental peer's images ("truth, <peer>'s N images")
 CERTIFICATE_KEYS = ("certified", "rank", "gap", "gap_residual", "lower_bound", "primal_cost", "cost_offset", "status",
                     "solver", "fallback")
 
@@ -105,12 +105,23 @@ def summarize_against(names: list[str], R: np.ndarray, ref: Reference, align: st
     return s, errs
 
 
-def truth_on_registered(truth: Reference | None, pyc: Reference, vg: ViewGraph) -> Reference | None:
-    """The truth restricted to the images pycolmap registered, when it left out some of ours.
+def subset_prefix(peer: str) -> str:
+    """How the labels of the truth restricted to the images of the peer labelled ``peer`` begin."""
+    return f"truth, {peer}'s "
 
-    pycolmap's errors are over the images it registers; ours over every image of the
-    view graph. Scoring our methods on pycolmap's images too (aligned on them) is the
-    like-for-like comparison; None when pycolmap registered all of ours or there is no truth.
+
+def subset_label(peer: str, n: int) -> str:
+    """The label of the truth restricted to the ``n`` images the peer labelled ``peer`` registered."""
+    return f"{subset_prefix(peer)}{n} images"
+
+
+def truth_on_registered(truth: Reference | None, pyc: Reference, vg: ViewGraph) -> Reference | None:
+    """The truth restricted to the images a pycolmap peer registered, when it left out some of ours.
+
+    A peer's errors are over the images it registers; ours over every image of the
+    view graph. Scoring our methods on the peer's images too (aligned on them) is the
+    like-for-like comparison; None when the peer registered all of ours or there is no truth.
+    Labelled :func:`subset_label` of the peer's label.
     """
     if truth is None:
         return None
@@ -121,12 +132,36 @@ def truth_on_registered(truth: Reference | None, pyc: Reference, vg: ViewGraph) 
     if mask.sum() < 2:
         return None
     names = [n for n, m in zip(pyc.names, mask) if m]
-    return Reference(names, np.asarray(R_t)[mask], source=truth.source, label=f"{SUBSET_PREFIX} {len(names)} images")
+    return Reference(names, np.asarray(R_t)[mask], source=truth.source, label=subset_label(pyc.label or "pycolmap",
+                                                                                           len(names)))
+
+
+def peer_metrics(peers: list[Reference], truth: Reference | None, align: str,
+                 cam_errors: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, Any]]:
+    """Each pycolmap peer against the truth (top level) and against every other peer (``references``).
+
+    Each pair of peers is scored on the images both register (the summary's mask).
+    The per-camera errors against the truth go to ``cam_errors["truth"][peer label]``.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for p in peers:
+        m = {"time_s": p.info.get("time_s"), "n_images": p.info.get("n_images"), "mapping": p.info.get("mapping"),
+             "n_registered": p.info.get("n_registered"), "unregistered": p.info.get("unregistered", {}),
+             "n_models": p.info.get("n_models"), "times": p.info.get("times"), "references": {}}
+        if truth is not None and len(p.names):
+            s, e = summarize_against(p.names, p.R, truth, align)
+            m.update(s)
+            cam_errors.setdefault("truth", {})[p.label] = e
+        for q in peers:
+            if q is not p and len(p.names) and len(q.names):
+                m["references"][q.label] = summarize_against(p.names, p.R, q, align)[0]
+        out[p.label] = m
+    return out
 
 
 def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, dict], refs: list[Reference],
-                 pyc: Reference | None, align: str) -> tuple[dict, dict, dict]:
-    """Every method against every reference; the view graph's edges; pycolmap against the truth.
+                 pyc: Reference | list[Reference] | None, align: str) -> tuple[dict, dict, dict]:
+    """Every method against every reference; the view graph's edges; the pycolmap peers against the truth.
 
     Args:
         vg: the view graph the methods averaged (after two-view BA).
@@ -134,12 +169,14 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
         results: ``{label: {"rotations": path, "stats": dict}}`` of every method.
         refs: the references, the first one the main one (its figures are copied to
             the top level of each method's entry).
-        pyc: the pycolmap reference, or None.
+        pyc: the pycolmap peers (the incremental reference, GLOMAP), one or a list, or None.
         align: "l2", "l1" or "none".
 
     Returns:
-        ``{"methods", "edges", "pycolmap"}`` metrics, ``{reference: {label: (N,) errors}}``
-        and ``{reference: {"ransac" | "ba": (M,) edge errors}}``, in degrees.
+        ``{"methods", "edges", "pycolmap", "peers"}`` metrics (``pycolmap``: the first
+        peer; ``peers``: every peer by label, see :func:`peer_metrics`),
+        ``{reference: {label: (N,) errors}}`` and ``{reference: {"ransac" | "ba": (M,)
+        edge errors}}``, in degrees.
     """
     from pipeline.io.rotations import read_rotations  # noqa: PLC0415
 
@@ -171,17 +208,12 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
             if r is refs[0]:
                 edges[tag] = {**mt.edge_stats(g, R_ref, mask), "reference": r.label}
             edge_err[r.label][tag] = mt.edge_errors_deg(g, R_ref, mask)
-    pyc_metrics: dict[str, Any] = {}
-    if pyc is not None:
-        pyc_metrics = {"time_s": pyc.info.get("time_s"), "n_images": pyc.info.get("n_images"),
-                       "n_registered": pyc.info.get("n_registered"), "unregistered": pyc.info.get("unregistered", {}),
-                       "n_models": pyc.info.get("n_models")}
-        truth = [r for r in refs if r.label == "truth"]
-        if truth and len(pyc.names):
-            s, e = summarize_against(pyc.names, pyc.R, truth[0], align)
-            pyc_metrics.update(s)
-            cam_errors["truth"]["pycolmap"] = e
-    return {"methods": methods, "edges": edges, "pycolmap": pyc_metrics}, cam_errors, edge_err
+    peers = [] if pyc is None else [pyc] if isinstance(pyc, Reference) else list(pyc)
+    truth = next((r for r in refs if r.label == "truth"), None)
+    by_peer = peer_metrics(peers, truth, align, cam_errors)
+    first = {k: v for k, v in by_peer[peers[0].label].items() if k not in ("mapping", "times", "references")} \
+        if peers else {}
+    return {"methods": methods, "edges": edges, "pycolmap": first, "peers": by_peer}, cam_errors, edge_err
 
 
 def _reindexed(vg: ViewGraph, names: list[str]) -> ViewGraph | None:

@@ -21,7 +21,7 @@ from pipeline.core.atomic import atomic_open
 from pipeline.core.names import rows_by_name
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
-from pipeline.evaluation.compare import SUBSET_PREFIX
+from pipeline.evaluation.compare import subset_prefix
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
@@ -31,7 +31,9 @@ __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summar
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
-METHOD_EXTRAS = ("time_s", "certified", "rank", "gap")
+METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg")
+#: The report's row of each pycolmap peer (by its label in the metrics).
+PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 
 
 @dataclass
@@ -53,6 +55,8 @@ class ReportData:
         positions: (N, 2 or 3) camera positions for the picture, or None.
         notes: free lines appended under "Notes" (unregistered images, dropped
             cameras, warnings).
+        sections: ``{title: markdown lines}`` shown before the notes (the refinement's
+            per-camera table).
         stages: ``{stage: seconds}``.
         title: report title.
     """
@@ -66,6 +70,7 @@ class ReportData:
     edge_values: dict[str, np.ndarray] = field(default_factory=dict)
     positions: np.ndarray | None = None
     notes: list[str] = field(default_factory=list)
+    sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
     title: str = "Rotation averaging report"
 
@@ -85,7 +90,7 @@ def _fmt(v: Any, f: str) -> str:
 
 def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
     """Markdown table lines of ``{method: summary}``."""
-    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "certificate"]
+    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "σ pred °", "certificate / status"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
@@ -93,8 +98,11 @@ def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
         if "certified" in m:
             cert = ("certified" if m["certified"] else "NOT certified") + (
                 f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "")
+        if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
+            cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
-                 _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), cert]
+                 _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), _fmt(m.get("sigma_median_deg"), "{:.4f}"),
+                 cert]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -112,10 +120,15 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     """
     table = {r.label: {k: m["references"][r.label] | {kk: m.get(kk) for kk in METHOD_EXTRAS if kk in m}
                        for k, m in metrics["methods"].items()} for r in refs}
-    if "truth" in table and "median_deg" in metrics["pycolmap"]:
-        for r in refs:
-            if r.label == "truth" or r.label.startswith(SUBSET_PREFIX):
-                table[r.label]["pycolmap (incremental)"] = metrics["pycolmap"]
+    for label, p in _peers(metrics).items():
+        row = PEER_ROWS.get(label, f"pycolmap ({label})")
+        if "median_deg" in p:  # against the truth: on all its images, and on the subset of its images
+            for r in refs:
+                if r.label == "truth" or r.label.startswith(subset_prefix(label)):
+                    table[r.label][row] = p
+        for other, s in (p.get("references") or {}).items():  # against the other peers, on the images both register
+            if other in table and s.get("n_evaluated"):
+                table[other][row] = s | {"time_s": p.get("time_s")}
     edge_vals: dict[str, np.ndarray] = {}
     if refs and refs[0].label in edge_errors and "ba" in edge_errors[refs[0].label]:
         edge_vals[f"error_vs_{refs[0].label}"] = edge_errors[refs[0].label]["ba"]
@@ -128,10 +141,39 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     data = ReportData(
         metrics=table, camera_errors=camera_errors, edge_errors=edge_errors, histories=histories,
         vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
-        notes=notes, stages=stages, title=title)
+        notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages, title=title)
     if not plots_on:
         data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
     return data
+
+
+def _peers(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The pycolmap peers' metrics by label (older metrics: the incremental one only)."""
+    if metrics.get("peers"):
+        return metrics["peers"]
+    return {"pycolmap": metrics["pycolmap"]} if metrics.get("pycolmap") else {}
+
+
+def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_errors: dict) -> dict[str, list[str]]:
+    """Per refined method: each camera's error against the first reference beside its predicted uncertainty."""
+    out: dict[str, list[str]] = {}
+    for label, m in metrics["methods"].items():
+        sigma = m.get("uncertainty_deg")
+        if not isinstance(sigma, dict):
+            continue
+        ref = refs[0].label if refs else None
+        errs = camera_errors.get(ref, {}).get(label) if ref else None
+        change, kept = m.get("change_from_averaged_deg") or {}, m.get("kept_averaged") or {}
+        lines = [f"Start: {m.get('start_why', m.get('start'))}; status **{m.get('status')}**; "
+                 "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge).", "",
+                 f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | kept averaged: why |",
+                 "|---|---|---|---|---|"]
+        for k, nm in enumerate(sigma):
+            e = errs[k] if errs is not None and k < len(errs) else None
+            lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sigma[nm], '{:.4f}')} | "
+                         f"{_fmt(change.get(nm), '{:.4f}')} | {kept.get(nm, '')} |")
+        out[f"Refinement ({label})"] = lines + [""]
+    return out
 
 
 def write_report(out: str | os.PathLike, data: ReportData) -> Path:
@@ -163,6 +205,8 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
             p = plots.plot_viewgraph(len(data.vg_names), np.asarray(data.vg_edges, int), vals,
                                      out / f"viewgraph_{_slug(label)}.png", label, data.positions, data.vg_names)
             lines += [f"## View graph ({label})", "", f"![view graph]({p.name})", ""]
+    for title, body in data.sections.items():
+        lines += [f"## {title}", "", *body]
     if data.notes:
         lines += ["## Notes", "", *[f"- {n}" for n in data.notes], ""]
     path = out / "report.md"
@@ -181,21 +225,24 @@ def _f(v: Any, nd: int = 3) -> str:
 
 
 def summary_table(metrics: dict[str, Any]) -> str:
-    """The final console table of a run: one row per method and reference, and pycolmap's own."""
+    """The final console table of a run: one row per method and reference, and each pycolmap peer's own."""
     rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
     for label, m in metrics["methods"].items():
         note = ""
         if "certified" in m:
             note = "certified" if m["certified"] else "NOT certified"
+        if m.get("method") == "refine":
+            note = f"refine {m['status']}"
         for rname, s in m.get("references", {}).items():
             rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),
                          _f(s.get("max_deg")), _f(m.get("time_s"), 2), note))
         if not m.get("references"):
             rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
-    p = metrics.get("pycolmap") or {}
-    if "median_deg" in p:
-        rows.append(("pycolmap", "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
-                     _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
+    for label, p in _peers(metrics).items():
+        if "median_deg" in p:
+            name = "pycolmap" if label == "pycolmap" else f"pycolmap-{label}"
+            rows.append((name, "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
+                         _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
     w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
     lines.insert(1, "  ".join("-" * x for x in w))

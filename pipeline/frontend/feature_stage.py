@@ -27,7 +27,6 @@ one never. Command line::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from dataclasses import dataclass, field
@@ -38,11 +37,12 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.core.atomic import write_json
-from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.errors import CacheError, InputFileError, PipelineError
+from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend.features import FeatureConfig, extract_sift
 from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
-from pipeline.frontend.intrinsics import resolve_intrinsics
+from pipeline.frontend.intrinsics import check_K, resolve_intrinsics
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
@@ -214,38 +214,60 @@ class FeaturesStage(Stage[FeatureConfig]):
     def verify(self, record: StageRecord) -> None:
         m = load_manifest(self.folder)
         keys = ItemStore(self.folder / STORE).load_index()
-        if list(keys) != list(m["keys"]) or len(m["names"]) != len(m["keys"]):
+        if list(keys) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the images")
-        for chunk in sorted(set(keys.values())):
-            ItemStore.read_chunk(self.folder / STORE / chunk)
+        load_features(self.folder, descriptors=False)  # every image's arrays
 
 
 def load_manifest(work: Path) -> dict:
-    """The features manifest of ``work``; a missing or damaged one gives an error naming the command to run."""
+    """The features manifest of ``work``, checked; a missing or damaged one gives an error naming the command to run."""
     path = Path(work) / MANIFEST
     if not path.is_file():
         raise InputFileError(f"{path} not found: run `python -m pipeline.features --images DIR --work {work}` first")
+    m = read_json(path, "the features manifest", CacheError)
     try:
-        m = json.loads(path.read_text(encoding="utf-8"))
-        n = len(m["names"])
-        if not (len(m["sizes"]) == len(m["K"]) == len(m["keys"]) == n):
-            raise ValueError("per-image lists of different lengths")
-        return m
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
-        raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run pipeline.features") from None
+        if not isinstance(m, dict):
+            raise ValueError("not a mapping")
+        n = len(name_list(m["names"], "names"))
+        if n == 0:
+            raise ValueError("no image")
+        name_list(m["keys"], "keys", n)
+        array_field(m["sizes"], np.int64, (n, 2), "sizes", low=1, high=2 ** 31)
+        for k, K in enumerate(array_field(m["K"], float, (n, 3, 3), "K")):
+            check_K(K, f"K of image {k}")
+        array_field(m["signatures"], np.int64, (n, 2), "signatures", low=0)
+        if not isinstance(m["images"], str) or not isinstance(m.get("K_source", []), list):
+            raise ValueError("images or K_source of the wrong type")
+        if not all(isinstance(d, dict) and isinstance(d.get("name"), str) and isinstance(d.get("reason"), str)
+                   for d in m.get("skipped", [])):
+            raise ValueError("skipped is not a list of {name, reason}")
+        FeatureConfig.from_dict(m["config"])
+    except (ValueError, KeyError, TypeError, OverflowError, PipelineError) as exc:
+        raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:100]}); re-run pipeline.features") from None
+    return m
+
+
+def _image_features(item: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """The (n, 2) keypoints and (n, 128) descriptors of one stored image, checked."""
+    kp, desc = item["keypoints"], item["descriptors"]
+    if not (kp.ndim == 2 and kp.shape[1] == 2 and kp.dtype.kind == "f" and np.isfinite(kp).all()
+            and desc.shape == (len(kp), 128) and desc.dtype == np.uint8):
+        raise CacheError(f"{item.source}: the features of {name} are damaged (keypoints {kp.shape} {kp.dtype}, "
+                         f"descriptors {desc.shape} {desc.dtype})")
+    return kp.astype(np.float32), desc
 
 
 def load_features(work: Path, descriptors: bool = True) -> FeatureSet:
-    """Read the features written by the stage (keypoints, descriptors, K, sizes)."""
+    """Read the features written by the stage (keypoints, descriptors, K, sizes), checked."""
     work = Path(work)
     m = load_manifest(work)
     store = ItemStore(work / STORE)
     store.load_index()
     kps, descs = [], []
-    for k in m["keys"]:  # one read per image
-        item = store.get(k)
-        kps.append(item["keypoints"].astype(np.float32))
-        descs.append(item["descriptors"] if descriptors else np.zeros((0, 128), np.uint8))
+    for name, k in zip(m["names"], m["keys"]):  # one read per image
+        kp, desc = _image_features(store.get(k), name)
+        kps.append(kp)
+        descs.append(desc if descriptors else np.zeros((0, 128), np.uint8))
     rec = read_record(work, FeaturesStage.name)
     return FeatureSet(
         names=list(m["names"]),

@@ -4,7 +4,8 @@ Every image is checked from its header before any work (:func:`check_headers`):
 a file that is not an image, whose header claims an absurd size (a decoder would
 try to allocate gigabytes), or that is too small, is left out with its reason.
 Reading (:func:`read_gray`) refuses truncated or corrupt JPEGs, which libjpeg
-would otherwise decode into partly grey images with only a warning. Intrinsics
+would otherwise decode into partly grey images with only a warning, and PNGs whose
+chunks are damaged (bad CRC, truncated). Intrinsics
 are resolved in :mod:`pipeline.frontend.intrinsics`.
 """
 
@@ -67,6 +68,22 @@ def _jpeg_corrupt(data: np.ndarray) -> str:
     return ""
 
 
+def _png_corrupt(path: Path) -> str:
+    """Pillow's complaint about a PNG's chunks (CRC, truncation; '' if none), read without decoding pixels.
+
+    libpng, under OpenCV, prints its own errors to stderr for such a file, and some
+    damaged headers cost it seconds; this check is silent and reads the file once.
+    """
+    from PIL import Image  # noqa: PLC0415
+
+    try:
+        with Image.open(path) as im:
+            im.verify()
+    except Exception as exc:  # noqa: BLE001 - any complaint means a damaged file
+        return " ".join(str(exc).split())[:80] or type(exc).__name__
+    return ""
+
+
 def read_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
     """Read an image as 8-bit grey.
 
@@ -89,6 +106,10 @@ def read_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
         why = _jpeg_corrupt(data)
         if why:
             return None, f"is a corrupt JPEG ({why}); re-copy or re-download it"
+    if data[:8].tobytes() == b"\x89PNG\r\n\x1a\n":
+        why = _png_corrupt(path)
+        if why:
+            return None, f"is a corrupt PNG ({why}); re-copy or re-download it"
     try:
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error as exc:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import InputFileError
-from pipeline.core.names import match_names
+from pipeline.core.names import match_names, split_fields
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +44,9 @@ def check_K(K: np.ndarray, where: str | os.PathLike) -> np.ndarray:
     if not ok:
         raise InputFileError(f"{where}: {np.round(K, 6).tolist()} is not a pinhole K "
                              "(finite, fx > 0, fy > 0, last row 0 0 1)")
-    if abs(np.linalg.det(K)) < 1e-12 * max(K[0, 0] * K[1, 1], 1e-300) or np.linalg.cond(K) > 1e12:
+    with np.errstate(all="ignore"):  # entries near the float limit overflow: singular for our purpose
+        singular = not (abs(np.linalg.det(K)) >= 1e-12 * max(K[0, 0] * K[1, 1], 1e-300) and np.linalg.cond(K) <= 1e12)
+    if singular:
         raise InputFileError(f"{where}: K {np.round(K, 6).tolist()} is singular; check its values")
     return K
 
@@ -70,25 +72,26 @@ def parse_intrinsics_file(path: str | os.PathLike) -> np.ndarray | dict[str, np.
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"intrinsics file {path} does not exist")
-    lines = [ln.split("#")[0].split() for ln in _read_text(path).splitlines()]
-    lines = [ln for ln in lines if ln]
+    rows = [(k, split_fields(ln, f"{path} line {k}")) for k, ln in enumerate(_read_text(path).splitlines(), 1)]
+    rows = [(k, ln) for k, ln in rows if ln]
     try:
-        nums: list[float] | None = [float(v) for ln in lines for v in ln]
+        nums: list[float] | None = [float(v) for _, ln in rows for v in ln]
     except ValueError:
         nums = None  # has names: a per-image file
-    if nums is not None:
-        if len(nums) != 9:
-            raise InputFileError(f"{path}: {len(nums)} numbers, but a K.txt holds exactly 9 (one 3x3 matrix)")
+    per_image = nums is None or (len(nums) != 9 and all(len(ln) in (1, 5, 17, 22) for _, ln in rows))
+    if not per_image:
+        if len(nums) != 9:  # type: ignore[arg-type]
+            raise InputFileError(f"{path}: {len(nums)} numbers, but a K.txt holds exactly 9 (one 3x3 matrix)")  # type: ignore[arg-type]
         return check_K(np.array(nums).reshape(3, 3), path)
     out: dict[str, np.ndarray] = {}
-    for k, ln in enumerate(lines):
-        if len(ln) == 1 and ln[0].isdigit():
+    for k, ln in rows:
+        if len(ln) == 1 and ln[0].isascii() and ln[0].isdigit():
             continue  # Middlebury's first line is the image count
         name, vals = ln[0], ln[1:]
         try:
             v = [float(x) for x in vals]
         except ValueError:
-            raise InputFileError(f"{path} line {k + 1}: expected 'name' followed by numbers, "
+            raise InputFileError(f"{path} line {k}: expected 'name' followed by numbers, "
                                  f"got {' '.join(ln)[:80]!r}") from None
         if len(v) == 21:  # Middlebury: name k11..k33 r11..r33 t1 t2 t3
             K = np.array(v[:9]).reshape(3, 3)
@@ -96,11 +99,13 @@ def parse_intrinsics_file(path: str | os.PathLike) -> np.ndarray | dict[str, np.
             K = np.array([[v[0], 0, v[2]], [0, v[1], v[3]], [0, 0, 1.0]])
         else:
             raise InputFileError(
-                f"{path} line {k + 1}: {len(v)} numbers after the name; expected 4 or 16 "
+                f"{path} line {k}: {len(v)} numbers after the name; expected 4 or 16 "
                 "('name fx fy cx cy [r11..r33 t1 t2 t3]') or 21 (Middlebury 'name k11..k33 r11..r33 t1 t2 t3')")
+        if not name:
+            raise InputFileError(f"{path} line {k}: empty image name")
         if name in out:
-            raise InputFileError(f"{path} line {k + 1}: image {name!r} is listed twice")
-        out[name] = check_K(K, f"{path} line {k + 1}")
+            raise InputFileError(f"{path} line {k}: image {name!r} is listed twice")
+        out[name] = check_K(K, f"{path} line {k}")
     if not out:
         raise InputFileError(f"{path} holds no camera; expected K.txt (3x3) or lines 'name fx fy cx cy ...'")
     return out

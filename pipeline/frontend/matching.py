@@ -53,6 +53,11 @@ class MatchingConfig(ExecutorOptions):
     chunk_size: int = option(32, "pairs per task (a task resumes as a whole)", ge=1, runtime=True)
     workers: int = option(2, "pairs matched concurrently (threads)", ge=1, runtime=True)
 
+    def check(self) -> None:
+        from pipeline.frontend.pairs import parse_selector  # noqa: PLC0415 - pairs imports nothing of this module
+
+        parse_selector(self.pairs)  # exhaustive, sequential:K or an existing file: refused here, before any work
+
 
 def root_sift(desc: np.ndarray) -> np.ndarray:
     """RootSIFT: ``sqrt(d / ‖d‖₁)`` (unit L2 norm), float32 (n, 128)."""

@@ -23,7 +23,6 @@ images only the new pairs are matched. Command line::
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import threading
@@ -37,6 +36,7 @@ from tqdm import tqdm
 
 from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
 from pipeline.frontend.colmap_db import database_fingerprint
@@ -182,25 +182,40 @@ class MatchingStage(Stage[MatchingConfig]):
         where = ItemStore(self.folder / STORE).load_index()
         if list(where) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the pairs")
-        fm = feature_stage.load_manifest(self.folder)
-        if list(fm["names"]) != list(m["names"]):
+        fs = feature_stage.load_features(self.folder, descriptors=False)
+        if list(fs.names) != list(m["names"]):
             raise CacheError(f"{self.folder / MANIFEST} was matched for other images than the current features")
-        for chunk in sorted(set(where.values())):
-            ItemStore.read_chunk(self.folder / STORE / chunk)
+        ms = load_matches(self.folder)
+        for (a, b), mm in zip(ms.pairs, ms.matches):
+            if len(mm) and (mm[:, 0].max() >= len(fs.keypoints[a]) or mm[:, 1].max() >= len(fs.keypoints[b])):
+                raise CacheError(f"{self.folder / STORE}: the matches of {ms.names[a]}-{ms.names[b]} refer to "
+                                 "keypoints the features do not have")
 
 
 def _load_manifest(work: Path) -> dict:
     path = Path(work) / MANIFEST
     if not path.is_file():
         raise InputFileError(f"{path} not found: run `python -m pipeline.matching --work {work}` first")
+    m = read_json(path, "the matches manifest", CacheError)
     try:
-        m = json.loads(path.read_text(encoding="utf-8"))
-        pairs = np.asarray(m["pairs"], dtype=np.int64).reshape(-1, 2)
-        if len(pairs) != len(m["keys"]) or (len(pairs) and (pairs.min() < 0 or pairs.max() >= len(m["names"]))):
-            raise ValueError("pairs and keys disagree")
-        return m
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
+        if not isinstance(m, dict):
+            raise ValueError("not a mapping")
+        n = len(name_list(m["names"], "names"))
+        pairs = array_field(m["pairs"], np.int64, (-1, 2), "pairs", low=0, high=n)
+        name_list(m["keys"], "keys", len(pairs))
+        if np.any(pairs[:, 0] >= pairs[:, 1]):
+            raise ValueError("a pair is not (a, b) with a < b")
+    except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run pipeline.matching") from None
+    return m
+
+
+def _pair_matches(item: Any) -> np.ndarray:
+    """The (m, 2) keypoint indices of one stored pair, checked."""
+    m = item["matches"]
+    if not (m.ndim == 2 and m.shape[1] == 2 and m.dtype.kind in "iu" and (m.size == 0 or 0 <= m.min() <= m.max() < 2 ** 31)):
+        raise CacheError(f"{item.source}: a pair's matches are damaged (shape {m.shape}, dtype {m.dtype})")
+    return m.astype(np.int32)
 
 
 def load_manifest(work: Path) -> dict:
@@ -209,12 +224,12 @@ def load_manifest(work: Path) -> dict:
 
 
 def load_matches(work: Path) -> MatchSet:
-    """The current matches of ``work``."""
+    """The current matches of ``work``, checked."""
     work = Path(work)
     m = _load_manifest(work)
     store = ItemStore(work / STORE)
     store.load_index()
-    matches = [store.get(k)["matches"].astype(np.int32).reshape(-1, 2) for k in m["keys"]]
+    matches = [_pair_matches(store.get(k)) for k in m["keys"]]
     rec = read_record(work, MatchingStage.name)
     return MatchSet(list(m["names"]), np.asarray(m["pairs"], np.int64).reshape(-1, 2), matches,
                     rec.fingerprint if rec is not None else "")

@@ -2,8 +2,8 @@
 
 - ``exhaustive``: all ``N(N−1)/2`` pairs;
 - ``sequential:K``: each image with the next ``K`` in name order (video, ordered captures);
-- a path: a pairs file, one ``name_a name_b`` per line (hloc's format); names are
-  matched by :func:`pipeline.core.names.match_names` (exact, then stem);
+- a path: a pairs file, one ``name_a name_b`` per line (hloc's format; a name with
+  spaces in double quotes); names are matched by :func:`pipeline.core.names.match_names` (exact, then stem);
 - ``database``: the pairs a COLMAP database has verified: with ``run.py --database DB``
   the database's own inlier matches; ``database:DB`` with our features, the pairs
   ``DB`` verified, matched by us (:mod:`pipeline.frontend.database_stage`).
@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import ConfigError, InputFileError
-from pipeline.core.names import match_names
+from pipeline.core.names import match_names, split_fields
 
 __all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs"]
 
@@ -56,7 +56,7 @@ def read_pairs(path: str | os.PathLike, names: list[str]) -> np.ndarray:
         raise InputFileError(f"pairs file {path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     rows: list[tuple[int, str, str]] = []
     for ln_no, line in enumerate(text.splitlines(), 1):
-        tok = line.split("#")[0].split()
+        tok = split_fields(line, f"{path} line {ln_no}")
         if not tok:
             continue
         if len(tok) < 2:

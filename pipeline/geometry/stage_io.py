@@ -16,32 +16,15 @@ from typing import Any, ClassVar, Sequence, TypeVar
 import numpy as np
 
 from pipeline.core.cli import add_config_args, config_from_args, run_cli
-from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.errors import CacheError, InputFileError, PipelineError
+from pipeline.core.readers import read_npz as core_read_npz
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.core.config import Config
 from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, read_record
 
 __all__ = ["PairStage", "read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
 
-_ZIP_MAGIC = b"PK\x03\x04"
 C = TypeVar("C", bound=Config)
-
-
-def _why(exc: BaseException) -> str:
-    msg = " ".join(str(exc).split())
-    if "pickle" in msg:  # numpy's advice about trusting pickled data does not apply to a damaged cache
-        msg = "it holds Python objects, not plain arrays"
-    return f"{type(exc).__name__}: {msg[:100]}" if msg else type(exc).__name__
-
-
-def _check_zip(path: Path, what: str) -> None:
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(4)
-    except OSError as exc:
-        raise CacheError(f"{path} cannot be read ({_why(exc)})") from None
-    if magic != _ZIP_MAGIC:
-        raise CacheError(f"{path} is not an .npz archive (damaged or not a {what})")
 
 
 def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
@@ -51,24 +34,15 @@ def read_npz(path: Path, what: str) -> dict[str, np.ndarray]:
         path: the file.
         what: what it should hold, for the message (``"correspondences file"``).
     """
-    _check_zip(path, what)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as exc:  # noqa: BLE001 - any failure to read means a damaged file
-        raise CacheError(f"{path} is not a readable {what} ({_why(exc)})") from None
+    return core_read_npz(path, what, CacheError)
 
 
 def read_viewgraph(path: Path) -> ViewGraph:
     """The view graph in ``path`` (cameras without edges allowed); :class:`CacheError` naming it if damaged."""
-    _check_zip(path, "view graph")
     try:
         return ViewGraph.load(path, allow_isolated=True)
-    except Exception as exc:  # noqa: BLE001 - ViewGraphError, InputFileError, or a reader bug on odd arrays
-        msg = " ".join(str(exc).split()).replace("; re-run the stage that wrote it", "")
-        if str(path) not in msg or "pickle" in msg:
-            msg = f"{path} is not a valid view graph ({_why(exc)})"
-        raise CacheError(msg) from None
+    except PipelineError as exc:  # InputFileError, ViewGraphError: both name the file
+        raise CacheError(" ".join(str(exc).split()).replace("; re-run the stage that wrote it", "")) from None
 
 
 def rerun_hint(command: str, work: Path) -> str:

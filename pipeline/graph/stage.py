@@ -8,7 +8,6 @@ connected component and names every image left out with why. Writes
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Any
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, PipelineError
+from pipeline.core.readers import name_list, read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.geometry.ba_stage import load_ba_viewgraph
 from pipeline.geometry.two_view_stage import load_two_view
@@ -84,10 +84,14 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
 def load_graph_summary(out: Path) -> dict[str, Any]:
     """The summary written beside the view graph (names, counts, images left out and why)."""
     path = Path(out) / SUMMARY
+    s = read_json(path, "the view-graph summary", CacheError)
     try:
-        s = json.loads(path.read_text(encoding="utf-8"))
-        if not isinstance(s.get("names"), list) or not isinstance(s.get("left_out"), dict):
-            raise ValueError("missing names or left_out")
+        n = len(name_list(s["names"], "names"))
+        left_out = s["left_out"]
+        if not (isinstance(left_out, dict) and all(isinstance(v, str) for v in left_out.values())):
+            raise ValueError("left_out is not a mapping of names to reasons")
+        if s["n_cameras"] != n or not (isinstance(s["n_edges"], int) and s["n_edges"] >= 0):
+            raise ValueError("its counts disagree with its names")
         return s
-    except (OSError, ValueError, AttributeError, UnicodeDecodeError) as exc:
+    except (ValueError, TypeError, KeyError) as exc:
         raise CacheError(f"{path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None

@@ -71,25 +71,45 @@ class MatData:
     gt_mask: np.ndarray | None
 
 
+def _loadmat_arrays(path: str) -> dict[str, Any]:
+    """The variables of a .mat file: numeric arrays (sparse ones densified), others as their type name.
+
+    Runs in a sandboxed child process (:mod:`pipeline.core.sandbox`): scipy's reader
+    crashes the process (SIGSEGV) on some damaged files (scipy 1.17, two flipped bytes).
+    """
+    out: dict[str, Any] = {}
+    for k, v in sio.loadmat(path, squeeze_me=False).items():
+        if k.startswith("__"):
+            continue
+        if hasattr(v, "toarray") and not isinstance(v, np.ndarray):  # a MATLAB sparse variable
+            v = v.toarray()
+        out[k] = v if isinstance(v, np.ndarray) and v.dtype.kind in "fiub" else type(v).__name__
+    return out
+
+
 def _load(path: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    from pipeline.core.sandbox import SandboxError, run_limited  # noqa: PLC0415
+
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f".mat file {path} does not exist")
+    size = path.stat().st_size
     try:
-        data = sio.loadmat(path, squeeze_me=False)
-    except NotImplementedError as exc:  # MATLAB v7.3 files are HDF5
-        raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')") from exc
-    except Exception as exc:  # noqa: BLE001 - any reader failure means a bad file
-        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from exc
-    return path, {k: v for k, v in data.items() if not k.startswith("__")}
+        data = run_limited(_loadmat_arrays, str(path), timeout=60 + size / 1e6, memory_bytes=(3 << 30) + 64 * size,
+                           preload=("numpy", "scipy.io", __name__))
+    except SandboxError as exc:
+        if str(exc).startswith("NotImplementedError"):  # MATLAB v7.3 files are HDF5
+            raise InputFileError(f"{path} is a MATLAB v7.3 (HDF5) file; re-save it in MATLAB with save(..., '-v7')"
+                                 ) from None
+        raise InputFileError(f"{path} is not a readable .mat file ({exc})") from None
+    return path, data
 
 
 def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
     a = data[key]
-    if hasattr(a, "toarray") and not isinstance(a, np.ndarray):  # a MATLAB sparse variable
-        a = a.toarray()
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
-        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {type(a).__name__}")
+        got = a if isinstance(a, str) else type(a).__name__
+        raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {got}")
     a = np.asarray(a, dtype=np.float64)
     if not np.all(np.isfinite(a)):
         raise InputFileError(f"{path}: variable {key!r} has NaN or inf entries")
@@ -142,7 +162,8 @@ def _make_graph(path: Path, names: list[str], edges: np.ndarray, R_rel: np.ndarr
         raise InputFileError(f"{path}: {exc}") from exc
 
 
-def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                   _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the LU Sphinx layout (``Rgt``, ``Rrel``, optional ``Alpha``).
 
     Args:
@@ -159,7 +180,7 @@ def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATI
         InputFileError: missing variables, shapes that are not multiples of 3,
             non-rotation blocks, or H that is not positive definite.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     if "Rrel" not in data:
         raise InputFileError(f"{path}: no variable 'Rrel'; the LU Sphinx layout needs Rrel (3N×3N), found {sorted(data)}")
     Rrel = _numeric(path, data, "Rrel")
@@ -188,8 +209,9 @@ def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATI
             raise InputFileError(f"{path}: Alpha.shape={Alpha.shape} but expected Rrel's shape {Rrel.shape}")
         M = Alpha.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)[i, j]
         # The file stores M to single-precision symmetry; H must be symmetric.
-        M = 0.5 * (M + np.swapaxes(M, 1, 2))
-        H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
+        with np.errstate(all="ignore"):  # absurd entries give inf/NaN, which the view graph refuses
+            M = 0.5 * (M + np.swapaxes(M, 1, 2))
+            H = np.trace(M, axis1=1, axis2=2)[:, None, None] * np.eye(3) - M  # paper 2, eq. 4
         # An edge stored as (j, i) carries M_ji; from_edges turns H into that of (i, j).
     R_gt = gt_mask = None
     if "Rgt" in data:
@@ -211,7 +233,8 @@ def _stack3(path: Path, a: np.ndarray, key: str) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(a, 2, 0))
 
 
-def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> MatData:
+def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                _loaded: tuple[Path, dict[str, Any]] | None = None) -> MatData:
     """Read the ℓ1 layout (``RR`` 3×3×M, ``I`` 2×M 1-based, optional ``Rgt`` 3×3×N).
 
     Args:
@@ -225,7 +248,7 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         InputFileError: missing variables, bad shapes, indices that are not
             positive integers or exceed N, non-rotation blocks.
     """
-    path, data = _load(path)
+    path, data = _loaded or _load(path)  # read_mat passes what it loaded: one read
     missing = [k for k in ("RR", "I") if k not in data]
     if missing:
         raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
@@ -237,7 +260,7 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
     if I.shape[1] != RR.shape[0]:
         raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
-    if np.any(I != np.round(I)) or (I.size and I.min() < 1):
+    if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
     project = _Projector(path, rotation_tol)
@@ -249,6 +272,11 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         R_gt, gt_mask = _ground_truth(path, Rgt, project)
     else:
         n = int(edges.max()) + 1 if edges.size else 0
+        used = len(np.unique(edges))
+        if n > 10 * used + 1000:  # every camera up to the largest index would be allocated, nearly all isolated
+            raise InputFileError(f"{path}: I refers to camera {n} but only {used} distinct cameras have an edge; "
+                                 "without Rgt the largest index is the camera count, so this index is a mistake "
+                                 "(check I, or add Rgt 3x3xN)")
     if edges.size and edges.max() >= n:
         raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
     H = None
@@ -297,9 +325,9 @@ def read_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
     """
     p, data = _load(path)
     if "Rrel" in data:
-        return read_lu_sphinx(p, rotation_tol)
+        return read_lu_sphinx(p, rotation_tol, _loaded=(p, data))
     if "RR" in data and "I" in data:
-        return read_l1_mat(p, rotation_tol)
+        return read_l1_mat(p, rotation_tol, _loaded=(p, data))
     raise InputFileError(
         f"{p}: unknown .mat layout with variables {sorted(data)}; expected Rrel (+Rgt, Alpha) "
         "as in LU Sphinx, or RR and I (+Rgt) as in the ℓ1 layout"

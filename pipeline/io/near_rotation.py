@@ -69,8 +69,9 @@ def rotation_deviation(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     R = np.asarray(R, dtype=np.float64)
     finite = np.all(np.isfinite(R), axis=(-2, -1))
     Rf = np.where(finite[..., None, None], R, 0.0)
-    dev = np.max(np.abs(np.swapaxes(Rf, -1, -2) @ Rf - np.eye(3)), axis=(-2, -1))
-    det = np.linalg.det(Rf)
+    with np.errstate(over="ignore", invalid="ignore"):  # entries near the float limit: far from SO(3), no warning
+        dev = np.max(np.abs(np.swapaxes(Rf, -1, -2) @ Rf - np.eye(3)), axis=(-2, -1))
+        det = np.linalg.det(Rf)
     return np.where(finite, dev, np.inf), np.where(finite, det, np.nan)
 
 

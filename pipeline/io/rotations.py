@@ -2,7 +2,8 @@
 
 One camera per line: ``name r11 r12 r13 r21 r22 r23 r31 r32 r33``, the
 cam_from_world rotation in row-major order. ``#`` starts a comment; blank lines
-are ignored. Names may not contain whitespace.
+are ignored. A name with whitespace, ``#`` or ``"`` is written in double quotes
+(:func:`pipeline.core.names.quote_name`).
 
 :func:`read_rotations` also reads GLOMAP's rotation files (``NAME QW QX QY QZ``,
 :mod:`pipeline.io.glomap`), recognised by their 5 fields a line. Matrices within
@@ -19,6 +20,7 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError
+from pipeline.core.names import quote_name, split_fields
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
 
 
@@ -27,23 +29,22 @@ def write_rotations(path: str | os.PathLike, names: list[str], R: np.ndarray, he
 
     Args:
         path: output file.
-        names: N camera names (no whitespace).
+        names: N camera names (not empty; quoted in the file when they hold whitespace).
         R: (N, 3, 3) cam_from_world rotations.
         header: optional comment lines written first.
     """
     R = np.asarray(R, dtype=np.float64)
     if R.shape != (len(names), 3, 3):
         raise ValueError(f"R.shape={R.shape} but expected ({len(names)}, 3, 3)")
-    bad = [n for n in names if not n or any(c.isspace() for c in n)]
-    if bad:
-        raise ValueError(f"camera names may not be empty or contain whitespace: {bad[:3]}")
+    if not all(names):
+        raise ValueError("camera names may not be empty")
     with atomic_open(path) as f:
         if header:
             for line in header.splitlines():
                 f.write(f"# {line}\n")
         f.write("# name r11 r12 r13 r21 r22 r23 r31 r32 r33 (cam_from_world, row-major)\n")
         for name, Ri in zip(names, R):
-            f.write(name + " " + " ".join(f"{x:.17g}" for x in Ri.ravel()) + "\n")
+            f.write(quote_name(name) + " " + " ".join(f"{x:.17g}" for x in Ri.ravel()) + "\n")
     return Path(path)
 
 
@@ -65,18 +66,20 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
     rows: list[list[float]] = []
     try:
         lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(f"{path} is not a readable rotations text file ({exc.__class__.__name__})") from None
-    first = next((ln.split("#", 1)[0].split() for ln in lines if ln.split("#", 1)[0].strip()), [])
+    except UnicodeDecodeError as exc:
+        raise InputFileError(f"{path} is not a rotations text file (not UTF-8: {exc.reason} at byte {exc.start})"
+                             ) from None
+    except OSError as exc:
+        raise InputFileError(f"rotations file {path} cannot be read ({exc.strerror or exc})") from None
+    rows_of = [(k, split_fields(ln, f"{path}:{k}")) for k, ln in enumerate(lines, 1)]
+    first = next((parts for _, parts in rows_of if parts), [])
     if len(first) == 5:
         from pipeline.io.glomap import read_glomap_rotations  # noqa: PLC0415
 
         return read_glomap_rotations(path, tol)
-    for lineno, line in enumerate(lines, 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
+    for lineno, parts in rows_of:
+        if not parts:
             continue
-        parts = line.split()
         if len(parts) != 10:
             raise InputFileError(f"{path}:{lineno}: expected 'name r11 ... r33' (10 fields), got {len(parts)} "
                                  "(GLOMAP's rotation files have 5: NAME QW QX QY QZ)")
@@ -84,6 +87,8 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
             vals = [float(x) for x in parts[1:]]
         except ValueError:
             raise InputFileError(f"{path}:{lineno}: rotation entries must be numbers") from None
+        if not parts[0]:
+            raise InputFileError(f"{path}:{lineno}: empty camera name")
         names.append(parts[0])
         rows.append(vals)
     if not names:

@@ -1,7 +1,10 @@
-"""References to evaluate against: true cameras (:mod:`.truth`) and reconstructions made here (:mod:`.incremental`).
+"""References to evaluate against: true cameras (:mod:`.truth`) and reconstructions made here.
 
-Every reference is one :class:`Reference`. ``python -m pipeline.reference`` runs the
-pycolmap incremental reconstruction (:func:`pipeline.reference.incremental.main_cli`).
+The reconstructions are pycolmap peers (:mod:`.peer`): incremental (:mod:`.incremental`) and
+global, GLOMAP (:mod:`.global_mapping`). Every reference is one :class:`Reference`.
+``python -m pipeline.reference`` runs the pycolmap incremental reconstruction
+(:func:`pipeline.reference.incremental.main_cli`); ``python -m pipeline.reference.global_mapping``
+the global one (imported from its module, so that ``-m`` runs it cleanly).
 """
 
 from pipeline.reference.incremental import (IncrementalReferenceStage, ReferenceConfig, known_intrinsics, main,

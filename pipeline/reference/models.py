@@ -1,7 +1,7 @@
 """What a pycolmap reconstruction returned: its models, the summary, the result files and their reader.
 
-Shared by the reconstruction peers (:mod:`pipeline.reference.incremental`, and a
-``pycolmap.global_mapping`` peer to come): every model pycolmap returns is kept in
+Shared by the reconstruction peers (:mod:`pipeline.reference.incremental` and
+:mod:`pipeline.reference.global_mapping`): every model pycolmap returns is kept in
 ``models-<key>/<k>/``; the largest one is the reference. Result files in the
 stage's folder ``OUT``::
 
@@ -80,7 +80,8 @@ def load_models(pc: Any, models_dir: Path) -> tuple[dict[int, Any], float]:
 
 
 def summarize_models(pc: Any, recs: dict[int, Any], db_path: Path, names: list[str], given: list[str],
-                     left_out: dict[str, str]) -> tuple[dict[str, Any], Any, np.ndarray]:
+                     left_out: dict[str, str], mapping: str = "incremental mapping"
+                     ) -> tuple[dict[str, Any], Any, np.ndarray]:
     """The summary of what pycolmap registered, the largest model and its (n, 3, 3) rotations.
 
     Args:
@@ -89,6 +90,7 @@ def summarize_models(pc: Any, recs: dict[int, Any], db_path: Path, names: list[s
         names: every image asked for, in order.
         given: the images handed to pycolmap (``names`` minus ``left_out``).
         left_out: ``{name: why}`` of the images not handed to pycolmap.
+        mapping: the mapper's name, for the messages ("incremental mapping", ...).
     """
     models = []
     for k, rec in recs.items():
@@ -120,10 +122,10 @@ def summarize_models(pc: Any, recs: dict[int, Any], db_path: Path, names: list[s
         elif deg.get(nm, 0) == 0:
             why = "no geometrically verified match with any other image"
         else:
-            why = f"{deg[nm]} verified image pairs, but incremental mapping could not register it"
+            why = f"{deg[nm]} verified image pairs, but {mapping} could not register it"
         unregistered[nm] = why
     for nm, why in unregistered.items():
-        logger.warning("pycolmap reference: %s not registered: %s", nm, why)
+        logger.warning("pycolmap %s: %s not registered: %s", mapping, nm, why)
     for m in models[1:]:
         logger.warning("pycolmap returned another model of %d images (%s); the largest (%d images) is used; "
                        "this one leaves out %d images", m["n_registered"], ", ".join(m["registered"][:6]),
@@ -160,15 +162,16 @@ def read_summary(out: Path) -> dict[str, Any]:
     """``OUT/reference.json``; :class:`InputFileError` if absent, :class:`CacheError` if damaged."""
     path = Path(out) / SUMMARY
     if not path.is_file():
-        raise InputFileError(f"{path} does not exist; run `python -m pipeline.reference` first")
+        raise InputFileError(f"{path} does not exist; run `python -m pipeline.reference` (or "
+                             "`pipeline.reference.global_mapping`) first")
     try:
         s = json.loads(path.read_text(encoding="utf-8"))
         reg, unreg = list(s["registered"]), dict(s["unregistered"])
         if int(s["n_registered"]) != len(reg) or not all(isinstance(n, str) for n in [*reg, *unreg]):
             raise ValueError("n_registered and the registered names disagree")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, OverflowError) as exc:
         raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run "
-                         "`python -m pipeline.reference`") from None
+                         "`python -m pipeline.reference` (or `pipeline.reference.global_mapping`)") from None
     return s
 
 
@@ -189,8 +192,8 @@ def verify_result(out: Path) -> None:
         raise CacheError(f"the model {out / MODEL} is missing")
 
 
-def load_reference(out: str | Path) -> Reference:
-    """The pycolmap reference written in ``out`` (a folder or its ``reference.json``), labelled "pycolmap".
+def load_reference(out: str | Path, label: str = "pycolmap") -> Reference:
+    """The pycolmap reference written in ``out`` (a folder or its ``reference.json``), labelled ``label``.
 
     Its names are the registered images; ``unregistered`` says why each other
     image has no camera; ``info`` is the summary.
@@ -200,11 +203,11 @@ def load_reference(out: str | Path) -> Reference:
         out = out.parent
     s = read_summary(out)
     if not s["registered"]:
-        return Reference([], np.zeros((0, 3, 3)), source="pycolmap", label="pycolmap",
+        return Reference([], np.zeros((0, 3, 3)), source="pycolmap", label=label,
                          unregistered=dict(s["unregistered"]), info=s)
     names, R = read_rotations(out / ROTATIONS)
     if list(names) != list(s["registered"]):
         raise CacheError(f"{out / ROTATIONS} and {out / SUMMARY} disagree on the registered images; re-run "
-                         "`python -m pipeline.reference`")
-    return Reference(list(names), np.asarray(R), source="pycolmap", label="pycolmap",
+                         "`python -m pipeline.reference` (or `pipeline.reference.global_mapping`)")
+    return Reference(list(names), np.asarray(R), source="pycolmap", label=label,
                      unregistered=dict(s["unregistered"]), info=s)

@@ -33,12 +33,14 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError
+from pipeline.core.names import quote_name, split_fields
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
@@ -98,11 +100,11 @@ def _read_text(path: Path, what: str) -> str:
         raise InputFileError(f"{path} cannot be read ({exc.strerror or exc})") from None
 
 
-def _rows(text: str) -> list[tuple[int, list[str]]]:
-    """``(line number, fields)`` of the non-blank lines; ``#`` starts a comment."""
+def _rows(text: str, path: Path | str = "line") -> list[tuple[int, list[str]]]:
+    """``(line number, fields)`` of the non-blank lines; ``#`` starts a comment; ``"a name"`` is one field."""
     out = []
     for lineno, line in enumerate(text.split("\n"), 1):
-        parts = line.split("#", 1)[0].split()
+        parts = split_fields(line, f"{path}:{lineno}")
         if parts:
             out.append((lineno, parts))
     return out
@@ -111,7 +113,7 @@ def _rows(text: str) -> list[tuple[int, list[str]]]:
 def _read_table(path: Path, text: str, n_fields: int, layout: str, allow_count_line: bool = False
                 ) -> tuple[list[str], np.ndarray]:
     """Rows of ``name v1 … v_{n_fields−1}`` as names and an (N, n_fields − 1) finite array."""
-    rows = _rows(text)
+    rows = _rows(text, path)
     if allow_count_line and rows and len(rows[0][1]) == 1 and rows[0][1][0].isdigit():
         rows = rows[1:]
     names: list[str] = []
@@ -123,6 +125,8 @@ def _read_table(path: Path, text: str, n_fields: int, layout: str, allow_count_l
             vals.append([float(x) for x in parts[1:]])
         except ValueError:
             raise InputFileError(f"{path}:{lineno}: every field after the name must be a number") from None
+        if not parts[0]:
+            raise InputFileError(f"{path}:{lineno}: empty camera name")
         names.append(parts[0])
     if not names:
         raise InputFileError(f"{path} holds no cameras")
@@ -185,7 +189,7 @@ def write_cameras_file(path: str | os.PathLike, names: list[str], K: np.ndarray,
 
     Args:
         path: output file.
-        names: N image names (no whitespace).
+        names: N image names (quoted in the file when they hold whitespace).
         K: (N, 3, 3) or (3, 3) intrinsics.
         R: (N, 3, 3) cam_from_world rotations.
         t: (N, 3) cam_from_world translations (``x = R X + t``).
@@ -196,15 +200,14 @@ def write_cameras_file(path: str | os.PathLike, names: list[str], K: np.ndarray,
     t = np.asarray(t, dtype=np.float64)
     if R.shape != (n, 3, 3) or t.shape != (n, 3):
         raise ValueError(f"R.shape={R.shape}, t.shape={t.shape} but expected ({n}, 3, 3) and ({n}, 3)")
-    bad = [x for x in names if not x or any(c.isspace() for c in x)]
-    if bad:
-        raise ValueError(f"camera names may not be empty or contain whitespace: {bad[:3]}")
+    if not all(names):
+        raise ValueError("camera names may not be empty")
     with atomic_open(path) as f:
         f.write("# name fx fy cx cy r11 r12 r13 r21 r22 r23 r31 r32 r33 t1 t2 t3\n")
         f.write("# R, t: cam_from_world (x_cam = R X + t); K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]\n")
         for k, name in enumerate(names):
             vals = [K[k, 0, 0], K[k, 1, 1], K[k, 0, 2], K[k, 1, 2], *R[k].ravel(), *t[k]]
-            f.write(name + " " + " ".join(f"{x:.17g}" for x in vals) + "\n")
+            f.write(quote_name(name) + " " + " ".join(f"{x:.17g}" for x in vals) + "\n")
     return Path(path)
 
 
@@ -250,60 +253,49 @@ def read_strecha(path: str | os.PathLike) -> Reference:
 
 # pycolmap's model readers hang on some truncated files (images.bin, frames.bin) and allocate
 # gigabytes on others (points3D.bin), so a user's model is read in a child process with a time
-# and a memory limit; it sends back plain arrays.
-_COLMAP_CHILD = """
-import os, sys
-if os.name == "posix":
-    import resource
-    resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[3]),) * 2)
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-import numpy as np, pycolmap
-pycolmap.logging.minloglevel = 2
-rec = pycolmap.Reconstruction(sys.argv[1])
-names, Rs, Ks, Cs = [], [], [], []
-for image_id in sorted(rec.images):
-    image = rec.images[image_id]
-    if not image.has_pose:
-        continue
-    names.append(image.name)
-    Rs.append(np.asarray(image.cam_from_world().rotation.matrix()))
-    Ks.append(np.asarray(rec.cameras[image.camera_id].calibration_matrix()))
-    Cs.append(np.asarray(image.projection_center()))
-np.savez(sys.argv[2], names=np.array(names, dtype=str), R=np.array(Rs).reshape(-1, 3, 3),
-         K=np.array(Ks).reshape(-1, 3, 3), C=np.array(Cs).reshape(-1, 3))
-"""
+# and a memory limit (pipeline.core.sandbox); it sends back plain arrays.
+def _colmap_arrays(path: str) -> dict[str, Any]:
+    """The registered images of the COLMAP model in ``path`` as plain arrays (runs in the sandbox)."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import pycolmap  # noqa: PLC0415
+
+    pycolmap.logging.minloglevel = 2
+    rec = pycolmap.Reconstruction(path)
+    names, Rs, Ks, Cs = [], [], [], []
+    for image_id in sorted(rec.images):
+        image = rec.images[image_id]
+        if not image.has_pose:
+            continue
+        names.append(str(image.name))
+        Rs.append(np.asarray(image.cam_from_world().rotation.matrix()))
+        Ks.append(np.asarray(rec.cameras[image.camera_id].calibration_matrix()))
+        Cs.append(np.asarray(image.projection_center()))
+    return {"names": names, "R": np.array(Rs, dtype=float).reshape(-1, 3, 3),
+            "K": np.array(Ks, dtype=float).reshape(-1, 3, 3), "C": np.array(Cs, dtype=float).reshape(-1, 3)}
 
 
 def read_colmap_model(path: str | os.PathLike) -> Reference:
-    """Read the registered images of a COLMAP model folder with pycolmap (in a child process).
+    """Read the registered images of a COLMAP model folder with pycolmap (in a sandboxed child process).
 
     Names are ``image.name``; rotations ``image.cam_from_world().rotation.matrix()``.
     """
-    import subprocess  # noqa: PLC0415
-    import sys  # noqa: PLC0415
-    import tempfile  # noqa: PLC0415
+    from pipeline.core.sandbox import SandboxError, run_limited  # noqa: PLC0415
 
     path = Path(path)
+    if (path / "images.bin").is_file():
+        from pipeline.reference.colmap_binary import check_binary_model  # noqa: PLC0415
+
+        check_binary_model(path)  # pycolmap trusts the counts of a damaged binary file
     size = sum(p.stat().st_size for p in path.iterdir() if p.is_file()) if path.is_dir() else 0
-    limit = (2 << 30) + 20 * size
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "model.npz"
-        try:
-            r = subprocess.run([sys.executable, "-c", _COLMAP_CHILD, str(path), str(out), str(limit)],
-                               capture_output=True, text=True, timeout=COLMAP_TIMEOUT_S + size / 2e6,
-                               env={**os.environ, "OMP_NUM_THREADS": "1"})
-        except subprocess.TimeoutExpired:
-            raise InputFileError(f"{path}: pycolmap cannot read this model folder (it did not finish; a file of "
-                                 "the model is truncated or damaged)") from None
-        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-        if r.returncode != 0 or not out.is_file():
-            why = lines[-1] if lines else f"exit code {r.returncode}"
-            raise InputFileError(f"{path}: pycolmap cannot read this model folder ({' '.join(why.split())[:120]})")
-        try:
-            with np.load(out, allow_pickle=False) as z:
-                names, Rs, Ks, C = [str(n) for n in z["names"]], z["R"], z["K"], z["C"]
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputFileError(f"{path}: pycolmap cannot read this model folder ({exc})") from None
+    try:
+        arr = run_limited(_colmap_arrays, str(path), timeout=COLMAP_TIMEOUT_S + size / 2e6,
+                          memory_bytes=(2 << 30) + 20 * size, preload=("numpy", "pycolmap", __name__))
+    except SandboxError as exc:
+        why = str(exc)
+        if "did not finish" in why:
+            why += "; a file of the model is truncated or damaged"
+        raise InputFileError(f"{path}: pycolmap cannot read this model folder ({why})") from None
+    names, Rs, Ks, C = arr["names"], arr["R"], arr["K"], arr["C"]
     if not names:
         raise InputFileError(f"{path}: the COLMAP model has no registered image")
     _check_unique(path, names)
@@ -348,7 +340,7 @@ def read_reference(path: str | os.PathLike) -> Reference:
         keep = np.flatnonzero(data.gt_mask)
         return Reference([data.vg.names[k] for k in keep], data.R_gt[keep], source="mat")
     text = _read_text(path, "reference")
-    rows = _rows(text)
+    rows = _rows(text, path)
     first = next((parts for _, parts in rows if not (len(parts) == 1 and parts[0].isdigit())), [])
     readers = {10: _rotations_text, 5: _glomap_text, 17: _cameras_text, 22: _middlebury_text}
     if len(first) not in readers:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -34,12 +32,6 @@ def graph_file(tmp_path_factory):
 def _err(R_est, R):
     G = so3.chordal_mean(np.swapaxes(R, 1, 2) @ R_est)
     return np.rad2deg(so3.angle_between(R_est, R @ G))
-
-
-def test_help():
-    out = subprocess.run([sys.executable, "-m", "pipeline.average", "--help"], capture_output=True, text=True)
-    assert out.returncode == 0
-    assert "--method" in out.stdout and "--loss" in out.stdout and "--json" in out.stdout
 
 
 @pytest.mark.parametrize("method", ["irls", "l1", "weiszfeld"])

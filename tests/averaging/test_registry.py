@@ -254,7 +254,7 @@ def test_toy_method_through_run_py(toy, tmp_path):
     cfg.write_text("run:\n  methods: toy\n  plots: false\naveraging:\n  toy:\n    tree: random\n")
     m = json.loads(run.main(scene, tmp_path / "out", config=cfg, gt=scene / "cameras.txt", reference=False,
                             quiet=True).read_text())
-    assert list(m["methods"]) == ["toy"]
+    assert list(m["methods"]) == ["toy", "toy+refine"]  # the refinement starts from the only method
     toy_m = m["methods"]["toy"]
     assert toy_m["method"] == "toy-random" and toy_m["n_evaluated"] == 5 and toy_m["median_deg"] < 2.0
     assert (tmp_path / "out" / "rotations" / "toy.record.json").is_file()

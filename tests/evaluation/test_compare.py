@@ -35,11 +35,6 @@ def test_match_reference() -> None:
 
 
 # ----------------------------------------------------------------------- command
-def test_cli_help() -> None:
-    out = subprocess.run([sys.executable, "-m", "pipeline.evaluate", "--help"], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0 and "--reference" in out.stdout and "--align" in out.stdout
-
-
 def test_cli_rotations_and_viewgraph(tmp_path, capsys) -> None:
     rng = np.random.default_rng(7)
     R = so3.random_rotations(6, rng)

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -129,11 +127,6 @@ def test_intrinsics_file_formats(tmp_path):
         parse_intrinsics_file(p)
     with pytest.raises(InputFileError, match="does not exist"):
         parse_intrinsics_file(tmp_path / "nope.txt")
-
-
-def test_cli_help():
-    r = subprocess.run([sys.executable, "-m", "pipeline.features", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--images" in r.stdout and "--K" in r.stdout
 
 
 def test_load_features_without_run(tmp_path):

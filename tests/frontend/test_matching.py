@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -137,11 +135,6 @@ def test_main_resume_and_incremental(scene, tmp_path):
 def test_matching_without_features(tmp_path):
     with pytest.raises(InputFileError, match="pipeline.features"):
         matching.main(tmp_path, progress=False)
-
-
-def test_cli_help():
-    r = subprocess.run([sys.executable, "-m", "pipeline.matching", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--pairs" in r.stdout
 
 
 def test_flann_matches_do_not_depend_on_rng_state_or_threads():

@@ -204,11 +204,6 @@ def test_two_view_without_matches(tmp_path):
         load_two_view(tmp_path)
 
 
-def test_cli_help():
-    r = subprocess.run([sys.executable, "-m", "pipeline.two_view", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--threshold" in r.stdout
-
-
 def test_cli_prints_the_view_graph_and_damage_is_one_line(work_copy):
     r = subprocess.run([sys.executable, "-m", "pipeline.two_view", "--work", str(work_copy), "-q"],
                        capture_output=True, text=True)

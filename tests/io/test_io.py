@@ -46,8 +46,11 @@ def test_rotations_malformed(tmp_path, content: str, match: str) -> None:
 def test_rotations_missing_file_and_bad_names(tmp_path) -> None:
     with pytest.raises(InputFileError, match="does not exist"):
         read_rotations(tmp_path / "nope.txt")
-    with pytest.raises(ValueError, match="whitespace"):
-        write_rotations(tmp_path / "r.txt", ["a b"], np.eye(3)[None])
+    # a name with whitespace (or '#') is quoted, and read back as written (issue 12: names with spaces work)
+    write_rotations(tmp_path / "r.txt", ["a b", "c#d", "e"], np.stack([np.eye(3)] * 3))
+    assert read_rotations(tmp_path / "r.txt")[0] == ["a b", "c#d", "e"]
+    with pytest.raises(ValueError, match="empty"):
+        write_rotations(tmp_path / "r.txt", [""], np.eye(3)[None])
     with pytest.raises(ValueError, match=r"R.shape=\(1, 3, 3\) but expected \(2, 3, 3\)"):
         write_rotations(tmp_path / "r.txt", ["a", "b"], np.eye(3)[None])
 

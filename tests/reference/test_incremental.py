@@ -167,11 +167,6 @@ def test_K_forms(tmp_path):
     assert K[0, 0, 0] == 100.0 and K[1, 0, 0] == 200.0
 
 
-def test_help():
-    r = subprocess.run([sys.executable, "-m", "pipeline.reference", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--images" in r.stdout and "--K" in r.stdout
-
-
 def test_cli_bad_input_one_line(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pipeline.reference", "--images", str(tmp_path / "none"),
                         "--out", str(tmp_path / "o")], capture_output=True, text=True)

@@ -98,9 +98,7 @@ def test_rejects_fewer_than_two_views():
         render_scene(n_views=1, config=SMALL)
 
 
-def test_cli_help_and_run(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pipeline.synthetic.render", "--help"], capture_output=True, text=True)
-    assert r.returncode == 0 and "--views" in r.stdout
+def test_cli_run(tmp_path):  # --help: tests/test_help.py
     r = subprocess.run([sys.executable, "-m", "pipeline.synthetic.render", "--views", "2", "--seed", "5", "--out",
                         str(tmp_path), "--width", "120", "--height", "90", "-q"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

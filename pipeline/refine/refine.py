@@ -1,0 +1,330 @@
+"""Refine averaged rotations with pycolmap's multi-view machinery: :func:`refine_rotations` (arrays in, result out).
+
+From OUR averaged cam_from_world rotations, pycolmap does every multi-view step,
+as GLOMAP does after its own rotation averaging (:mod:`pipeline.refine.mapper`):
+
+1. edge filter: the pairs whose measured ``R_ij`` agrees with ``R_j R_iᵀ`` of the averaged
+   rotations within ``edge_filter_deg`` (our robust averaging's verdict on each pair);
+2. tracks from the kept inlier matches (:func:`pipeline.refine.tracks.build_tracks`); an
+   image with fewer than ``min_image_observations`` track observations is not refined;
+3. an in-memory COLMAP database and the starting reconstruction (:mod:`pipeline.refine.model`);
+4. global positioning, iterative bundle adjustment, retriangulation and a final BA;
+5. checks: an image the final model lost, or one whose refined rotation is more than
+   ``max_change_deg`` from the averaged one (after one global alignment), keeps its
+   averaged rotation, and the warnings say so; both sets are returned;
+6. the per-camera rotation covariance (:mod:`pipeline.refine.covariance`).
+
+It never raises on a pycolmap failure: the status says ``failed`` and the averaged
+rotations are returned. Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``,
+carries ``R_ij = R_j R_iᵀ`` and ``t_ij`` with ``x_j = R_ij x_i + t_ij`` (pycolmap's
+``cam2_from_cam1``); pixel centres at integers (shifted by +0.5 into pycolmap).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Sequence
+
+import numpy as np
+
+from pipeline.core import so3
+from pipeline.core.config import Config, option
+from pipeline.core.errors import ConfigError
+from pipeline.refine import mapper
+from pipeline.refine.covariance import rotation_covariance
+from pipeline.refine.model import correspondence_cache, model_rotations, starting_reconstruction
+from pipeline.refine.tracks import build_tracks, filter_edges, restrict_tracks, select_matches, select_tracks, \
+    subset_tracks
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RefineConfig", "RefineResult", "refine_rotations", "PRESETS"]
+
+#: The schedules: GLOMAP's own (every track in positioning, 5 refinement rounds), and a
+#: fast one (500 tracks per image in positioning, 1 round: about 3× less CPU).
+PRESETS = {"glomap": {"positioning_tracks_per_image": 0, "refinement_rounds": 5},
+           "fast": {"positioning_tracks_per_image": 500, "refinement_rounds": 1}}
+
+
+@dataclass(frozen=True, kw_only=True)
+class RefineConfig(Config):
+    """Options of the refinement (YAML section ``refine``)."""
+
+    SECTION = "refine"
+
+    start: str = option("auto", "averaged rotations to start from: a method label (irls-h-l0.5, irls-l0.5, ...) "
+                                "or auto (IRLS-H-l0.5 when it ran, else IRLS-l0.5, else the first method)")
+    preset: Literal["glomap", "fast"] = option("glomap", "schedule: glomap (GLOMAP's) or fast (fewer tracks in "
+                                                         "positioning, one refinement round)")
+    positioning_tracks_per_image: int | None = option(None, "tracks per image in global positioning (0: all; "
+                                                            "null: the preset's)", ge=0)
+    refinement_rounds: int | None = option(None, "iterative_global_refinement rounds after retriangulation "
+                                                 "(null: the preset's)", ge=0)
+    max_change_deg: float = option(5.0, "a refined rotation farther than this from the averaged one keeps the "
+                                        "averaged one (both are reported)", gt=0)
+    edge_filter_deg: float | None = option(5.0, "pairs farther than this from the averaged rotations are not "
+                                                "used (null: every pair)", gt=0)
+    min_track_views: int = option(3, "images a track must be seen in", ge=2)
+    track_consistency_px: float = option(10.0, "a track with two keypoints of one image farther apart is dropped",
+                                         gt=0)
+    min_image_observations: int = option(20, "an image with fewer track observations (or final 3D points) is "
+                                             "not refined", ge=1)
+    ba_iterations: int = option(3, "rounds of positions-only + joint bundle adjustment", ge=1)
+    retriangulate: bool = option(True, "re-triangulate every image and refine before the final BA")
+    dense_solver_max_images: int = option(50, "ceres' dense Schur solver up to this many images (0: sparse)", ge=0)
+    max_angular_error_deg: float = option(1.0, "GLOMAP's angular reprojection filter after positioning", gt=0)
+    max_normalized_error: float = option(0.01, "GLOMAP's normalized reprojection filter", gt=0)
+    min_tri_angle_deg: float = option(1.0, "points triangulated under a smaller angle are removed", ge=0)
+    huber_px: float = option(1.0, "Huber loss scale of the bundle adjustment, pixels", gt=0)
+    covariance: bool = option(True, "estimate each camera's rotation covariance")
+    seed: int = option(0, "random seed of positioning and triangulation", ge=0)
+    num_threads: int = option(-1, "threads for pycolmap (-1: all cores)", ge=-1, runtime=True)
+
+    def check(self) -> None:
+        if self.num_threads == 0:
+            raise ConfigError("[refine] num_threads=0 but expected a positive count or -1 (all cores)")
+        if not self.start.strip() or any(c.isspace() or c in "/\\" for c in self.start):
+            raise ConfigError(f"[refine] start={self.start!r} but expected 'auto' or a method label such as irls-h-l0.5")
+
+    def schedule(self) -> dict[str, int]:
+        """The preset's values, overridden by the options given explicitly."""
+        out = dict(PRESETS[self.preset])
+        for k in out:
+            if getattr(self, k) is not None:
+                out[k] = int(getattr(self, k))
+        return out
+
+
+@dataclass
+class RefineResult:
+    """What :func:`refine_rotations` returns.
+
+    Attributes:
+        status: "ok" (every image with a start refined), "partial" (some kept the averaged
+            rotation) or "failed" (none refined; ``R`` is the averaged set).
+        R: (N, 3, 3) the rotations to use: refined where ``refined``, averaged elsewhere,
+            in the averaged rotations' world frame.
+        R_init: (N, 3, 3) the averaged rotations (NaN for images without one).
+        R_refined: (N, 3, 3) pycolmap's rotations aligned to the averaged frame, before the
+            change check (NaN where the image is not in the final model).
+        refined: (N,) bool.
+        change_deg: (N,) angle between R_refined and R_init (NaN where not in the model).
+        cov: (N, 3, 3) rotation covariance, rad², left perturbation ``R = exp([δ]×) R̂``,
+            minimum-norm gauge; NaN where unavailable; None when not estimated.
+        why: (N,) why each image kept its averaged rotation ("" where refined).
+        reconstruction: the final pycolmap Reconstruction (None when a step failed).
+        warnings: one line per problem.
+        stats: counts, per-step times (``times``), σ of the reprojection error.
+    """
+
+    status: str
+    R: np.ndarray
+    R_init: np.ndarray
+    R_refined: np.ndarray
+    refined: np.ndarray
+    change_deg: np.ndarray
+    cov: np.ndarray | None
+    why: list[str]
+    reconstruction: Any = None
+    warnings: list[str] = field(default_factory=list)
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def _pycolmap() -> Any:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before pycolmap's OpenMP runtime starts
+    import pycolmap  # noqa: PLC0415
+
+    pycolmap.logging.minloglevel = 0 if logger.isEnabledFor(logging.DEBUG) else 2
+    return pycolmap
+
+
+def _check_inputs(n: int, K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray], edges: np.ndarray,
+                  match_offsets: np.ndarray, cam2_from_cam1: np.ndarray, t: np.ndarray, R_init: np.ndarray) -> None:
+    m = len(edges)
+    got = {"K": K.shape, "sizes": sizes.shape, "R_init": R_init.shape, "cam2_from_cam1": cam2_from_cam1.shape,
+           "t_cam2_from_cam1": t.shape, "match_offsets": match_offsets.shape}
+    want = {"K": (n, 3, 3), "sizes": (n, 2), "R_init": (n, 3, 3), "cam2_from_cam1": (m, 3, 3),
+            "t_cam2_from_cam1": (m, 3), "match_offsets": (m + 1,)}
+    bad = [f"{k}.shape={got[k]} but expected {want[k]}" for k in want if got[k] != want[k]]
+    if len(keypoints) != n:
+        bad.append(f"{len(keypoints)} keypoint arrays but expected {n}")
+    if m and (np.any(edges[:, 0] >= edges[:, 1]) or edges.min() < 0 or edges.max() >= n):
+        bad.append(f"edges must be pairs (i, j) with 0 <= i < j < {n}")
+    if bad:
+        raise ValueError(f"refine_rotations: {'; '.join(bad)} (for {n} images and {m} pairs)")
+
+
+def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray],
+                     edges: np.ndarray, match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
+                     t_cam2_from_cam1: np.ndarray, R_init: np.ndarray, known_K: np.ndarray | bool = True,
+                     config: RefineConfig | None = None, scratch: Path | None = None) -> RefineResult:
+    """Refine averaged rotations with pycolmap's global positioning, bundle adjustment and retriangulation.
+
+    Args:
+        names: N image names.
+        K: (N, 3, 3) intrinsics (pixel centres at integers); a starting guess where not known.
+        sizes: (N, 2) image sizes (width, height).
+        keypoints: N arrays (n_i, 2) keypoint pixel coordinates.
+        edges: (M, 2) verified pairs, i < j.
+        match_offsets: (M+1,) start of each pair's inlier matches in ``matches``.
+        matches: (T, 2) inlier matches as keypoint indices (in image i, in image j).
+        cam2_from_cam1: (M, 3, 3) relative rotations ``R_ij = R_j R_iᵀ``.
+        t_cam2_from_cam1: (M, 3) relative translations (unit or zero).
+        R_init: (N, 3, 3) averaged cam_from_world rotations (NaN for images without one).
+        known_K: (N,) bool or one bool: intrinsics known (constant) or refined (focal).
+        config: options (:class:`RefineConfig`).
+        scratch: folder for the temporary binary model (default: system temp).
+    Returns:
+        :class:`RefineResult`.
+    """
+    cfg = config or RefineConfig()
+    t_all = time.perf_counter()
+    n = len(names)
+    K, sizes, R_init = np.asarray(K, float), np.asarray(sizes), np.asarray(R_init, float)
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    match_offsets = np.asarray(match_offsets, np.int64)
+    cam2_from_cam1, t = np.asarray(cam2_from_cam1, float), np.asarray(t_cam2_from_cam1, float)
+    _check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
+    known = np.broadcast_to(np.asarray(known_K, bool), (n,)).copy()
+    schedule = cfg.schedule()
+    warnings: list[str] = []
+    times: dict[str, float] = {}
+    stats: dict[str, Any] = {"times": times, "n_images": n, "n_pairs_in": len(edges), "schedule": schedule}
+    has_R = np.all(np.isfinite(R_init), axis=(1, 2))
+    why = ["no averaged rotation" if not h else "" for h in has_R]
+
+    def result(status: str, rec: Any = None, R_ref: np.ndarray | None = None, refined: np.ndarray | None = None,
+               change: np.ndarray | None = None, cov: np.ndarray | None = None) -> RefineResult:
+        refined = np.zeros(n, bool) if refined is None else refined
+        R_ref = np.full((n, 3, 3), np.nan) if R_ref is None else R_ref
+        R_out = R_init.copy()
+        R_out[refined] = R_ref[refined]
+        if status == "failed":
+            for k in np.flatnonzero(has_R):
+                why[k] = why[k] or warnings[-1]
+        times["total"] = time.perf_counter() - t_all
+        stats["n_refined"] = int(refined.sum())
+        for w in warnings:
+            logger.warning("refine: %s", w)
+        return RefineResult(status, R_out, R_init.copy(), R_ref, refined,
+                            np.full(n, np.nan) if change is None else change, cov, list(why), rec, warnings, stats)
+
+    # 1. edge filter from our averaged rotations; 2. tracks
+    t0 = time.perf_counter()
+    keep, residual = filter_edges(edges, cam2_from_cam1, R_init, cfg.edge_filter_deg)
+    stats["n_pairs_kept"] = int(keep.sum())
+    if np.isfinite(residual).any():
+        stats["pair_residual_deg_median"] = float(np.nanmedian(residual))
+    if (~keep).any():
+        warnings.append(f"{int((~keep).sum())} of {len(edges)} pairs disagree with the averaged rotations by more "
+                        f"than {cfg.edge_filter_deg}° (or lack a rotation) and are not used")
+    k_off, k_matches = select_matches(match_offsets, matches, keep)
+    tracks = build_tracks(keypoints, edges[keep], k_off, k_matches, cfg.min_track_views, cfg.track_consistency_px)
+    obs = tracks.observations_per_image(n)
+    stats.update(n_tracks=tracks.n_tracks, n_track_components=tracks.n_components,
+                 n_tracks_inconsistent=tracks.n_inconsistent, n_tracks_short=tracks.n_short)
+    active = has_R & (obs >= cfg.min_image_observations)
+    for k in np.flatnonzero(has_R & ~active):
+        why[k] = f"{obs[k]} track observations (< {cfg.min_image_observations}): not refined"
+        warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation")
+    times["tracks"] = time.perf_counter() - t0
+    if active.sum() < 2:
+        warnings.append(f"only {int(active.sum())} image(s) with enough tracks ({tracks.n_tracks} tracks): "
+                        "nothing to refine; the averaged rotations are kept")
+        return result("failed")
+    tracks = restrict_tracks(tracks, active, cfg.min_track_views)
+
+    # 3. the in-memory database (correspondence graph) and the starting reconstruction; 4. pycolmap's steps
+    pc = _pycolmap()
+    state: dict[str, Any] = {}
+
+    def setup() -> tuple[bool, str]:
+        images = np.flatnonzero(active)
+        pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
+        p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
+        state["cache"] = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off,
+                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok])
+        state["pose_graph"] = pc.PoseGraph()
+        state["pose_graph"].load(state["cache"].correspondence_graph)
+        tr = tracks
+        if schedule["positioning_tracks_per_image"] > 0:
+            tr = subset_tracks(tr, select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
+        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch)
+        stats["n_points_start"] = int(state["rec"].num_points3D())
+        return True, ""
+
+    ba = mapper.ba_options(pc, cfg, known)
+    steps = [("setup", setup),
+             ("global_positioning", lambda: mapper.global_positioning(pc, state["rec"], state["pose_graph"], cfg)),
+             ("bundle_adjustment", lambda: mapper.iterative_bundle_adjustment(pc, state["rec"], ba, known, cfg))]
+    if cfg.retriangulate:
+        steps.append(("retriangulation", lambda: mapper.retriangulate(pc, state["rec"], state["cache"], ba, known, cfg,
+                                                                      schedule["refinement_rounds"])))
+    for step, run in steps:
+        t0 = time.perf_counter()
+        try:
+            ok, reason = run()
+        except (RuntimeError, ValueError, MemoryError) as exc:  # pycolmap's failed checks raise these
+            ok, reason = False, f"{step.replace('_', ' ')} raised {type(exc).__name__}: {' '.join(str(exc).split())[:120]}"
+        times[step] = time.perf_counter() - t0
+        if "rec" in state:
+            stats[f"n_points_after_{step}"] = int(state["rec"].num_points3D())
+        if not ok:
+            warnings.append(f"{reason}; the averaged rotations are kept")
+            return result("failed")
+    rec = state["rec"]
+    rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
+    stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+                 mean_track_length=float(rec.compute_mean_track_length()))
+    return _checked(pc, rec, ba, known, cfg, names, R_init, has_R, active, why, warnings, stats, times, result)
+
+
+def _checked(pc: Any, rec: Any, ba: Any, known: np.ndarray, cfg: RefineConfig, names: Sequence[str],
+             R_init: np.ndarray, has_R: np.ndarray, active: np.ndarray, why: list[str], warnings: list[str],
+             stats: dict[str, Any], times: dict[str, float], result: Any) -> RefineResult:
+    """Step 5 and 6: which images keep a refined rotation (lost, moved too far), and their covariance."""
+    n = len(names)
+    R_model = model_rotations(rec, n)
+    in_model = np.all(np.isfinite(R_model), axis=(1, 2))
+    n_points = np.zeros(n, np.int64)
+    for iid in rec.reg_image_ids():  # per image: pycolmap's count of its 3D points
+        n_points[iid - 1] = rec.image(iid).num_points3D
+    supported = in_model & (n_points >= cfg.min_image_observations)
+    for k in np.flatnonzero(active & ~supported):
+        why[k] = f"{n_points[k]} 3D points in the final model (< {cfg.min_image_observations})"
+        warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation")
+    if supported.sum() < 2:
+        warnings.append("fewer than 2 images are supported by the final model; the averaged rotations are kept")
+        return result("failed")
+    # R_model ≈ R_init G (chordal ℓ2 over the supported images); the refined set in the averaged frame
+    G = so3.project_to_so3(np.einsum("nji,njk->ik", R_init[supported], R_model[supported]))
+    R_ref = R_model @ G.T
+    change = np.full(n, np.nan)
+    change[in_model] = np.degrees(so3.angle_between(R_ref[in_model], R_init[in_model]))
+    moved = supported & (change > cfg.max_change_deg)
+    for k in np.flatnonzero(moved):
+        why[k] = (f"refined rotation {change[k]:.2f}° from the averaged one (> max_change_deg = "
+                  f"{cfg.max_change_deg}°)")
+        warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation (both are reported)")
+    refined = supported & ~moved
+    stats["change_deg_median"] = float(np.median(change[supported]))
+    stats["change_deg_max"] = float(np.max(change[supported]))
+    cov = None
+    if cfg.covariance:
+        t0 = time.perf_counter()
+        try:
+            cov, info = rotation_covariance(pc, rec, ba, known, n)
+            stats.update(info)
+            if cov is None:
+                warnings.append("pycolmap's estimate_ba_covariance failed: no rotation uncertainty")
+            else:  # into the averaged frame: δ' = G δ for R' = R Gᵀ
+                cov = np.einsum("ij,njk,lk->nil", G, cov, G)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # the refinement stands without it
+            warnings.append(f"rotation covariance failed ({type(exc).__name__}: {' '.join(str(exc).split())[:100]})")
+        times["covariance"] = time.perf_counter() - t0
+    status = "ok" if refined[has_R].all() else "partial"
+    return result(status, rec, R_ref, refined, change, cov)

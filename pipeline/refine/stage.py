@@ -1,0 +1,304 @@
+"""The refine stage: averaged rotations finished by pycolmap's multi-view machinery (``python -m pipeline.refine``).
+
+It reads our front end's WORK folder (features, two-view inliers, the two-view BA
+view graph) and one averaging method's rotations in ``OUT/rotations/``, runs
+:func:`pipeline.refine.refine.refine_rotations`, and writes, atomically::
+
+    OUT/sparse/                          the COLMAP model (cameras, images, points3D, rigs,
+                                         frames), opened by ``pycolmap.Reconstruction(path)``;
+                                         absent when the refinement failed
+    OUT/rotations/<start>+refine.txt     the rotations to use: refined, or averaged where the
+                                         refinement failed or moved a camera more than
+                                         ``max_change_deg`` (same cameras as <start>.txt)
+    OUT/rotations/<start>+refine.json    status, warnings, per camera: refined or kept averaged
+                                         and why, change from the averaged rotation, predicted
+                                         uncertainty (√tr Σ, degrees) and covariance (rad²)
+    OUT/refine.record.json               the stage record
+
+The start is a method's label, or ``auto``: the recommended one (:func:`recommended_start`).
+The averaged rotations file is never changed: both sets stay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from pipeline.core.atomic import atomic_dir, write_json
+from pipeline.core.errors import CacheError, InputFileError, PipelineError
+from pipeline.core.names import match_names
+from pipeline.io.rotations import read_rotations, write_rotations
+from pipeline.refine.refine import RefineConfig, RefineResult, refine_rotations
+from pipeline.stage import Stage, StageRecord
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["RefineStage", "recommended_start", "run_refine", "refine_for_run", "refine_notes", "refined_label",
+           "load_inputs",
+           "main_cli", "MODEL", "PREFERRED"]
+
+MODEL = "sparse"
+ROTATIONS = "rotations"
+#: The recommended starts, best first: IRLS-H-ℓ½ where the view graph has H, else IRLS-ℓ½. The
+#: refined result hardly depends on the start (r14: < 1e-4° between both); what matters is a
+#: robust start for the edge filter and for global positioning's basin.
+PREFERRED = ("irls-h-l0.5", "irls-l0.5")
+
+
+def refined_label(start: str) -> str:
+    return f"{start}+refine"
+
+
+def recommended_start(labels: Sequence[str]) -> tuple[str, str]:
+    """The method to start from among ``labels`` (those run) and why."""
+    labels = list(labels)
+    for p in PREFERRED:
+        if p in labels:
+            return p, f"{p}: the recommended start ({' > '.join(PREFERRED)})"
+    if not labels:
+        raise PipelineError("no averaged rotations to refine: run an averaging method first")
+    return labels[0], f"{labels[0]}: the first method run (none of {', '.join(PREFERRED)} ran)"
+
+
+def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
+    """Intrinsics read from a file are known (kept constant); EXIF and default focals are refined."""
+    if len(sources) != n:
+        return np.zeros(n, bool)
+    return np.array([str(s).startswith("file") for s in sources], bool)
+
+
+def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str], np.ndarray]:
+    """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
+
+    Returns:
+        the inputs (over every image of the features; NaN rotations for images the file
+        lacks), the file's camera names and (len(names),) their images' indices.
+    """
+    from pipeline.frontend.feature_stage import load_features  # noqa: PLC0415
+    from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: PLC0415
+    from pipeline.geometry.two_view_stage import load_two_view  # noqa: PLC0415
+
+    fs = load_features(work, descriptors=False)
+    tv = load_two_view(work)
+    vg = load_ba_viewgraph(work)
+    n = len(fs.names)
+    if tv.vg.n_cameras != n or vg.n_cameras != n:
+        raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
+                         "re-run the front end")
+    # the pairs that passed two-view BA, with their two-view inliers and refined poses
+    key_tv = tv.vg.edges[:, 0] * n + tv.vg.edges[:, 1]
+    key_ba = vg.edges[:, 0] * n + vg.edges[:, 1]
+    order = np.argsort(key_tv)
+    pos = np.searchsorted(key_tv[order], key_ba)
+    found = (pos < len(order)) & (key_tv[order][np.minimum(pos, len(order) - 1)] == key_ba)
+    if not found.all():
+        raise CacheError(f"the two-view BA view graph in {work} has pairs the two-view result lacks; re-run the front end")
+    e_tv = order[pos]
+    counts = np.diff(tv.offsets)[e_tv]
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    rows = np.arange(offsets[-1]) + np.repeat(tv.offsets[e_tv] - offsets[:-1], counts)  # inliers of the kept pairs
+    names, R = read_rotations(rotations)
+    cams = match_names(names, list(fs.names), what=f"the images of {work}")
+    if np.any(cams < 0) or len(set(cams.tolist())) != len(cams):
+        raise InputFileError(f"{rotations} names cameras that are not images of {work} (e.g. "
+                             f"{[nm for nm, c in zip(names, cams) if c < 0][:3]}); re-run the averaging")
+    R_init = np.full((n, 3, 3), np.nan)
+    R_init[cams] = R
+    return {"names": list(fs.names), "K": fs.K, "sizes": fs.sizes, "keypoints": fs.keypoints, "edges": vg.edges,
+            "match_offsets": offsets,
+            "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
+            "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
+            "known_K": _known_K(fs.K_source, n)}, list(names), cams
+
+
+class RefineStage(Stage[RefineConfig]):
+    """One averaging method's rotations refined by pycolmap (folder = OUT).
+
+    Args:
+        folder: OUT; the averaged rotations are read from ``OUT/rotations/<start>.txt``.
+        config: options; ``config.start`` may be ``auto``.
+        work: the front end's WORK folder (default ``OUT/work``).
+        methods: the labels of the methods run (to resolve ``auto``; default: the records
+            found in ``OUT/rotations``).
+    """
+
+    name = "refine"
+    title = "multi-view refinement (pycolmap)"
+    config_cls = RefineConfig
+
+    def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
+                 methods: Sequence[str] | None = None) -> None:
+        super().__init__(folder, config)
+        self.work = Path(work) if work is not None else self.folder / "work"
+        self.rot_dir = self.folder / ROTATIONS
+        if self.config.start == "auto":
+            if methods is None:
+                methods = sorted(p.name[:-len(".record.json")] for p in self.rot_dir.glob("*.record.json")
+                                 if "+" not in p.name)
+            self.start, self.start_why = recommended_start(methods)
+        else:
+            self.start, self.start_why = self.config.start, f"{self.config.start}: configured"
+        self.label = refined_label(self.start)
+        self.rotations_path = self.rot_dir / f"{self.label}.txt"
+        self.stats_path = self.rot_dir / f"{self.label}.json"
+
+    def inputs(self) -> dict[str, str]:
+        if not (self.rot_dir / f"{self.start}.record.json").is_file():
+            raise InputFileError(f"{self.rot_dir} has no rotations of '{self.start}', the refinement's start: run that "
+                                 "averaging method first (run.py --methods), or set refine.start to a method that ran")
+        out = {"averaging": self.upstream("averaging", self.rot_dir, self.start).fingerprint}
+        out.update({up: self.upstream(up, self.work).fingerprint for up in ("features", "two_view", "two_view_ba")})
+        return out
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
+        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
+        res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
+        paths: list[Path] = []
+        model = self.folder / MODEL
+        if res.reconstruction is not None:
+            with atomic_dir(model) as tmp:
+                res.reconstruction.write(tmp)
+            paths += sorted(p for p in model.rglob("*") if p.is_file())
+        else:
+            shutil.rmtree(model, ignore_errors=True)  # a model of an earlier run would not match these rotations
+        header = (f"rotations of {self.start} refined by pycolmap (global positioning, bundle adjustment, "
+                  f"retriangulation): status {res.status}; averaged where not refined")
+        paths.append(write_rotations(self.rotations_path, start_names, res.R[rows], header=header))
+        stats = refine_stats(res, start_names, rows, self)
+        paths.append(write_json(self.stats_path, stats))
+        logger.info("refine: %s, %d of %d cameras refined in %.1f s (%d points); %s", res.status,
+                    int(res.refined[rows].sum()), len(rows), res.stats["times"]["total"], res.stats.get("n_points", 0),
+                    self.rotations_path)
+        return paths, {k: stats[k] for k in ("label", "status", "n_cameras", "n_refined", "n_points", "time_s")}
+
+    def verify(self, record: StageRecord) -> None:
+        names, _ = read_rotations(self.rotations_path)
+        start_names, _ = read_rotations(self.rot_dir / f"{self.start}.txt")
+        if list(names) != list(start_names):
+            raise CacheError(f"{self.rotations_path} holds other cameras than {self.start}.txt")
+        stats = read_stats(self.stats_path)
+        if stats.get("n_cameras") != len(names) or (stats.get("model") is not None) != (self.folder / MODEL).is_dir():
+            raise CacheError(f"{self.stats_path} does not describe {self.rotations_path} and {self.folder / MODEL}")
+
+
+def _deg(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: RefineStage) -> dict[str, Any]:
+    """The JSON stats of a refinement over the start's cameras ``names`` (images ``rows`` of ``res``)."""
+    sigma = np.degrees(np.sqrt(np.trace(res.cov, axis1=1, axis2=2))) if res.cov is not None else \
+        np.full(len(res.R), np.nan)
+    cams = list(zip(names, rows.tolist()))
+    cameras = {}
+    for nm, k in cams:
+        c: dict[str, Any] = {"refined": bool(res.refined[k]), "change_deg": _deg(res.change_deg[k]),
+                             "sigma_deg": _deg(sigma[k])}
+        if not res.refined[k]:
+            c["kept_averaged_why"] = res.why[k]
+            if np.isfinite(res.R_refined[k]).all():
+                c["refined_cam_from_world"] = res.R_refined[k].ravel().tolist()
+        if res.cov is not None and np.isfinite(res.cov[k]).all():
+            c["cov_rad2"] = res.cov[k].ravel().tolist()
+        cameras[nm] = c
+    ok_sigma = sigma[rows][np.isfinite(sigma[rows])]
+    s = res.stats
+    return {"method": "refine", "label": stage.label, "start": stage.start, "start_why": stage.start_why,
+            "status": res.status, "warnings": res.warnings, "n_cameras": len(rows),
+            "n_refined": int(res.refined[rows].sum()),
+            "kept_averaged": {nm: res.why[k] for nm, k in cams if not res.refined[k]},
+            "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
+            "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
+            "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
+            "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
+            "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
+            "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
+
+
+def read_stats(path: Path) -> dict[str, Any]:
+    """The stats JSON of a refinement; :class:`CacheError` naming it if unreadable."""
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        if not isinstance(d, dict) or d.get("method") != "refine" or not isinstance(d.get("cameras"), dict):
+            raise ValueError("not the stats of a refinement")
+        return d
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run `python -m pipeline.refine`") \
+            from None
+
+
+def run_refine(out: Path, config: RefineConfig, methods: Sequence[str] | None = None, work: Path | None = None,
+               overwrite: bool = False) -> dict[str, dict[str, Any]]:
+    """Run (or reuse) the stage in ``out``: ``{label: {"rotations", "stats", "record"}}``, as the averaging stage's."""
+    stage = RefineStage(Path(out), config, work=work, methods=methods)
+    record = stage.run(overwrite)
+    summary = {k: v for k, v in read_stats(stage.stats_path).items() if k not in ("cameras", "options", "stats")}
+    return {stage.label: {"rotations": stage.rotations_path, "stats": summary, "record": record}}
+
+
+def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
+    """The report's notes on a refinement (:func:`run_refine`'s result): its start, status and every kept camera."""
+    notes = []
+    for label, r in results.items():
+        s = r["stats"]
+        notes.append(f"{label}: started from {s['start_why']}; status {s['status']}, {s['n_refined']}/{s['n_cameras']} "
+                     f"cameras refined" + (f"; COLMAP model in {MODEL}/" if s.get("model") else "; no model written"))
+        if s["status"] == "failed":
+            notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
+        notes += [f"{label}: {nm} keeps its averaged rotation: {why}" for nm, why in s["kept_averaged"].items()
+                  if why != "no averaged rotation"]
+    return notes
+
+
+def refine_for_run(out: Path, config: RefineConfig, methods: Sequence[str], work: Path, overwrite: bool,
+                   notes: list[str]) -> dict[str, dict[str, Any]]:
+    """:func:`run_refine` for ``run.py``: its notes appended to ``notes``; a failure to run is a note, not an error.
+
+    Returns:
+        ``{label: result}`` to add to the averaging results (empty when the stage could not run).
+    """
+    try:
+        res = run_refine(out, config, methods, work, overwrite)
+    except (PipelineError, RuntimeError, ValueError, OSError) as exc:  # the averaged rotations stand without it
+        notes.append(f"refine failed: {' '.join(str(exc).split())}; the averaged rotations are kept")
+        logger.warning("%s", notes[-1])
+        return {}
+    notes += refine_notes(res)
+    return res
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.refine", description="Refine one averaging method's "
+                                "rotations with pycolmap (global positioning, BA, retriangulation); writes "
+                                "OUT/sparse/ and OUT/rotations/<start>+refine.txt.")
+    p.add_argument("--out", type=Path, required=True, help="the run's output folder (holds rotations/)")
+    p.add_argument("--work", type=Path, default=None, help="the front end's WORK folder (default OUT/work)")
+    p.add_argument("--config", type=Path, default=None, help="YAML config; its 'refine' section is used")
+    p.add_argument("--overwrite", action="store_true", help="recompute even if an intact result exists")
+    add_config_args(p, RefineConfig)
+
+    def body(a: argparse.Namespace) -> int:
+        cfg = config_from_args(RefineConfig, a, a.config)
+        res = run_refine(a.out, cfg, work=a.work, overwrite=a.overwrite)
+        for label, r in res.items():
+            s = r["stats"]
+            print(f"{label}: {s['status']}, {s['n_refined']}/{s['n_cameras']} cameras refined; {r['rotations']}")
+            for nm, why in s["kept_averaged"].items():
+                print(f"  kept averaged: {nm}: {why}")
+        return 0
+
+    return run_cli(body, p, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())

@@ -1,0 +1,137 @@
+"""refine_rotations on pycolmap's synthetic datasets (exact truth, Gaussian pixel noise of known σ).
+
+Feature tests: the truth recovered from a perturbed start; the rotation covariance calibrated
+(Monte Carlo over noise draws, in the gauge of the ℓ2-aligned evaluation). Failure tests: no
+matches, every point removed before bundle adjustment, a camera moved more than the guard.
+Exception tests: bad inputs and options, each with its message.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.core.errors import ConfigError
+from pipeline.refine import mapper
+from pipeline.refine.refine import RefineConfig, refine_rotations
+
+from .conftest import aligned_residuals, perturbed, synthetic_problem
+
+ONE_THREAD = RefineConfig(num_threads=1, min_image_observations=10)
+
+
+@pytest.mark.slow
+def test_truth_recovered_and_covariance_calibrated():
+    """12 noise draws × 8 cameras: the error ≪ the start's, and Σ|δ|² / Σ tr Σ ≈ 1 (pycolmap's covariance
+    scaled by 4σ² and moved to the minimum-norm gauge; without the 4 the ratio is ≈ 3.6)."""
+    rng = np.random.default_rng(1)
+    ratios, errs, starts = [], [], []
+    for seed in range(12):
+        inp, R_true = synthetic_problem(seed)
+        R0 = perturbed(R_true, 0.5, rng)
+        res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD)
+        assert res.status == "ok" and res.refined.all() and res.cov is not None, res.warnings
+        d = aligned_residuals(res.R, R_true)
+        errs.append(np.degrees(np.linalg.norm(d, axis=1)))
+        starts.append(np.degrees(np.linalg.norm(aligned_residuals(R0, R_true), axis=1)))
+        ratios.append(np.sum(d ** 2) / np.sum(np.trace(res.cov, axis1=1, axis2=2)))
+        assert abs(res.stats["sigma_px"] - 0.5) < 0.1  # the residual σ estimates the pixel noise
+    ratio = float(np.mean(ratios))
+    assert np.median(np.concatenate(errs)) < 0.1 * np.median(np.concatenate(starts))
+    assert 0.6 < ratio < 1.6, ratio
+
+
+def test_no_matches_fails_and_keeps_the_averaged(problem0):
+    inp, R_true = problem0
+    inp = dict(inp, match_offsets=np.zeros_like(inp["match_offsets"]), matches=np.zeros((0, 2), np.int64))
+    res = refine_rotations(**inp, R_init=R_true, config=ONE_THREAD)
+    assert res.status == "failed" and not res.refined.any() and np.array_equal(res.R, R_true)
+    assert any("nothing to refine" in w for w in res.warnings) and all("0 track observations" in w for w in res.why)
+
+
+def test_bundle_adjustment_failure_is_reported_and_the_averaged_kept(problem0, monkeypatch):
+    """Every point removed after positioning: bundle adjustment cannot run; the averaged rotations stay."""
+    inp, R_true = problem0
+    original = mapper.global_positioning
+
+    def drop_all_points(pc, rec, pose_graph, cfg):
+        ok = original(pc, rec, pose_graph, cfg)
+        for pid in list(rec.point3D_ids()):
+            rec.delete_point3D(pid)
+        return ok
+
+    monkeypatch.setattr(mapper, "global_positioning", drop_all_points)
+    R0 = perturbed(R_true, 0.3, np.random.default_rng(2))
+    res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD)
+    assert res.status == "failed" and np.array_equal(res.R, R0) and res.reconstruction is None
+    assert any("bundle adjustment failed" in w and "averaged rotations are kept" in w for w in res.warnings)
+
+
+def test_a_raising_pycolmap_step_is_a_failure_not_a_crash(problem0, monkeypatch):
+    inp, R_true = problem0
+
+    def boom(*a, **k):
+        raise RuntimeError("[global_mapper.cc:1] Check failed")
+
+    monkeypatch.setattr(mapper, "retriangulate", boom)
+    res = refine_rotations(**inp, R_init=R_true, config=ONE_THREAD)
+    assert res.status == "failed" and np.array_equal(res.R, R_true)
+    assert "retriangulation raised RuntimeError" in res.warnings[-1]
+
+
+def test_change_guard_keeps_both():
+    """A start camera 3° off is pulled back by BA: above a 1° guard it keeps its averaged rotation."""
+    inp, R_true = synthetic_problem(3)
+    R0 = R_true.copy()
+    R0[2] = so3.exp(np.radians([0.0, 3.0, 0.0])) @ R0[2]
+    cfg = ONE_THREAD.replace(edge_filter_deg=None, max_change_deg=1.0)
+    res = refine_rotations(**inp, R_init=R0, config=cfg)
+    assert res.status == "partial" and not res.refined[2] and res.refined[np.arange(len(R0)) != 2].all()
+    assert np.array_equal(res.R[2], R0[2]) and 2.5 < res.change_deg[2] < 3.5
+    assert np.degrees(np.linalg.norm(aligned_residuals(res.R_refined, R_true), axis=1)).max() < 0.1
+    assert "max_change_deg" in res.why[2] and any("keeps its averaged rotation" in w for w in res.warnings)
+
+
+def test_the_fast_preset_and_an_image_without_a_start(problem0):
+    inp, R_true = problem0
+    R0 = R_true.copy()
+    R0[5] = np.nan  # not in the averaged component: not refined, named
+    res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD.replace(preset="fast"))
+    assert res.stats["schedule"] == {"positioning_tracks_per_image": 500, "refinement_rounds": 1}
+    assert res.status == "ok" and not res.refined[5] and res.why[5] == "no averaged rotation"
+    assert np.isnan(res.R[5]).all() and res.refined.sum() == len(R0) - 1
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"max_change_deg": 0}, r"\[refine\] max_change_deg=0.0 but expected > 0"),
+    ({"preset": "slow"}, r"\[refine\] preset='slow' but expected one of 'glomap', 'fast'"),
+    ({"start": "a b"}, r"\[refine\] start='a b' but expected 'auto' or a method label"),
+    ({"num_threads": 0}, r"num_threads=0"),
+    ({"min_track_views": 1}, r"min_track_views=1 but expected >= 2"),
+])
+def test_bad_options(kw, match):
+    with pytest.raises(ConfigError, match=match):
+        RefineConfig(**kw)
+
+
+def test_bad_inputs(problem0):
+    inp, R_true = problem0
+    with pytest.raises(ValueError, match=r"R_init.shape=\(3, 3, 3\) but expected \(8, 3, 3\)"):
+        refine_rotations(**inp, R_init=R_true[:3])
+    with pytest.raises(ValueError, match=r"edges must be pairs \(i, j\) with 0 <= i < j < 8"):
+        refine_rotations(**dict(inp, edges=inp["edges"][:, ::-1]), R_init=R_true)
+
+
+def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
+    """A focal 3% off: kept constant when 'known', refined toward the truth when not."""
+    inp, R_true = problem0
+    K = inp["K"].copy()
+    K[:, 0, 0] *= 1.03
+    K[:, 1, 1] *= 1.03
+    kept = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=True, config=ONE_THREAD)
+    free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    f = lambda res: np.array([c.params[0] for c in res.reconstruction.cameras.values()])  # noqa: E731
+    np.testing.assert_allclose(f(kept), 1280.0 * 1.03)
+    assert np.all(np.abs(f(free) - 1280.0) < 0.3 * 1280.0 * 0.03)
+    assert free.status == "ok" and free.stats["mean_reprojection_error_px"] < kept.stats["mean_reprojection_error_px"]

@@ -1,0 +1,145 @@
+"""The refine stage on a rendered scene: accuracy, the COLMAP model, caching, failures kept visible, CLI."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.core.errors import InputFileError, PipelineError
+from pipeline.io.rotations import read_rotations
+from pipeline.refine import mapper
+from pipeline.refine.refine import RefineConfig
+from pipeline.refine.stage import RefineStage, recommended_start, refine_notes, run_refine
+
+
+@pytest.fixture(scope="session")
+def rendered_run(tmp_path_factory) -> Path:
+    """run.py on 8 rendered views (truth known), IRLS-H only, no pycolmap peers, no plots: refined by default."""
+    from pipeline import run
+    from pipeline.synthetic.render import render_scene
+
+    root = tmp_path_factory.mktemp("refine")
+    render_scene(8, 0, root / "scene")
+    cfg = root / "noplots.yaml"
+    cfg.write_text("run:\n  plots: false\n")
+    run.main(root / "scene", root / "out", config=cfg, methods=["irls-h"], gt=root / "scene" / "cameras.txt",
+             reference=False, quiet=True)
+    return root / "out"
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+@pytest.mark.slow
+def test_rendered_scene_refines_below_a_hundredth_of_a_degree(rendered_run):
+    m = json.loads((rendered_run / "metrics.json").read_text())
+    r = m["methods"]["irls-h-l0.5+refine"]
+    assert r["status"] == "ok" and r["n_refined"] == r["n_cameras"] == 8 and r["start"] == "irls-h-l0.5"
+    assert r["median_deg"] <= 0.01, r["median_deg"]
+    assert r["median_deg"] <= m["methods"]["irls-h-l0.5"]["median_deg"]
+    assert 0 < r["sigma_median_deg"] < 0.05 and len(r["uncertainty_deg"]) == 8
+    assert m["stages"]["refine"] > 0 and "refine" in m["stages"]
+    text = (rendered_run / "report.md").read_text()
+    assert "## Refinement (irls-h-l0.5+refine)" in text and "refine ok (8/8 refined)" in text
+
+
+@pytest.mark.slow
+def test_the_model_opens_in_pycolmap_with_every_registered_image_and_a_point_cloud(rendered_run):
+    import pycolmap
+
+    from pipeline.reference.truth import read_reference
+
+    rec = pycolmap.Reconstruction(rendered_run / "sparse")
+    names, _ = read_rotations(rendered_run / "rotations" / "irls-h-l0.5+refine.txt")
+    assert sorted(rec.images[i].name for i in rec.reg_image_ids()) == sorted(names)
+    assert rec.num_points3D() > 500 and rec.compute_mean_reprojection_error() < 1.0
+    K = read_reference(rendered_run.parent / "scene" / "cameras.txt").K
+    for cam in rec.cameras.values():  # the known K, constant, in COLMAP's pixel convention
+        np.testing.assert_allclose(cam.params, [K[0][0, 0], K[0][1, 1], K[0][0, 2] + 0.5, K[0][1, 2] + 0.5])
+    s = json.loads((rendered_run / "rotations" / "irls-h-l0.5+refine.json").read_text())
+    cov = np.array(s["cameras"][names[0]]["cov_rad2"]).reshape(3, 3)
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and s["model"] == "sparse"
+
+
+@pytest.mark.slow
+def test_reused_when_intact_recomputed_when_damaged(rendered_run, tmp_path, monkeypatch, caplog):
+    out = _copy(rendered_run, tmp_path / "out")
+    assert RefineStage(out, RefineConfig(num_threads=1)).run().reused  # runtime option: nothing to redo
+    path = out / "rotations" / "irls-h-l0.5+refine.txt"
+    before = read_rotations(path)[1]
+    path.write_text("\n".join(path.read_text().splitlines()[:-3]) + "\n")  # cut to 5 cameras
+    with caplog.at_level("WARNING"):
+        rec = RefineStage(out, RefineConfig(preset="glomap")).run()
+    assert not rec.reused and "damaged" in caplog.text
+    np.testing.assert_allclose(read_rotations(path)[1], before, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_bundle_adjustment_made_to_fail_is_reported_and_the_averaged_rotations_kept(rendered_run, tmp_path,
+                                                                                   monkeypatch):
+    out = _copy(rendered_run, tmp_path / "out")
+    original = mapper.global_positioning
+
+    def drop_all_points(pc, rec, pose_graph, cfg):
+        ok = original(pc, rec, pose_graph, cfg)
+        for pid in list(rec.point3D_ids()):
+            rec.delete_point3D(pid)
+        return ok
+
+    monkeypatch.setattr(mapper, "global_positioning", drop_all_points)
+    res = run_refine(out, RefineConfig(preset="fast"), ["irls-h-l0.5"], overwrite=True)
+    s = res["irls-h-l0.5+refine"]["stats"]
+    assert s["status"] == "failed" and s["n_refined"] == 0 and s["model"] is None
+    assert any("bundle adjustment failed" in w and "averaged rotations are kept" in w for w in s["warnings"])
+    n1, R1 = read_rotations(out / "rotations" / "irls-h-l0.5+refine.txt")
+    n0, R0 = read_rotations(out / "rotations" / "irls-h-l0.5.txt")
+    assert n1 == n0 and np.array_equal(R1, R0)  # the averaged rotations, and the averaged file untouched
+    assert not (out / "sparse").exists()  # no model that would not match these rotations
+    notes = refine_notes(res)
+    assert any("status failed" in n for n in notes) and any("the refinement failed" in n for n in notes)
+
+
+@pytest.mark.slow
+def test_change_guard_keeps_both(rendered_run, tmp_path):
+    out = _copy(rendered_run, tmp_path / "out")
+    res = run_refine(out, RefineConfig(preset="fast", max_change_deg=1e-6), ["irls-h-l0.5"], overwrite=True)
+    s = json.loads((out / "rotations" / "irls-h-l0.5+refine.json").read_text())
+    assert s["status"] == "partial" and s["n_refined"] == 0 and len(s["kept_averaged"]) == 8
+    assert all("max_change_deg" in why for why in s["kept_averaged"].values())
+    n1, R1 = read_rotations(out / "rotations" / "irls-h-l0.5+refine.txt")
+    _, R0 = read_rotations(out / "rotations" / "irls-h-l0.5.txt")
+    assert np.array_equal(R1, R0)
+    both = [np.array(c["refined_cam_from_world"]).reshape(3, 3) for c in s["cameras"].values()]
+    assert len(both) == 8 and all(abs(np.linalg.det(R) - 1) < 1e-9 for R in both)  # the refined ones, reported
+    assert len(refine_notes(res)) == 1 + 8
+
+
+def test_recommended_start():
+    assert recommended_start(["irls-l0.5", "irls-h-l0.5", "sdp-cso3"])[0] == "irls-h-l0.5"
+    assert recommended_start(["sdp-cso3", "irls-l0.5"])[0] == "irls-l0.5"
+    label, why = recommended_start(["weiszfeld"])
+    assert label == "weiszfeld" and "first method run" in why
+    with pytest.raises(PipelineError, match="no averaged rotations to refine"):
+        recommended_start([])
+
+
+def test_a_start_that_did_not_run_is_named(tmp_path):
+    (tmp_path / "rotations").mkdir()
+    with pytest.raises(InputFileError, match="has no rotations of 'sdp-cso3', the refinement's start"):
+        RefineStage(tmp_path, RefineConfig(start="sdp-cso3")).run()
+
+
+def test_help_and_one_line_error(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "pipeline.refine", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--max-change-deg" in r.stdout and "--preset" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(tmp_path / "none")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1
