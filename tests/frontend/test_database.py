@@ -173,11 +173,16 @@ def test_database_run_on_a_local_dask_cluster_gives_the_same_view_graph(run_db, 
     before = {p.pid for p in psutil.Process().children(recursive=True)}
     metrics = run_main(scene.out, tmp_path / "dask", fast_config, gt=scene.out / "cameras.txt", reference=False,
                        quiet=True, database=db, executor="dask")
-    assert {p.pid for p in psutil.Process().children(recursive=True)} - before == set()  # workers gone
+    left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before  # Python's own
+            and "multiprocessing.resource_tracker" not in " ".join(p.cmdline())]  # tracker lives with this process
+    assert not left, [" ".join(p.cmdline())[:300] for p in left]  # workers gone
     assert not any(p.name.startswith("dask-") for p in tmp_path.rglob("*"))  # no scratch space in the output
     for out in ("two_view.npz", "viewgraph.npz"):
         with np.load(run_db[0] / "work" / out) as a, np.load(tmp_path / "dask" / "work" / out) as b:
             assert a.files == b.files
             for k in a.files:
                 np.testing.assert_array_equal(a[k], b[k], err_msg=f"{out} {k}")
-    assert _median_error(metrics) == _median_error(run_db[1])
+    got, want = _median_error(metrics), _median_error(run_db[1])
+    exact = {m for m in want if not m.endswith("+refine")}  # pycolmap's BA threads vary in the last digits
+    assert {m: got[m] for m in exact} == {m: want[m] for m in exact} and got.keys() == want.keys()
+    assert all(got[m] == pytest.approx(want[m], rel=1e-9) for m in want)
