@@ -15,14 +15,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.errors import ConfigError
+from pipeline.core.parallel import ExecutorOptions
 
 __all__ = ["FeatureConfig", "Keypoints", "extract_sift"]
 
 
 @dataclass(frozen=True, kw_only=True)
-class FeatureConfig(Config):
+class FeatureConfig(ExecutorOptions):
     """SIFT extraction options (YAML section ``features``).
 
     ``precise_upscale``: with OpenCV's default (False) the 2× upsampled first octave
