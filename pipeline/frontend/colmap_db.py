@@ -21,15 +21,19 @@ that names the database.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import logging
 import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
+from pipeline.core.atomic import TMP_TAG
 from pipeline.core.errors import InputFileError
 
 __all__ = ["COLMAP_PIXEL_OFFSET", "DbImage", "open_database", "read_images", "verified_pairs", "read_inlier_matches",
@@ -77,9 +81,10 @@ def check_database_file(path: str | os.PathLike) -> Path:
 def database_fingerprint(path: str | os.PathLike) -> str:
     """A 16-hex-digit hash of a database's content.
 
-    Opening a database with pycolmap bumps SQLite's file change counter and
-    version-valid-for number in the file header (bytes 24–27 and 92–95), even when
-    nothing is written; those bytes are left out, so that reading never changes it.
+    SQLite's file change counter and version-valid-for number in the file header
+    (bytes 24–27 and 92–95) change whenever a program opens the database read-write,
+    even when nothing is written; those bytes are left out. (We never open the user's
+    file with pycolmap: see :func:`_private_copy`.)
     """
     path = check_database_file(path)
     h = hashlib.sha1()
@@ -95,8 +100,47 @@ def database_fingerprint(path: str | os.PathLike) -> str:
     return h.hexdigest()[:16]
 
 
+_COPIES: dict[tuple[str, int, int], Path] = {}
+
+
+def _remove_copies() -> None:
+    for copy in _COPIES.values():
+        shutil.rmtree(copy.parent, ignore_errors=True)
+    _COPIES.clear()
+
+
+def _private_copy(path: Path) -> Path:
+    """A copy of the database (and its ``-wal`` journal) in a temporary folder, made once per process.
+
+    pycolmap opens a database read-write: it creates COLMAP's tables when they are
+    missing and bumps the header's change counters. It only ever sees this copy, so that
+    the user's file is never changed; the copies are removed when the process ends.
+    """
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    copy = _COPIES.get(key)
+    if copy is None or not copy.is_file():
+        if not _COPIES:
+            atexit.register(_remove_copies)
+        folder = Path(tempfile.mkdtemp(prefix=f"{TMP_TAG}db-"))
+        copy = folder / "database.db"
+        try:
+            shutil.copyfile(path, copy)
+            for side in ("-wal",):
+                if Path(f"{path}{side}").is_file():
+                    shutil.copyfile(f"{path}{side}", f"{copy}{side}")
+        except OSError as exc:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise InputFileError(f"COLMAP database {path} cannot be read ({exc.strerror or exc})") from None
+        _COPIES[key] = copy
+    return copy
+
+
 class open_database:  # noqa: N801 - used as a context manager, like open()
-    """``with open_database(path) as db:`` a ``pycolmap.Database``, closed on exit; errors name the file."""
+    """``with open_database(path) as db:`` a ``pycolmap.Database`` of a private copy, closed on exit.
+
+    Errors name the user's file; the user's file is never opened by pycolmap.
+    """
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = check_database_file(path)
@@ -105,8 +149,9 @@ class open_database:  # noqa: N801 - used as a context manager, like open()
     def __enter__(self) -> Any:
         import pycolmap  # noqa: PLC0415
 
+        copy = _private_copy(self.path)
         try:
-            self.db = pycolmap.Database.open(str(self.path))
+            self.db = pycolmap.Database.open(str(copy))
             self.db.num_images()  # a file that is SQLite but not COLMAP's fails here
         except Exception as exc:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError of its own
             raise InputFileError(f"{self.path} is not a readable COLMAP database ({' '.join(str(exc).split())[:100]})"

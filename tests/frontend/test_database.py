@@ -85,12 +85,27 @@ def test_run_from_database_gives_rotations_close_to_truth(run_db, db):
 
 def test_database_run_resumes_and_reading_leaves_the_database_unchanged(run_db, scene, db, fast_config):
     out, _ = run_db
-    fp = colmap_db.database_fingerprint(db)
-    check_database(db, scene.out)  # opening it again bumps SQLite's header counter only
-    assert colmap_db.database_fingerprint(db) == fp
+    raw, mtime = db.read_bytes(), db.stat().st_mtime_ns
+    check_database(db, scene.out)
     before = {p: p.stat().st_mtime_ns for p in (out / "work").glob("*.npz")}
     run_main(scene.out, out, fast_config, gt=scene.out / "cameras.txt", reference=False, quiet=True, database=db)
     assert {p: p.stat().st_mtime_ns for p in (out / "work").glob("*.npz")} == before
+    assert db.read_bytes() == raw and db.stat().st_mtime_ns == mtime  # pycolmap only ever opens a private copy
+
+
+def test_a_sqlite_file_that_is_not_colmap_is_left_as_it_was(tmp_path):
+    other = tmp_path / "other.db"
+    with sqlite3.connect(other) as con:
+        con.execute("CREATE TABLE notes (x INTEGER)")
+    con.close()
+    raw = other.read_bytes()
+    try:
+        images = colmap_db.read_images(other)
+    except InputFileError as exc:
+        assert str(other) in str(exc)
+        images = []
+    assert images == []  # nothing COLMAP's in it (check_database refuses it: test_bad_database_...)
+    assert other.read_bytes() == raw  # pycolmap would have added COLMAP's tables to it
 
 
 def test_database_pair_selector_with_our_features(db, scene):
