@@ -15,7 +15,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Iterator, Literal
 
 from pipeline.averaging import registry
 from pipeline.averaging.registry import MethodSpec, parse_methods
@@ -39,7 +39,8 @@ from pipeline.refine.refine import RefineConfig
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["RunConfig", "Plan", "prepare", "load_configs", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out"]
+__all__ = ["RunConfig", "Plan", "prepare", "load_configs", "STAGE_CONFIGS", "DEFAULT_CONFIG", "default_out",
+           "PER_ITEM"]
 
 # configs/ sits beside the package in a checkout; without it the dataclass defaults apply
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
@@ -64,6 +65,7 @@ class RunConfig(Config):
     plots: bool = option(True, "write the PNG plots of the report")
 
 
+PER_ITEM = ("features", "matching", "two_view", "two_view_ba")  # the sections whose work runs on an executor
 STAGE_CONFIGS: dict[str, type[Config]] = {
     c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, CamerasConfig, TwoViewConfig, BAConfig,
                            ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
@@ -89,6 +91,7 @@ class Plan:
     features: FeaturesStage
     notes: list[str] = field(default_factory=list)
     times: dict[str, float] = field(default_factory=dict)
+    database: Path | None = None
 
     @property
     def work(self) -> Path:
@@ -97,6 +100,30 @@ class Plan:
     @property
     def progress(self) -> bool:
         return not self.quiet
+
+    @contextlib.contextmanager
+    def executors(self) -> Iterator[None]:
+        """One local Dask cluster for every per-item stage set to ``executor: dask`` without a scheduler.
+
+        The stages reach it by its address (as ``--scheduler`` would); it is closed, its
+        workers gone, when the block ends, also on Ctrl-C.
+        """
+        want = [s for s in PER_ITEM if self.configs[s].executor == "dask" and not self.configs[s].scheduler]
+        if not want:
+            yield
+            return
+        from pipeline.core.dask_executor import local_cluster  # noqa: PLC0415
+
+        saved = {s: self.configs[s] for s in want}
+        with local_cluster(max(self.configs[s].workers for s in want)) as cluster:
+            logger.info("Dask: a local cluster of %d worker(s) at %s", cluster.workers, cluster.address)
+            self.configs.update({s: self.configs[s].replace(scheduler=cluster.address) for s in want})
+            self.features.config = self.configs["features"]
+            try:
+                yield
+            finally:
+                self.configs.update(saved)
+                self.features.config = self.configs["features"]
 
     def note_skipped(self, manifest: dict[str, Any]) -> None:
         """A note for each image the features stage left out (those it could not decode, too)."""
@@ -143,6 +170,19 @@ def _check_truth(truth: Reference, gt: Path, names: list[str]) -> None:
                              f"{list(truth.names)[:3]}); pass the true cameras of these images")
 
 
+def _executor_configs(configs: dict[str, Config], executor: str | None, scheduler: str | None) -> None:
+    """Apply ``--executor``/``--scheduler`` to the per-item sections; check every scheduler address up front."""
+    for s in PER_ITEM:
+        configs[s] = configs[s].replace(executor=executor, scheduler=scheduler)
+    dask = [configs[s] for s in PER_ITEM if configs[s].backend("auto") == "dask"]  # type: ignore[attr-defined]
+    if dask:
+        from pipeline.core import dask_executor  # noqa: PLC0415 - imports dask only when asked for
+
+        dask_executor.require_distributed()
+        for address in sorted({c.scheduler for c in dask if c.scheduler}):  # type: ignore[attr-defined]
+            dask_executor.check_scheduler(address)
+
+
 def load_configs(config: Path | None = None, methods: list[str] | None = None
                  ) -> tuple[dict[str, Any], dict[str, Config], list[MethodSpec], dict[str, dict[str, Any]]]:
     """Read the YAML config (default ``configs/default.yaml``) and build every typed config and method spec.
@@ -175,9 +215,19 @@ def load_configs(config: Path | None = None, methods: list[str] | None = None
 
 def prepare(images: Path | None = None, out: Path | None = None, config: Path | None = None,
             methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
-            reference: bool | None = None, overwrite: bool = False, quiet: bool = False) -> Plan:
-    """Check every input and build every config; render the default scene when ``images`` is None."""
+            reference: bool | None = None, overwrite: bool = False, quiet: bool = False,
+            database: Path | None = None, executor: str | None = None, scheduler: str | None = None) -> Plan:
+    """Check every input and build every config; render the default scene when ``images`` is None.
+
+    ``database``: a COLMAP database whose cameras, keypoints and verified matches replace our
+    features and matching (``images`` is then the folder it was made from).
+    ``executor``, ``scheduler``: where the per-item stages run (overriding their sections).
+    """
     yaml_data, configs, given, overrides = load_configs(config, methods)
+    _executor_configs(configs, executor, scheduler)
+    if database is not None and (images is None or K is not None):
+        raise PipelineError("--database DB needs the image folder it was made from (run.py --database DB IMAGE_DIR) "
+                            "and takes the intrinsics from the database (drop --K)")
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
     out = Path(out) if out is not None else default_out(images)
     _check_writable(out)
@@ -197,7 +247,14 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     images = Path(images)
     if not images.is_dir():
         raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
-    features = FeaturesStage(out / "work", configs["features"], images=images, K_path=K, progress=not quiet)
+    if database is not None:
+        from pipeline.frontend.database_stage import DatabaseFeaturesStage  # noqa: PLC0415
+
+        features: FeaturesStage = DatabaseFeaturesStage(out / "work", configs["features"], images=images,
+                                                        database=Path(database), progress=not quiet)
+        notes.append(f"features and verified matches from the COLMAP database {database}")
+    else:
+        features = FeaturesStage(out / "work", configs["features"], images=images, K_path=K, progress=not quiet)
     scan = features.scan()  # names, headers and K, checked without decoding a pixel
     select_pairs(configs["matching"].pairs, scan["names"])  # type: ignore[attr-defined]  # a pairs file's names
     truth = None
@@ -222,4 +279,4 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     return Plan(images=images, out=out, K=None if K is None else Path(K), gt=None if gt is None else Path(gt),
                 truth=truth, run=run_cfg, configs=configs, yaml=yaml_data, methods=list(given), overrides=overrides,
                 reference=run_cfg.reference if reference is None else reference, overwrite=overwrite, quiet=quiet,
-                features=features, notes=notes, times=times)
+                features=features, notes=notes, times=times, database=None if database is None else Path(database))

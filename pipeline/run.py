@@ -3,7 +3,8 @@
 The implementation behind the top-level ``run.py``; also ``python -m pipeline.run``::
 
     python run.py [IMAGE_DIR] [--out DIR] [--config configs/NAME.yaml] [--methods M ...]
-                  [--gt REF] [--K FILE] [--no-reference] [--overwrite] [-v | -q]
+                  [--gt REF] [--K FILE | --database DB] [--executor E] [--scheduler ADDRESS]
+                  [--no-reference] [--overwrite] [-v | -q]
 
 Every input is checked first (:func:`pipeline.plan.prepare`: the whole config, the
 methods, ``--K``, ``--gt``, the output folder, every image's header). Then the
@@ -50,6 +51,7 @@ from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import remove_stale_temporaries  # noqa: E402
 from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
+from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
 from pipeline.frontend.camera_stage import CamerasStage  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
@@ -141,11 +143,12 @@ def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
 
 def main(images: Path | None = None, out: Path | None = None, config: Path | None = None,
          methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
-         reference: bool | None = None, overwrite: bool = False, quiet: bool = False) -> Path:
+         reference: bool | None = None, overwrite: bool = False, quiet: bool = False,
+         database: Path | None = None, executor: str | None = None, scheduler: str | None = None) -> Path:
     """Run the whole pipeline; returns the path of ``OUT/metrics.json``."""
     t_start = time.perf_counter()
-    plan = prepare(images, out, config, methods, gt, K, reference, overwrite, quiet)
-    with folder_lock(plan.out):
+    plan = prepare(images, out, config, methods, gt, K, reference, overwrite, quiet, database, executor, scheduler)
+    with folder_lock(plan.out), plan.executors():
         remove_stale_temporaries(plan.out)
         runner = Runner(plan)
         work, progress = plan.work, {"progress": plan.progress}
@@ -190,6 +193,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt", type=Path, default=None, help="true cameras (cameras file, gt_dense_cameras/, *_par.txt, "
                    "COLMAP model, rotations file)")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3×3) or a per-image cameras file")
+    p.add_argument("--database", type=Path, default=None, metavar="DB",
+                   help="a COLMAP database (COLMAP, pycolmap, hloc, GLOMAP) of IMAGE_DIR: its cameras, keypoints and "
+                        "verified matches replace our features and matching")
+    p.add_argument("--executor", choices=BACKENDS, default=None,
+                   help="where the per-image and per-pair stages run (default: each section's 'executor')")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="address of an existing Dask scheduler for the per-image and per-pair stages")
     p.add_argument("--no-reference", action="store_true", help="skip the pycolmap reference")
     p.add_argument("--overwrite", action="store_true", help="redo every stage")
     return p
@@ -199,7 +209,8 @@ def main_cli(argv: list[str] | None = None) -> int:
     from pipeline.core.cli import run_cli  # noqa: PLC0415
 
     def body(a: argparse.Namespace) -> int:
-        main(a.images, a.out, a.config, a.methods, a.gt, a.K, False if a.no_reference else None, a.overwrite, a.quiet)
+        main(a.images, a.out, a.config, a.methods, a.gt, a.K, False if a.no_reference else None, a.overwrite, a.quiet,
+             a.database, a.executor, a.scheduler)
         return 0
 
     return run_cli(body, build_parser(), argv)

@@ -24,9 +24,13 @@ import sys
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from typing import Any, Callable, Iterator, Protocol, Sequence, TypeVar
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator, Literal, Protocol, Sequence, TypeVar
 
-__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "ProcessExecutor", "make_executor", "die_with_parent"]
+from pipeline.core.config import Config, option
+
+__all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "ProcessExecutor", "make_executor", "die_with_parent",
+           "ExecutorOptions", "BACKENDS"]
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -162,6 +166,35 @@ class ProcessExecutor:
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+BACKENDS = ("auto", "serial", "threads", "processes", "dask")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExecutorOptions(Config):
+    """Where a per-image or per-pair stage runs its work (runtime options: they never change a result).
+
+    A stage config derives from this and declares its own ``workers``.
+    """
+
+    executor: Literal["auto", "serial", "threads", "processes", "dask"] = option(
+        "auto", "where per-item work runs: auto (the stage's default pool), serial, threads, processes, or dask "
+        "(a local cluster of `workers` processes)", runtime=True)
+    scheduler: str | None = option(None, "address of an existing Dask scheduler (tcp://host:8786); implies "
+                                   "executor dask", runtime=True)
+
+    def backend(self, auto: str) -> str:
+        """The backend to use: ``auto`` replaced by the stage's default, ``dask`` whenever a scheduler is set."""
+        if self.scheduler:
+            return "dask"
+        return auto if self.executor == "auto" else self.executor
+
+    def open_executor(self, n_tasks: int, auto: str) -> Any:
+        """An executor for ``n_tasks`` tasks (a local pool of at most ``n_tasks`` workers)."""
+        workers = int(getattr(self, "workers", 1))
+        backend = self.backend(auto)
+        return make_executor(workers if backend == "dask" else min(workers, max(n_tasks, 1)), backend, self.scheduler)
 
 
 def make_executor(workers: int = 1, backend: str = "processes", scheduler: str | None = None) -> Any:

@@ -19,6 +19,7 @@ they need.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -34,7 +35,7 @@ from pipeline.core.atomic import save_npz_uncompressed, write_json
 from pipeline.core.errors import CacheError
 from pipeline.core.readers import read_json, read_npz
 
-__all__ = ["ItemStore", "Item", "item_key", "compute_missing"]
+__all__ = ["ItemStore", "Item", "item_key", "compute_missing", "write_results"]
 
 logger = logging.getLogger(__name__)
 
@@ -115,6 +116,11 @@ class ItemStore:
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
+
+    def adopt(self, name: str, keys: Iterable[str]) -> None:
+        """Register the chunk file ``name`` that a worker wrote into this folder, holding ``keys``."""
+        if self._where is not None:
+            self._where.update({k: name for k in keys})
 
     # ------------------------------------------------------------------- read
     @staticmethod
@@ -205,9 +211,25 @@ class ItemStore:
         return list((self._where if self._where is not None else self.load_index()).keys())
 
 
+def write_results(folder: str, keys: Sequence[str], work: Callable[[list[Any]], list[Mapping[str, Any]]],
+                  tasks: list[Any]) -> str:
+    """Worker: ``work(tasks)`` written as one chunk of the store at ``folder``; returns the chunk's file name.
+
+    The worker writes its own results (compression and all), so that the process
+    that hands out the work only records which chunk holds which keys.
+    """
+    return ItemStore(folder).write_chunk(dict(zip(keys, work(tasks)))).name
+
+
+def _write_packed(job: tuple[list[str], list[Any]], folder: str,
+                  work: Callable[[list[Any]], list[Mapping[str, Any]]]) -> str:
+    return write_results(folder, job[0], work, job[1])
+
+
 def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[int], Any],
                     work: Callable[[list[Any]], list[Mapping[str, Any]]], *, workers: int = 1, chunk_size: int = 8,
-                    on_chunk: Callable[[int], None] | None = None) -> int:
+                    on_chunk: Callable[[int], None] | None = None, backend: str = "processes",
+                    scheduler: str | None = None) -> int:
     """Compute the items of ``keys`` that ``store`` lacks, chunk by chunk, writing each finished chunk at once.
 
     Args:
@@ -221,11 +243,13 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             starting a pool of processes runs on threads of this process).
         chunk_size: items per chunk (a chunk is the unit of work and of resumption).
         on_chunk: called with the number of items of each finished chunk (progress).
+        backend, scheduler: the executor (:func:`pipeline.core.parallel.make_executor`);
+            ``"dask"`` starts a local cluster of ``workers`` processes unless ``scheduler`` is set.
 
     Returns:
         The number of items computed.
     """
-    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - parallel imports nothing of ours
+    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - keeps this module's imports light
 
     done = store.done(keys)
     todo: list[int] = []
@@ -237,29 +261,32 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
     if not chunks:
         return 0
+    # absolute: the workers may run in another folder or on another machine (with the same file system)
+    write = functools.partial(_write_packed, folder=str(store.folder.resolve()), work=work)
+    jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
 
-    def finish(idx: list[int], results: list[Mapping[str, Any]]) -> None:
-        store.write_chunk({keys[k]: r for k, r in zip(idx, results)})
+    def finish(chunk_keys: list[str], name: str) -> None:
+        store.adopt(name, chunk_keys)
         if on_chunk is not None:
-            on_chunk(len(idx))
+            on_chunk(len(chunk_keys))
 
-    n_workers = min(workers, len(chunks) - 1)
-    backend = "processes"
-    if n_workers > 1:
+    local = backend != "dask" and scheduler is None
+    n_workers = min(workers, len(jobs) - 1) if local else workers
+    if local and backend == "processes" and n_workers > 1:
         # the first chunk runs here and times the work: a pool of processes pays off only when the rest
         # is long beside starting it; otherwise threads, which start at once and run in parallel where
         # the work releases the GIL (OpenCV, BLAS)
         t0 = time.thread_time()
-        finish(chunks[0], work([make_task(k) for k in chunks[0]]))
-        rest = (time.thread_time() - t0) * (len(chunks) - 1)
-        chunks = chunks[1:]
+        finish(jobs[0][0], write(jobs[0]))
+        rest = (time.thread_time() - t0) * (len(jobs) - 1)
+        jobs = jobs[1:]
         if not _pool_pays_off(rest, n_workers):
-            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(chunks), rest)
+            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(jobs), rest)
             backend = "threads"
-    executor = make_executor(max(n_workers, 1), backend)
+    executor = make_executor(max(n_workers, 1), backend, scheduler)
     try:
-        for idx, results in zip(chunks, executor.map(work, [[make_task(k) for k in c] for c in chunks])):
-            finish(idx, results)
+        for (chunk_keys, _), name in zip(jobs, executor.map(write, jobs)):
+            finish(chunk_keys, name)
     finally:
         executor.close()
     return len(todo)

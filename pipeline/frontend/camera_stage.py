@@ -92,11 +92,17 @@ class CameraSet:
     @property
     def known(self) -> np.ndarray:
         """(N,) True where the intrinsics come from a file (never refined)."""
-        return np.array([s.startswith("file") for s in self.K_source], bool)
+        return np.array([_given(s) for s in self.K_source], bool)
 
     def keypoints_for_geometry(self, raw: Sequence[np.ndarray]) -> list[np.ndarray]:
         """The keypoints the geometry uses: undistorted where there is distortion, else ``raw``."""
         return list(raw) if self.keypoints is None else self.keypoints
+
+
+def _given(source: str) -> bool:
+    """Whether a K source is given by the user (a file, or a COLMAP database's camera: its keypoints are
+    undistorted already), not estimated here."""
+    return source.startswith(("file", "database:"))
 
 
 def _file_sources(sources: Sequence[str]) -> list[str]:
@@ -174,7 +180,7 @@ class CamerasStage(Stage[CamerasConfig]):
                 if cam is not None and sources[k] == f"file:{src}":
                     models[k] = cam
                     dist_src[k] = f"file:{src}" if cam.has_distortion else "none"
-        known = np.array([s.startswith("file") for s in sources], bool)
+        known = np.array([_given(s) for s in sources], bool)
         from_file = np.array([m is not None for m in models], bool)
         radial_set = ~from_file & (~known if cfg.radial == "auto" else np.ones(n, bool))
         if cfg.radial == "off":

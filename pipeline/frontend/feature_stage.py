@@ -22,7 +22,8 @@ An image's item key hashes the result-affecting options and the image file's
 name, size and mtime: a changed image or option is extracted again, an unchanged
 one never. Command line::
 
-    python -m pipeline.features --images DIR --work WORK [--K FILE] [--max-image-size 1600]
+    python -m pipeline.features --images DIR --work WORK [--K FILE | --database DB] [--max-image-size 1600]
+                                [--executor auto|serial|threads|processes|dask] [--scheduler ADDRESS]
 """
 
 from __future__ import annotations
@@ -40,7 +41,6 @@ from tqdm import tqdm
 from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.readers import array_field, name_list, read_json
-from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend.features import FeatureConfig, extract_sift_adaptive
 from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
@@ -88,18 +88,22 @@ class FeatureSet:
     lowered: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
-def _extract_task(args: tuple[str, str, str, dict[str, Any]]) -> tuple[str, str, dict[str, np.ndarray] | None, str]:
-    """Worker: read one image and extract SIFT; ``(key, name, arrays or None, reason)``."""
-    path, name, key, cfg = args
+def _extract_task(args: tuple[str, str, str, dict[str, Any], str]) -> tuple[str, str, int | None, str]:
+    """Worker: read one image, extract SIFT and write it as one chunk of the store at ``args[4]``.
+
+    Returns ``(key, name, number of keypoints or None, chunk file name or the reason it was skipped)``.
+    """
+    path, name, key, cfg, folder = args
     gray, reason = read_gray(path)
     if gray is None:
         return key, name, None, reason
     kp, info = extract_sift_adaptive(gray, FeatureConfig(**cfg))
-    return key, name, {"keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations,
-                       "responses": kp.responses, "descriptors": kp.descriptors,
-                       "size": np.array([gray.shape[1], gray.shape[0]]), "n_normal": np.array(info.n_normal),
-                       "lowered": np.array(info.lowered), "contrast_used": np.array(info.contrast_used),
-                       "preblur_sigma": np.array(info.preblur_sigma)}, ""
+    chunk = ItemStore(folder).write_chunk({key: {
+        "keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations, "responses": kp.responses,
+        "descriptors": kp.descriptors, "size": np.array([gray.shape[1], gray.shape[0]]),
+        "n_normal": np.array(info.n_normal), "lowered": np.array(info.lowered),
+        "contrast_used": np.array(info.contrast_used), "preblur_sigma": np.array(info.preblur_sigma)}})
+    return key, name, len(kp.xy), chunk.name
 
 
 def _lowered_record(item: dict[str, np.ndarray]) -> dict[str, Any] | None:
@@ -180,18 +184,19 @@ class FeaturesStage(Stage[FeatureConfig]):
         done = set() if self.overwrite else store.done(keys.values())
         todo = [n for n in s["names"] if keys[n] not in done]
         skipped = [{"name": n, "reason": w} for n, w in s["bad"].items()]
-        tasks = [(str(self.images / n), n, keys[n], cfg.as_dict()) for n in todo]
+        folder = str(store.folder.resolve())  # workers write their chunks (absolute: they may run elsewhere)
+        tasks = [(str((self.images / n).resolve()), n, keys[n], cfg.as_dict(), folder) for n in todo]
         n_kp: list[int] = []
-        with make_executor(min(cfg.workers, max(len(tasks), 1)), "threads") as ex:
+        with cfg.open_executor(len(tasks), "threads") as ex:
             bar = tqdm(ex.map(_extract_task, tasks), total=len(tasks), desc="features", unit="img",
                        disable=not self.progress)
-            for key, name, arrays, reason in bar:
-                if arrays is None:
-                    skipped.append({"name": name, "reason": reason})
-                    logger.warning("skipping %s: it %s", self.images / name, reason)
+            for key, name, n, chunk_or_reason in bar:
+                if n is None:
+                    skipped.append({"name": name, "reason": chunk_or_reason})
+                    logger.warning("skipping %s: it %s", self.images / name, chunk_or_reason)
                     continue
-                store.write_chunk({key: arrays})
-                n_kp.append(len(arrays["keypoints"]))
+                store.adopt(chunk_or_reason, [key])
+                n_kp.append(n)
         failed = {d["name"] for d in skipped}
         usable = [n for n in s["names"] if n not in failed]
         if len(usable) < 2:
@@ -306,9 +311,20 @@ def load_features(work: Path, descriptors: bool = True) -> FeatureSet:
 
 
 def main(images: Path, work: Path, config: FeatureConfig | None = None, K_path: Path | None = None,
-         overwrite: bool = False, progress: bool = True) -> Path:
-    """Run the stage (reusing an intact cached result); returns the manifest path."""
-    FeaturesStage(work, config, images=images, K_path=K_path, progress=progress).run(overwrite)
+         overwrite: bool = False, progress: bool = True, database: Path | None = None) -> Path:
+    """Run the stage (reusing an intact cached result); returns the manifest path.
+
+    With ``database`` (a COLMAP database of ``images``) its cameras and keypoints are taken instead
+    (:mod:`pipeline.frontend.database_stage`), and the matching stage then takes its verified matches.
+    """
+    if database is not None:
+        from pipeline.frontend.database_stage import DatabaseFeaturesStage  # noqa: PLC0415 - it imports this module
+
+        if K_path is not None:
+            raise InputFileError("--database DB takes the intrinsics from the database; drop --K")
+        DatabaseFeaturesStage(work, config, images=images, database=database, progress=progress).run(overwrite)
+    else:
+        FeaturesStage(work, config, images=images, K_path=K_path, progress=progress).run(overwrite)
     return Path(work) / MANIFEST
 
 
@@ -321,12 +337,15 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, required=True, help="WORK folder for the front end's outputs")
     p.add_argument("--K", type=Path, default=None, help="intrinsics: K.txt (3x3) or a per-image cameras file")
     p.add_argument("--config", type=Path, default=None, help="YAML config; its 'features' section is used")
+    p.add_argument("--database", type=Path, default=None, metavar="DB",
+                   help="a COLMAP database of these images: take its cameras and keypoints (and, in the matching "
+                        "stage, its verified matches) instead of extracting SIFT")
     p.add_argument("--overwrite", action="store_true", help="re-extract even cached images")
     add_config_args(p, FeatureConfig)
 
     def body(a: argparse.Namespace) -> int:
         cfg = config_from_args(FeatureConfig, a, a.config)
-        print(main(a.images, a.work, cfg, a.K, overwrite=a.overwrite, progress=not a.quiet))
+        print(main(a.images, a.work, cfg, a.K, overwrite=a.overwrite, progress=not a.quiet, database=a.database))
         return 0
 
     return run_cli(body, p, argv)

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.errors import ConfigError
+from pipeline.core.parallel import ExecutorOptions
 
 __all__ = ["FeatureConfig", "Keypoints", "Extraction", "extract_sift", "extract_sift_adaptive", "keypoint_target"]
 
@@ -42,7 +43,7 @@ REFERENCE_AREA = 640 * 480
 
 
 @dataclass(frozen=True, kw_only=True)
-class FeatureConfig(Config):
+class FeatureConfig(ExecutorOptions):
     """SIFT extraction options (YAML section ``features``).
 
     ``precise_upscale``: with OpenCV's default (False) the 2× upsampled first octave

@@ -29,19 +29,20 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
+from pipeline.core.parallel import ExecutorOptions
 
 __all__ = ["MatchingConfig", "root_sift", "match_descriptors", "FlannIndex", "match_prepared"]
 
 
 @dataclass(frozen=True, kw_only=True)
-class MatchingConfig(Config):
+class MatchingConfig(ExecutorOptions):
     """Matching options (YAML section ``matching``)."""
 
     SECTION = "matching"
 
-    pairs: str = option("exhaustive", "which pairs to match: exhaustive, sequential:K, or a pairs file "
-                        "(lines 'name_a name_b')")
+    pairs: str = option("exhaustive", "which pairs to match: exhaustive, sequential:K, database (the pairs a COLMAP "
+                        "database verified: --database DB, or database:DB), or a pairs file (lines 'name_a name_b')")
     ratio: float = option(0.8, "Lowe's ratio-test threshold on L2 distances", gt=0, le=1)
     mutual: bool = option(True, "keep only mutual nearest neighbours")
     method: Literal["auto", "flann", "bf"] = option("auto", "nearest-neighbour search (see pipeline.frontend.matching)")

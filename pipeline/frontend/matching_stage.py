@@ -37,16 +37,16 @@ from tqdm import tqdm
 from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.readers import array_field, name_list, read_json
-from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
+from pipeline.frontend.colmap_db import database_fingerprint
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
 from pipeline.frontend.pairs import parse_selector, select_pairs
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MatchingStage", "MatchSet", "load_matches", "main", "main_cli", "MANIFEST", "STORE"]
+__all__ = ["MatchingStage", "MatchSet", "load_matches", "load_manifest", "main", "main_cli", "MANIFEST", "STORE"]
 
 MANIFEST = "matches.json"
 STORE = "matches"
@@ -96,16 +96,17 @@ class _Prepared:
 _PREPARED = _Prepared(_CACHE_IMAGES)
 
 
-def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any]]) -> list[tuple[str, np.ndarray]]:
-    """Worker: match a chunk of pairs ``(pair key, key a, chunk a, key b, chunk b)``."""
-    tasks, cfg = args
+def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any], str]) -> tuple[str, list[str]]:
+    """Worker: match a chunk of pairs ``(pair key, key a, chunk a, key b, chunk b)`` and write it as one chunk of
+    the matches store (folder ``args[2]``); returns the chunk's file name and its pair keys."""
+    tasks, cfg, folder = args
     config = MatchingConfig(**cfg)
-    out = []
+    out = {}
     for pk, ka, ca, kb, cb in tasks:
         qa, ia = _PREPARED.get(ka, ca, config)
         qb, ib = _PREPARED.get(kb, cb, config)
-        out.append((pk, match_prepared(qa, qb, ia, ib, config)))
-    return out
+        out[pk] = {"matches": match_prepared(qa, qb, ia, ib, config)}
+    return ItemStore(folder).write_chunk(out).name, list(out)
 
 
 class MatchingStage(Stage[MatchingConfig]):
@@ -124,6 +125,8 @@ class MatchingStage(Stage[MatchingConfig]):
         kind, arg = parse_selector(self.config.pairs)
         if kind == "file":
             inp["pairs_file"] = fingerprint_of(Path(arg).read_bytes().decode("utf-8", "replace"))  # type: ignore[arg-type]
+        if kind == "database" and arg is not None:
+            inp["pairs_database"] = database_fingerprint(Path(arg))  # type: ignore[arg-type]
         return inp
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
@@ -131,30 +134,48 @@ class MatchingStage(Stage[MatchingConfig]):
         logger.info("matching: %s", cfg)
         fm = feature_stage.load_manifest(self.folder)
         names, fkeys = list(fm["names"]), list(fm["keys"])
+        fp = cfg.fingerprint()
+        store = ItemStore(self.folder / STORE)
+        if fm.get("database"):  # features from a COLMAP database: its verified inlier matches
+            pairs, keys, n_read = self._from_database(fm, store)
+            return self._finish(names, pairs, keys, store, n_read)
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
         pairs = select_pairs(cfg.pairs, names)
-        fp = cfg.fingerprint()
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
-        store = ItemStore(self.folder / STORE)
         done = set() if self.overwrite else store.done(keys)
-        fdir = self.folder / feature_stage.STORE
+        fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
         todo = [(keys[p], fkeys[a], str(fdir / where[fkeys[a]]), fkeys[b], str(fdir / where[fkeys[b]]))
                 for p, (a, b) in enumerate(pairs) if keys[p] not in done]
-        chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict()) for s in range(0, len(todo), cfg.chunk_size)]
-        with make_executor(min(cfg.workers, max(len(chunks), 1)), "threads") as ex, \
+        folder = str(store.folder.resolve())
+        chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict(), folder) for s in range(0, len(todo), cfg.chunk_size)]
+        with cfg.open_executor(len(chunks), "threads") as ex, \
                 tqdm(total=len(todo), desc="matching", unit="pair", disable=not self.progress) as bar:
-            for res in ex.map(_match_chunk, chunks):
-                store.write_chunk({pk: {"matches": m} for pk, m in res})
-                bar.update(len(res))
+            for name, pair_keys in ex.map(_match_chunk, chunks):
+                store.adopt(name, pair_keys)
+                bar.update(len(pair_keys))
+        return self._finish(names, pairs, keys, store, len(todo))
+
+    def _from_database(self, fm: dict, store: ItemStore) -> tuple[np.ndarray, list[str], int]:
+        from pipeline.frontend.database_stage import database_matches  # noqa: PLC0415
+
+        fp, fkeys = self.config.fingerprint(), list(fm["keys"])
+        kind, _ = parse_selector(self.config.pairs)
+        selected = None if kind == "database" else select_pairs(self.config.pairs, list(fm["names"]))
+        with tqdm(desc="matches from the database", unit="pair", disable=not self.progress) as bar:
+            return database_matches(fm, selected, lambda a, b: item_key(fp, fkeys[a], fkeys[b]), store,
+                                    self.overwrite, bar.update)
+
+    def _finish(self, names: list[str], pairs: np.ndarray, keys: list[str], store: ItemStore,
+                n_computed: int) -> tuple[list[Path], dict[str, Any]]:
         files = store.write_index(keys)
         counts = [len(store.get(k)["matches"]) for k in keys] if keys else []
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
-            "config": cfg.as_dict(), "n_pairs": len(keys), "n_computed": len(todo),
-            "n_reused": len(keys) - len(todo)})
-        logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), len(todo),
-                    len(keys) - len(todo), int(np.median(counts)) if counts else 0)
-        return [path, *files], {"n_pairs": len(keys), "n_computed": len(todo)}
+            "config": self.config.as_dict(), "n_pairs": len(keys), "n_computed": n_computed,
+            "n_reused": len(keys) - n_computed})
+        logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), n_computed,
+                    len(keys) - n_computed, int(np.median(counts)) if counts else 0)
+        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed}
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)
@@ -195,6 +216,11 @@ def _pair_matches(item: Any) -> np.ndarray:
     if not (m.ndim == 2 and m.shape[1] == 2 and m.dtype.kind in "iu" and (m.size == 0 or 0 <= m.min() <= m.max() < 2 ** 31)):
         raise CacheError(f"{item.source}: a pair's matches are damaged (shape {m.shape}, dtype {m.dtype})")
     return m.astype(np.int32)
+
+
+def load_manifest(work: Path) -> dict:
+    """The matches manifest of ``work`` (names, pairs, item keys, config), checked."""
+    return _load_manifest(work)
 
 
 def load_matches(work: Path) -> MatchSet:

@@ -3,7 +3,10 @@
 - ``exhaustive``: all ``N(N−1)/2`` pairs;
 - ``sequential:K``: each image with the next ``K`` in name order (video, ordered captures);
 - a path: a pairs file, one ``name_a name_b`` per line (hloc's format; a name with
-  spaces in double quotes); names are matched by :func:`pipeline.core.names.match_names` (exact, then stem).
+  spaces in double quotes); names are matched by :func:`pipeline.core.names.match_names` (exact, then stem);
+- ``database``: the pairs a COLMAP database has verified: with ``run.py --database DB``
+  the database's own inlier matches; ``database:DB`` with our features, the pairs
+  ``DB`` verified, matched by us (:mod:`pipeline.frontend.database_stage`).
 
 Every selector returns sorted, unique index pairs ``(a, b)`` with ``a < b``.
 """
@@ -83,6 +86,8 @@ def parse_selector(spec: str) -> tuple[str, int | Path | None]:
     kind, _, arg = s.partition(":")
     if s == "exhaustive":
         return "exhaustive", None
+    if kind == "database":
+        return "database", (Path(arg) if arg else None)
     if kind == "sequential":
         try:
             k = int(arg)
@@ -93,7 +98,8 @@ def parse_selector(spec: str) -> tuple[str, int | Path | None]:
         return "sequential", k
     if Path(s).is_file():
         return "file", Path(s)
-    raise ConfigError(f"[matching] pairs={spec!r} but expected exhaustive, sequential:K or an existing pairs file")
+    raise ConfigError(f"[matching] pairs={spec!r} but expected exhaustive, sequential:K, database[:DB] or an "
+                      "existing pairs file")
 
 
 def select_pairs(spec: str, names: list[str]) -> np.ndarray:
@@ -103,4 +109,11 @@ def select_pairs(spec: str, names: list[str]) -> np.ndarray:
         return exhaustive_pairs(len(names))
     if kind == "sequential":
         return sequential_pairs(len(names), int(arg))  # type: ignore[arg-type]
+    if kind == "database":
+        if arg is None:
+            raise ConfigError("[matching] pairs='database' takes the pairs of the COLMAP database given with "
+                              "--database DB; without it write database:PATH")
+        from pipeline.frontend.database_stage import database_pairs  # noqa: PLC0415
+
+        return database_pairs(arg, names)  # type: ignore[arg-type]
     return read_pairs(arg, names)  # type: ignore[arg-type]

@@ -36,8 +36,9 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.core import so3
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
 from pipeline.core.errors import PipelineError
+from pipeline.core.parallel import ExecutorOptions
 from pipeline.geometry.ba_focal import FocalUnknowns, focal_columns
 from pipeline.geometry.ba_hessian import linearize, marginalize_translation, pinv_sym, reduced_system
 from pipeline.geometry.ba_lm import levenberg_marquardt, robust_sigma
@@ -51,7 +52,7 @@ class TwoViewBAError(PipelineError):
 
 
 @dataclass(frozen=True, kw_only=True)
-class BAConfig(Config):
+class BAConfig(ExecutorOptions):
     """Options of the two-view bundle adjustment (YAML section ``two_view_ba``)."""
 
     SECTION = "two_view_ba"

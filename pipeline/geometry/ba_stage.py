@@ -164,7 +164,8 @@ class TwoViewBAStage(PairStage[BAConfig]):
         with tqdm(total=M, initial=sum(k in done for k in keys), desc="two-view BA", unit="pair",
                   disable=not cfg.progress) as bar:
             n_computed = compute_missing(store, keys, tasks.__getitem__, functools.partial(_refine_chunk, config=cfg),
-                                         workers=cfg.workers, chunk_size=cfg.chunk_size, on_chunk=bar.update)
+                                         workers=cfg.workers, chunk_size=cfg.chunk_size, on_chunk=bar.update,
+                                         backend=cfg.backend("processes"), scheduler=cfg.scheduler)
         elapsed = time.perf_counter() - t0
         results = [_result(store.get(k)) for k in keys]
         vg, summary = _assemble(vg_in, t_in, results)

@@ -46,7 +46,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.core.config import Config, option
+from pipeline.core.config import option
+from pipeline.core.parallel import ExecutorOptions
 from pipeline.geometry.epipolar import (normalize, pose_from_essential, refine_pose, rotation_from_bearings,
                                         rotation_only_residual_px, sampson_distance, triangulation_depths)
 
@@ -56,7 +57,7 @@ METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 
 
 @dataclass(frozen=True, kw_only=True)
-class TwoViewConfig(Config):
+class TwoViewConfig(ExecutorOptions):
     """Relative-pose estimation options (YAML section ``two_view``)."""
 
     SECTION = "two_view"

@@ -39,11 +39,11 @@ from pipeline.core.atomic import save_npz
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.features import load_features
+from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras
+from pipeline.frontend.distortion import CameraModel, undistort_points
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
-from pipeline.matching import load_matches
 from pipeline.stage import StageRecord, read_record
 
 __all__ = ["TwoViewStage", "TwoViewData", "load_two_view", "write_two_view", "main_cli", "VIEWGRAPH",
@@ -60,35 +60,48 @@ _CORR_ARRAYS = {"K": "f", "sizes": "iu", "offsets": "iu", "x_i": "f", "x_j": "f"
 
 
 def _frontend_inputs(work: Path) -> dict[str, str]:
-    """Fingerprints of the front-end results this stage reads (the one place to switch to upstream records)."""
-    inp = {"features": load_features(work).digest, "matching": load_matches(work).digest}
+    """Fingerprints of the front-end results this stage reads (their stage records; the cameras stage's if it ran)."""
+    inp = {name: _upstream_record(work, name).fingerprint for name in ("features", "matching")}
     rec = read_record(work, CAMERAS)
     if rec is not None:
         inp[CAMERAS] = rec.fingerprint
     return inp
 
 
-def _cameras(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray]]:
-    """K (N, 3, 3) and the keypoints the geometry uses: the cameras stage's (undistorted), else the features'."""
+def _cameras(work: Path, fm: dict[str, Any]) -> tuple[np.ndarray, list[CameraModel | None]]:
+    """K (N, 3, 3) and, per image, the camera model whose distortion the worker removes (None: none).
+
+    The cameras stage's result when it ran, else the features' K as it is (with a warning
+    when that loses something: an EXIF or default focal, or a file with distortion).
+    """
+    names = list(fm["names"])
     if read_record(work, CAMERAS) is None:
         from pipeline.frontend.distortion import is_camera_model_file  # noqa: PLC0415
 
-        # a K from a plain file loses nothing; an EXIF or default focal, or a file with distortion, does
-        lossy = any(not s.startswith("file:") or is_camera_model_file(s[len("file:"):]) for s in fs.K_source)
+        sources = [str(s) for s in fm.get("K_source", [])]
+        lossy = any(not s.startswith("file:") or is_camera_model_file(s[len("file:"):]) for s in sources)
         (logger.warning if lossy else logger.info)(
             "two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF or default "
             "focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
-        return fs.K, list(fs.keypoints)
+        return np.array(fm["K"], float).reshape(-1, 3, 3), [None] * len(names)
     cams = load_cameras(work)
-    if cams.names != list(fs.names):
+    if cams.names != names:
         raise InputFileError(f"{work}: the cameras were computed for other images than the current features; "
                              f"re-run `python -m pipeline.cameras --work {work}`")
-    return cams.K, cams.keypoints_for_geometry(fs.keypoints)
+    return cams.K, [m if m.has_distortion else None for m in cams.models]
+
+
+def _upstream_record(work: Path, name: str) -> StageRecord:
+    rec = read_record(work, name)
+    if rec is None:
+        raise InputFileError(f"{work} has no result of the '{name}' stage, which 'two_view' needs; "
+                             f"run `python -m pipeline.{name}` on it first")
+    return rec
 
 
 def _frontend_image_count(work: Path) -> int:
     """Number of images of the front end (the camera count of a two-view result)."""
-    return len(load_features(work).names)
+    return len(feature_stage.load_manifest(work)["names"])
 
 
 @dataclass
@@ -189,13 +202,40 @@ def load_two_view(work: Path) -> TwoViewData:
 
 
 # ----------------------------------------------------------------- per pair
-def _estimate_chunk(tasks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]],
-                    config: TwoViewConfig) -> list[dict[str, Any]]:
-    """Worker: estimate a chunk of pairs; each result as arrays (see :func:`_geometry_from_item`)."""
+# A task names its inputs on disk: (feature chunk a, feature key a, feature chunk b, feature key b, match chunk,
+# match key, K_a, K_b, pixel scale, camera model a, camera model b); the worker reads them itself (a worker holds a
+# few images, never the collection) and undistorts the keypoints of a camera model with distortion.
+Task = tuple[str, str, str, str, str, str, np.ndarray, np.ndarray, float, "CameraModel | None", "CameraModel | None"]
+
+
+@functools.lru_cache(maxsize=64)
+def _raw_keypoints(chunk: str, key: str) -> np.ndarray:
+    return ItemStore.read_chunk(Path(chunk))[key]["keypoints"].astype(np.float32)
+
+
+def _keypoints(chunk: str, key: str, camera: CameraModel | None) -> np.ndarray:
+    """The keypoints the geometry uses: undistorted to the pinhole K where the camera has distortion."""
+    kp = _raw_keypoints(chunk, key)
+    return kp if camera is None else undistort_points(camera, kp)
+
+
+@functools.lru_cache(maxsize=4)
+def _match_chunk(chunk: str) -> dict[str, dict[str, np.ndarray]]:
+    return ItemStore.read_chunk(Path(chunk))
+
+
+def _estimate_chunk(tasks: list[Task], config: TwoViewConfig) -> list[dict[str, Any]]:
+    """Worker: estimate a chunk of pairs read from disk; each result as arrays (see :func:`_geometry_from_item`),
+    with the inliers' keypoint indices ``kp_i``, ``kp_j`` and pixels ``x_i``, ``x_j``."""
     out = []
-    for x_i, x_j, K_i, K_j, pixel_scale in tasks:
-        g = estimate_pair(x_i, x_j, K_i, K_j, config, pixel_scale=pixel_scale)
-        out.append({f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)})
+    for ca, ka, cb, kb, cm, km, K_i, K_j, pixel_scale, cam_a, cam_b in tasks:
+        kp_a, kp_b = _keypoints(ca, ka, cam_a), _keypoints(cb, kb, cam_b)
+        m = _match_chunk(cm)[km]["matches"].astype(np.int32).reshape(-1, 2)
+        g = estimate_pair(kp_a[m[:, 0]], kp_b[m[:, 1]], K_i, K_j, config, pixel_scale=pixel_scale)
+        item = {f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)}
+        inl = m[g.inlier_mask] if g.ok else m[:0]
+        item.update(kp_i=inl[:, 0], kp_j=inl[:, 1], x_i=kp_a[inl[:, 0]], x_j=kp_b[inl[:, 1]])
+        out.append(item)
     return out
 
 
@@ -203,7 +243,7 @@ _SCALARS = {"bool": bool, "int": int, "float": float, "str": str}
 
 
 def _geometry_from_item(item: dict[str, np.ndarray]) -> PairGeometry:
-    kw = {}
+    kw: dict[str, Any] = {}
     for f in dataclasses.fields(PairGeometry):
         v = item[f.name]
         kw[f.name] = _SCALARS[f.type](v.item()) if f.type in _SCALARS else v
@@ -231,32 +271,43 @@ class TwoViewStage(PairStage[TwoViewConfig]):
         config, work = self.config, self.folder
         t_start = time.perf_counter()
         logger.info("two_view: %s", config)
-        fs = load_features(work)
-        ms = load_matches(work)
-        if ms.names != fs.names:
+        fm, mm = feature_stage.load_manifest(work), matching_stage.load_manifest(work)
+        names, pairs = list(fm["names"]), np.asarray(mm["pairs"], np.int64).reshape(-1, 2)
+        if list(mm["names"]) != names:
             raise InputFileError(f"{work}: the matches were computed for other images than the current features; "
                                  f"re-run `python -m pipeline.matching --work {work}`")
-        max_size = fs.config.max_image_size if fs.config is not None else 0
-        scale = np.ones(len(fs.names))
+        K, cams = _cameras(work, fm)
+        sizes = np.array(fm["sizes"], np.int64).reshape(-1, 2)
+        max_size = int(fm.get("config", {}).get("max_image_size", 0) or 0)
+        scale = np.ones(len(names))
         if max_size > 0:
-            scale = np.maximum(fs.sizes.max(axis=1) / max_size, 1.0)
-        K, kp = _cameras(work, fs)
+            scale = np.maximum(sizes.max(axis=1) / max_size, 1.0)
+        # absolute paths: the workers may run in another folder or on another machine
+        fdir, mdir = (work / feature_stage.STORE).resolve(), (work / matching_stage.STORE).resolve()
+        fwhere, mwhere = ItemStore(fdir).load_index(), ItemStore(mdir).load_index()
+        fkeys, mkeys = list(fm["keys"]), list(mm["keys"])
 
-        def task(p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-            a, b = ms.pairs[p]
-            m = ms.matches[p]
-            return (kp[a][m[:, 0]], kp[b][m[:, 1]], K[a], K[b], float(0.5 * (scale[a] + scale[b])))
+        def task(p: int) -> Task:
+            a, b = pairs[p]
+            return (str(fdir / fwhere[fkeys[a]]), fkeys[a], str(fdir / fwhere[fkeys[b]]), fkeys[b],
+                    str(mdir / mwhere[mkeys[p]]), mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])),
+                    cams[a], cams[b])
+
+        def lens(c: CameraModel | None) -> Any:
+            return None if c is None else [c.model, c.params]
 
         fp = config.fingerprint()
-        keys = [item_key(fp, *task(p)) for p in range(len(ms.pairs))]
+        keys = [item_key(fp, fkeys[a], fkeys[b], mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])),
+                         lens(cams[a]), lens(cams[b])) for p, (a, b) in enumerate(pairs)]
         store = ItemStore(work / self.store)
         done = store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
                   disable=not config.progress) as bar:
             n_computed = compute_missing(store, keys, task, functools.partial(_estimate_chunk, config=config),
-                                         workers=config.workers, chunk_size=config.chunk_size, on_chunk=bar.update)
-        geoms = [_geometry_from_item(store.get(k)) for k in keys]
-        paths, summary = self._write(fs, ms, geoms, K, kp)
+                                         workers=config.workers, chunk_size=config.chunk_size, on_chunk=bar.update,
+                                         backend=config.backend("processes"), scheduler=config.scheduler)
+        items = [store.get(k) for k in keys]
+        paths, summary = self._write(names, K, sizes, pairs, items)
         summary["n_computed"] = n_computed
         paths += store.write_index(keys)
         vg_iso = summary["isolated"]
@@ -268,16 +319,17 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             logger.warning("%d camera(s) have no accepted pair: %s", len(vg_iso), ", ".join(vg_iso[:5]))
         return paths, summary
 
-    def _write(self, fs: Any, ms: Any, geoms: Sequence[PairGeometry], K: np.ndarray, kp: list[np.ndarray]
-               ) -> tuple[list[Path], dict[str, Any]]:
+    def _write(self, names: list[str], K: np.ndarray, sizes: np.ndarray, pairs: np.ndarray,
+               items: Sequence[dict[str, np.ndarray]]) -> tuple[list[Path], dict[str, Any]]:
         """Assemble and write the view graph and correspondences; returns the paths and the summary."""
+        geoms = [_geometry_from_item(it) for it in items]
         acc = [p for p, g in enumerate(geoms) if g.ok]
         rejected = [
-            {"pair": [int(ms.pairs[p][0]), int(ms.pairs[p][1])], "names": [fs.names[ms.pairs[p][0]], fs.names[ms.pairs[p][1]]],
+            {"pair": [int(pairs[p][0]), int(pairs[p][1])], "names": [names[pairs[p][0]], names[pairs[p][1]]],
              "n_matches": g.n_matches, "n_inliers": g.n_inliers if g.n_inliers else g.n_inliers_E, "reason": g.reason}
             for p, g in enumerate(geoms) if not g.ok
         ]
-        edges = ms.pairs[acc].reshape(-1, 2)
+        edges = pairs[acc].reshape(-1, 2)
         G = [geoms[p] for p in acc]
         stats = {
             "t": np.array([g.t for g in G]).reshape(-1, 3),
@@ -292,22 +344,18 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "planar": np.array([g.planar for g in G], bool),
         }
         stats["degenerate"] = stats["small_baseline"] | stats["planar"]
-        vg = ViewGraph(list(fs.names), edges, np.array([g.R for g in G]).reshape(-1, 3, 3),
+        vg = ViewGraph(list(names), edges, np.array([g.R for g in G]).reshape(-1, 3, 3),
                        inliers=np.array([g.n_inliers for g in G], np.int64), stats=stats, allow_isolated=True)
-        kp_i, kp_j, xi, xj = [], [], [], []
-        for p, g in zip(acc, G):
-            a, b = ms.pairs[p]
-            m = ms.matches[p][g.inlier_mask]
-            kp_i.append(m[:, 0])
-            kp_j.append(m[:, 1])
-            xi.append(kp[a][m[:, 0]])
-            xj.append(kp[b][m[:, 1]])
+        kp_i = [items[p]["kp_i"] for p in acc]
+        kp_j = [items[p]["kp_j"] for p in acc]
+        xi = [items[p]["x_i"] for p in acc]
+        xj = [items[p]["x_j"] for p in acc]
         counts = np.array([len(k) for k in kp_i], np.int64)
 
         def cat(arrs: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
             return np.concatenate(arrs).astype(dtype) if arrs else np.zeros(shape, dtype)
 
-        paths = write_two_view(self.folder, vg, K, fs.sizes, np.concatenate([[0], np.cumsum(counts)]),
+        paths = write_two_view(self.folder, vg, K, sizes, np.concatenate([[0], np.cumsum(counts)]),
                                cat(xi, (0, 2), np.float64), cat(xj, (0, 2), np.float64), cat(kp_i, (0,), np.int32),
                                cat(kp_j, (0,), np.int32))
         reasons: dict[str, int] = {}
@@ -316,14 +364,14 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             reasons[key] = reasons.get(key, 0) + 1
         summary = {
             "n_images": vg.n_cameras,
-            "n_pairs": int(len(ms.pairs)),
+            "n_pairs": int(len(pairs)),
             "n_accepted": int(len(acc)),
             "n_rejected": len(rejected),
             "n_degenerate": int(stats["degenerate"].sum()),
             "n_small_baseline": int(stats["small_baseline"].sum()),
             "n_planar": int(stats["planar"].sum()),
             "n_static_removed": int((stats["n_static"] > 0).sum()),
-            "isolated": [fs.names[k] for k in np.flatnonzero(vg.degrees() == 0)],
+            "isolated": [names[k] for k in np.flatnonzero(vg.degrees() == 0)],
             "rejected_reasons": reasons,
             "rejected": rejected,
         }

@@ -1,0 +1,197 @@
+"""Per-item work on ``dask.distributed``: a local cluster of single-threaded worker processes, or an existing one.
+
+:class:`DaskExecutor` follows the :class:`pipeline.core.parallel.Executor`
+protocol: ``map(fn, items)`` submits every item at once (the scheduler balances
+them over the workers) and yields the results in item order. The functions it
+runs are module-level and take small arguments (paths, item keys, configs): each
+task reads what it needs from disk itself, so that nothing of the collection is
+held by the client or shipped through the scheduler.
+
+- ``DaskExecutor(workers)`` starts a ``LocalCluster`` of ``workers`` worker
+  *processes* with one thread each (OpenCV, BLAS and OpenMP set to one thread in
+  each, so that results do not depend on thread partitioning); its scratch space
+  is a temporary folder removed on :meth:`close`, and its workers die with this
+  process, even on SIGKILL;
+- ``DaskExecutor(scheduler="tcp://host:8786")`` uses an existing cluster, the
+  way a user with several machines would (``dask scheduler`` and ``dask worker
+  ADDRESS --nthreads 1`` on each machine, with the same data folders and the
+  pipeline importable); closing disconnects and leaves the cluster running.
+
+:func:`local_cluster` starts one cluster for a whole run, so that the stages of
+``run.py`` share it (each stage connects by address).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import tempfile
+from typing import Any, Callable, Iterator, Sequence, TypeVar
+
+from pipeline.core.errors import PipelineError
+from pipeline.core.parallel import die_with_parent
+
+__all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "single_thread",
+           "require_distributed"]
+
+logger = logging.getLogger(__name__)
+T = TypeVar("T")
+R = TypeVar("R")
+
+_ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+               "OMP_WAIT_POLICY": "PASSIVE"}
+CONNECT_TIMEOUT_S = 10
+
+
+def require_distributed() -> Any:
+    """The ``distributed`` module; :class:`PipelineError` with the install command if it is missing."""
+    try:
+        import distributed  # noqa: PLC0415 - optional at import time of the package
+    except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
+        raise PipelineError(f"executor 'dask' needs dask.distributed ({exc}); pip install 'dask[distributed]'") from None
+    return distributed
+
+
+def single_thread(client_pid: int | None = None) -> int:
+    """Worker set-up: one thread for OpenCV, BLAS and OpenMP; die with the client that started this worker.
+
+    Args:
+        client_pid: pid of the process whose ``LocalCluster`` started this worker
+            (None for a worker of an external cluster).
+    Returns:
+        this worker's pid.
+    """
+    os.environ.update(_ONE_THREAD)
+    with contextlib.suppress(ImportError):
+        import cv2  # noqa: PLC0415
+
+        cv2.setNumThreads(1)
+    with contextlib.suppress(ImportError):
+        from threadpoolctl import threadpool_limits  # noqa: PLC0415
+
+        threadpool_limits(1)
+    if client_pid is not None and os.getppid() == client_pid:
+        die_with_parent(client_pid)
+    return os.getpid()
+
+
+class LocalDaskCluster:
+    """A ``LocalCluster`` of ``workers`` single-threaded worker processes, scratch space in a temporary folder.
+
+    Args:
+        workers: worker processes (default: one per core).
+    """
+
+    def __init__(self, workers: int | None = None) -> None:
+        distributed = require_distributed()
+        self.workers = max(1, int(workers or os.cpu_count() or 1))
+        self.scratch = tempfile.mkdtemp(prefix="rotavg-dask-")
+        try:
+            self.cluster = distributed.LocalCluster(
+                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                silence_logs=logging.ERROR, local_directory=self.scratch, env=dict(_ONE_THREAD), host="127.0.0.1")
+        except BaseException:
+            shutil.rmtree(self.scratch, ignore_errors=True)
+            raise
+        self.address: str = self.cluster.scheduler_address
+        try:
+            with distributed.Client(self.address, timeout=CONNECT_TIMEOUT_S, set_as_default=False) as client:
+                client.run(single_thread, os.getpid())
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        try:
+            self.cluster.close()
+        finally:
+            shutil.rmtree(self.scratch, ignore_errors=True)
+
+    def __enter__(self) -> "LocalDaskCluster":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+@contextlib.contextmanager
+def local_cluster(workers: int | None = None) -> Iterator[LocalDaskCluster]:
+    """A :class:`LocalDaskCluster` for the duration of a ``with`` block (closed also on Ctrl-C)."""
+    cluster = LocalDaskCluster(workers)
+    try:
+        yield cluster
+    finally:
+        cluster.close()
+
+
+def check_scheduler(address: str, timeout: float | None = None) -> int:
+    """The number of workers of the Dask scheduler at ``address``; :class:`PipelineError` if unreachable or empty.
+
+    ``timeout``: seconds to wait for the connection (default :data:`CONNECT_TIMEOUT_S`).
+    """
+    distributed = require_distributed()
+    try:
+        with distributed.Client(address, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False) as client:
+            n = len(client.scheduler_info()["workers"])
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise PipelineError(f"cannot reach the Dask scheduler at {address!r} ({' '.join(str(exc).split())[:100]}); "
+                            "start one (`dask scheduler`, `dask worker ADDRESS --nthreads 1`) or drop --scheduler"
+                            ) from None
+    if n == 0:
+        raise PipelineError(f"the Dask scheduler at {address!r} has no worker; start `dask worker {address} "
+                            "--nthreads 1` on each machine")
+    return n
+
+
+class DaskExecutor:
+    """Maps functions over items on ``dask.distributed``, results in order.
+
+    Args:
+        workers: worker processes of the local cluster started when ``scheduler``
+            is None (default: one per core).
+        scheduler: address of an existing scheduler (``tcp://host:8786``); its
+            workers are used as they are and the cluster outlives this executor.
+    """
+
+    def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
+        distributed = require_distributed()
+        self._local: LocalDaskCluster | None = None
+        try:
+            if scheduler is None:
+                self._local = LocalDaskCluster(workers)
+                address, client_pid = self._local.address, os.getpid()
+            else:
+                check_scheduler(scheduler)
+                address, client_pid = scheduler, None
+            self.client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+            self.client.run(single_thread, client_pid)
+            self.workers = max(1, len(self.client.scheduler_info()["workers"]))
+        except BaseException:
+            if self._local is not None:
+                self._local.close()
+            raise
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+        """``fn`` of every item, in item order; every item is submitted at once."""
+        futures = self.client.map(fn, list(items), pure=False)
+        try:
+            for f in futures:
+                yield f.result()
+                f.release()
+        finally:
+            self.client.cancel(futures)
+
+    def close(self) -> None:
+        try:
+            self.client.close()
+        finally:
+            if self._local is not None:
+                self._local.close()
+
+    def __enter__(self) -> "DaskExecutor":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

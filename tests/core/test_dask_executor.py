@@ -1,0 +1,131 @@
+"""The Dask executor: the same outputs as the serial path, a cluster reached by address, a clean shutdown.
+
+The cluster of the main test is started *before* the code under test and reached
+by its address, the way ``--scheduler ADDRESS`` reaches a user's cluster.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+
+from pipeline.core.errors import PipelineError
+from pipeline.core.parallel import make_executor
+from pipeline.core.store import ItemStore
+from pipeline.frontend.feature_stage import FeaturesStage
+from pipeline.frontend.features import FeatureConfig
+from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.matching_stage import MatchingStage
+from pipeline.geometry.ba_solver import BAConfig
+from pipeline.geometry.ba_stage import TwoViewBAStage
+from pipeline.geometry.ransac import TwoViewConfig
+from pipeline.geometry.two_view_stage import TwoViewStage
+from pipeline.synthetic.render import SceneConfig, render_scene
+
+distributed = pytest.importorskip("distributed")
+
+SCENE = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
+
+
+def _square(x: int) -> int:
+    return x * x
+
+
+def _worker_env(_: int) -> tuple[int, str, int]:
+    import cv2
+
+    return os.getpid(), os.environ.get("OMP_NUM_THREADS", ""), cv2.getNumThreads()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return render_scene(n_views=5, seed=4, out=tmp_path_factory.mktemp("scene"), config=SCENE)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=40) as c:
+        yield c
+
+
+def _run_stages(scene, work: Path, **executor) -> None:
+    # chunks of 2 pairs: several tasks per stage, so that both workers take part
+    FeaturesStage(work, FeatureConfig(**executor), images=scene.out, K_path=scene.out / "cameras.txt",
+                  progress=False).run()
+    MatchingStage(work, MatchingConfig(chunk_size=2, **executor), progress=False).run()
+    TwoViewStage(work, TwoViewConfig(chunk_size=2, progress=False, **executor)).run()
+    TwoViewBAStage(work, BAConfig(chunk_size=2, progress=False, **executor)).run()
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _items(folder: Path) -> dict[str, dict[str, np.ndarray]]:
+    store = ItemStore(folder)
+    return {k: store.get(k) for k in store.load_index()}
+
+
+def test_dask_by_address_gives_the_serial_outputs(scene, cluster, tmp_path):
+    _run_stages(scene, tmp_path / "serial", executor="serial")
+    _run_stages(scene, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    for store in ("features", "matches"):  # per image, per pair: bit for bit
+        a, b = _items(tmp_path / "serial" / store), _items(tmp_path / "dask" / store)
+        assert list(a) == list(b)
+        for k in a:
+            assert a[k].keys() == b[k].keys()
+            for name in a[k]:
+                np.testing.assert_array_equal(a[k][name], b[k][name], err_msg=f"{store} {name}")
+    for out in ("two_view.npz", "two_view_corr.npz", "viewgraph.npz"):
+        a, b = _arrays(tmp_path / "serial" / out), _arrays(tmp_path / "dask" / out)
+        assert a.keys() == b.keys()
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name], err_msg=f"{out} {name}")
+    vg = _arrays(tmp_path / "dask" / "viewgraph.npz")
+    assert len(vg["edges"]) >= 8 and "H" in vg  # 5 views: most of the 10 pairs overlap
+
+
+def test_workers_of_an_existing_cluster_run_single_threaded_and_in_order(cluster):
+    ex = make_executor(2, "processes", cluster.scheduler_address)
+    with ex:
+        assert ex.workers == 2
+        assert list(ex.map(_square, range(20))) == [x * x for x in range(20)]
+        env = set(ex.map(_worker_env, range(8)))
+    assert {(omp, n) for _, omp, n in env} == {("1", 1)}
+    assert len(cluster.scheduler_info["workers"]) == 2  # an external cluster outlives the executor
+
+
+def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypatch):
+    from pipeline.core.dask_executor import DaskExecutor
+
+    monkeypatch.chdir(tmp_path)
+    me = psutil.Process()
+    before = {p.pid for p in me.children(recursive=True)}
+    with pytest.raises(KeyboardInterrupt):
+        with DaskExecutor(workers=2) as ex:
+            pids = set(ex.map(lambda _: os.getpid(), range(6)))
+            assert len(ex.client.scheduler_info()["workers"]) == 2
+            raise KeyboardInterrupt  # Ctrl-C in the middle of a run
+    alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+    assert not alive
+    assert {p.pid for p in me.children(recursive=True)} - before == set()
+    assert list(tmp_path.iterdir()) == []  # no dask-scratch-space in the working folder
+
+
+def test_unreachable_scheduler_is_one_line_before_any_stage(tmp_path, monkeypatch, capsys):
+    from pipeline.core import dask_executor
+    from pipeline.run import main_cli
+
+    with pytest.raises(PipelineError, match=r"cannot reach the Dask scheduler at 'tcp://127.0.0.1:9'"):
+        dask_executor.check_scheduler("tcp://127.0.0.1:9", timeout=1)
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 1)
+    assert main_cli(["--scheduler", "tcp://127.0.0.1:9", "--out", str(tmp_path / "o"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "cannot reach the Dask scheduler" in err and "Traceback" not in err
+    assert not (tmp_path / "o" / "work").exists()
