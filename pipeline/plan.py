@@ -24,6 +24,7 @@ from pipeline.core.config import Config, check_sections, load_yaml, option, stag
 from pipeline.core.errors import ConfigError, InputFileError, PipelineError
 from pipeline.core.names import match_names
 from pipeline.evaluation.compare import EvaluationConfig
+from pipeline.frontend.camera_estimate import CamerasConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
@@ -66,8 +67,8 @@ class RunConfig(Config):
 
 PER_ITEM = ("features", "matching", "two_view", "two_view_ba")  # the sections whose work runs on an executor
 STAGE_CONFIGS: dict[str, type[Config]] = {
-    c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, TwoViewConfig, BAConfig, ViewGraphConfig,
-                           ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
+    c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, CamerasConfig, TwoViewConfig, BAConfig,
+                           ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
 
 
 @dataclass
@@ -264,8 +265,16 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
         _check_truth(truth, Path(gt), scan["names"])
         truth = truth.replace(label="truth")
     n_default = sum(1 for s in scan["sources"] if s == "default")
+    n_exif = sum(1 for s in scan["sources"] if s == "exif")
+    estimate = configs["cameras"].estimate_focal  # type: ignore[attr-defined]
     if n_default:
-        notes.append(f"{n_default} image(s) had no K file and no EXIF focal: default focal 1.2·max(w, h) used")
+        notes.append(f"{n_default} image(s) had no K file and no EXIF focal: " + (
+            "their focal length is estimated from the view graph (cameras stage)" if estimate else
+            "default focal 1.2·max(w, h) used (cameras.estimate_focal is off)"))
+    if n_exif:
+        notes.append(f"{n_exif} image(s) have an EXIF focal and no K file: " + (
+            "EXIF is a prior; the focal length is estimated from the view graph near it" if estimate else
+            "the EXIF focal is used as it is (cameras.estimate_focal is off)"))
     notes += [f"image {n} left out: it {why}" for n, why in scan["bad"].items()]
     return Plan(images=images, out=out, K=None if K is None else Path(K), gt=None if gt is None else Path(gt),
                 truth=truth, run=run_cfg, configs=configs, yaml=yaml_data, methods=list(given), overrides=overrides,

@@ -14,14 +14,16 @@ recomputed), each also a command of its own:
 
 1. features      ``python -m pipeline.features``     → OUT/work/features.json + features/
 2. matching      ``python -m pipeline.matching``     → OUT/work/matches.json + matches/
-3. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
-4. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
-5. view graph    largest connected component          → OUT/viewgraph.npz (+ why each image is left out)
-6. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
-7. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
-8. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
-9. GLOMAP        ``python -m pipeline.reference.global_mapping`` → OUT/reference-global/ (pycolmap global)
-10. evaluation and report                             → OUT/metrics.json, OUT/report.md
+3. cameras       ``python -m pipeline.cameras``      → OUT/work/cameras.json (K, distortion, their sources)
+4. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
+5. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
+6. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
+                 (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras)
+7. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
+8. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
+9. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
+10. GLOMAP       ``python -m pipeline.reference.global_mapping`` → OUT/reference-global/ (pycolmap global)
+11. evaluation and report                             → OUT/metrics.json, OUT/report.md
 
 Methods come from the registry (:mod:`pipeline.averaging.registry`). With no
 IMAGE_DIR a small scene is rendered into OUT/scene and its cameras are the truth.
@@ -51,6 +53,7 @@ from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
+from pipeline.frontend.camera_stage import CamerasStage  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.matching_stage import MatchingStage  # noqa: E402
 from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
@@ -65,8 +68,8 @@ from pipeline.stage import Stage, StageRecord  # noqa: E402
 
 logger = logging.getLogger("run")
 
-STEPS = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine", "reference",
-         "global_reference", "evaluation", "report")
+STEPS = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine",
+         "reference", "global_reference", "evaluation", "report")
 
 
 class Runner:
@@ -152,6 +155,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         runner.stage(plan.features)
         plan.note_skipped(load_manifest(work))
         runner.stage(MatchingStage(work, plan.config("matching"), progress=plan.progress))
+        runner.stage(CamerasStage(work, plan.config("cameras", **progress)))
         runner.stage(TwoViewStage(work, plan.config("two_view", **progress)))
         runner.stage(TwoViewBAStage(work, plan.config("two_view_ba", **progress)))
         graph = ViewGraphStage(plan.out, plan.config("viewgraph"), work=work)

@@ -83,7 +83,7 @@ def test_full_run_metrics_and_report(full_run):
 
 @pytest.mark.slow
 def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
-    """features → matching → two_view → two_view_ba → average by their commands equals run.py."""
+    """features → matching → two_view → two_view_ba → viewgraph → average by their commands equals run.py."""
     work = tmp_path / "work"
     py = sys.executable
     cmds = [
@@ -91,7 +91,8 @@ def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
         [py, "-m", "pipeline.matching", "--work", str(work)],
         [py, "-m", "pipeline.two_view", "--work", str(work)],
         [py, "-m", "pipeline.two_view_ba", "--work", str(work)],
-        [py, "-m", "pipeline.average", str(work / "viewgraph.npz"), "--method", "irls", "--loss", "l0.5",
+        [py, "-m", "pipeline.viewgraph", "--work", str(work), "--out", str(tmp_path)],
+        [py, "-m", "pipeline.average", str(tmp_path / "viewgraph.npz"), "--method", "irls", "--loss", "l0.5",
          "--out", str(tmp_path / "irls.txt")],
     ]
     for c in cmds:
@@ -119,7 +120,7 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
             return fn(*a, **k)
         return wrapped
 
-    monkeypatch.setattr(feature_stage, "extract_sift", count("sift", feature_stage.extract_sift))
+    monkeypatch.setattr(feature_stage, "extract_sift_adaptive", count("sift", feature_stage.extract_sift_adaptive))
     monkeypatch.setattr(TwoViewBAStage, "compute", count("ba", TwoViewBAStage.compute))
     monkeypatch.setattr(average, "average", count("avg", average.average))
     monkeypatch.setattr(pycolmap, "extract_features", count("colmap", pycolmap.extract_features))
@@ -144,7 +145,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
 
     out = tmp_path / "out"
     if where == "features":
-        real = feature_stage.extract_sift
+        real = feature_stage.extract_sift_adaptive
         n = {"k": 0}
 
         def flaky(*a, **k):  # Ctrl-C after 3 images were extracted and cached
@@ -153,7 +154,7 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
                 raise KeyboardInterrupt
             return real(*a, **k)
 
-        monkeypatch.setattr(feature_stage, "extract_sift", flaky)
+        monkeypatch.setattr(feature_stage, "extract_sift_adaptive", flaky)
     else:
         def interrupted(*a, **k):
             raise KeyboardInterrupt

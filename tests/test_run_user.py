@@ -135,15 +135,18 @@ def test_unreadable_files_are_skipped_and_named(messy_run):
 
 
 @pytest.mark.slow
-def test_no_K_no_exif_warns_and_uses_default_focal(messy_run):
+def test_no_K_no_exif_warns_and_estimates_the_focal(messy_run):
     out, warnings = messy_run
     assert any("focal" in w.lower() for w in warnings), warnings
     man = json.loads((out / "work" / "features.json").read_text())
-    assert set(man["K_source"]) == {"default"}
+    assert set(man["K_source"]) == {"default"}  # the start value: 1.2·max(w, h)
     K = np.array(man["K"])
     np.testing.assert_allclose(K[:, 0, 0], 1.2 * 320)
     m = json.loads((out / "metrics.json").read_text())
-    assert any("default focal" in n for n in m["notes"])
+    assert any("estimated from the view graph (cameras stage)" in n for n in m["notes"])
+    cams = json.loads((out / "work" / "cameras.json").read_text())  # where each focal used came from
+    assert all(s.startswith("estimated:") or s == "default" for s in cams["K_source"]), cams["K_source"]
+    assert [f["source"] for f in m["intrinsics"]["focal"]] == sorted(set(cams["K_source"]), key=cams["K_source"].index)
     # no reference was asked for: the run still succeeds and says so
     assert any("no reference" in n for n in m["notes"])
 

@@ -11,7 +11,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import LaplacianSolver, cg_with_factor, edge_residuals, factor_symmetric
+from pipeline.averaging.kernel import (LaplacianSolver, cg_with_factor, edge_residuals, effective_weights,
+                                       factor_symmetric)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -70,7 +71,9 @@ class BlockLaplacianSolver:
     def matrix(self, B: np.ndarray) -> sp.csc_matrix:
         """The gauge-fixed (3N, 3N) block Laplacian for edge blocks ``B`` (M, 3, 3)."""
         B = np.asarray(B, dtype=np.float64)
-        self.pinned = self._pins(np.trace(B, axis1=1, axis2=2))
+        tr = effective_weights(np.trace(B, axis1=1, axis2=2))
+        B = B * (tr > 0)[:, None, None]  # negligible blocks count as 0 (kernel.NEGLIGIBLE_WEIGHT)
+        self.pinned = self._pins(tr)
         data = np.bincount(self._pos, weights=self._sign * B.reshape(-1)[self._src], minlength=self._nnz)
         if self.pinned.any():
             cam_row, cam_col = self._row // 3, self._col // 3

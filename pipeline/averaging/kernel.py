@@ -30,8 +30,13 @@ from pipeline.core.viewgraph import ViewGraph
 #: Fewest cameras for which reusing a factor as a CG preconditioner beats refactoring (measured:
 #: castle-P30, N = 30, CG made the polish 2× slower; kNN N = 2000, 30% faster).
 REUSE_MIN_N = 300
+#: An edge weight below this fraction of the largest is lost to rounding in the factor: the pivot
+#: of a camera held by such an edge is a difference of numbers 1e16 times larger, an exact zero
+#: ("Factor is exactly singular"; seen on a triangle with pendant edges, whose ℓ1 start leaves
+#: most residuals at zero and the robust scale with them). Such an edge counts as weight 0.
+NEGLIGIBLE_WEIGHT = 1e-12
 
-__all__ = ["REUSE_MIN_N", "edge_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor"]
+__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "effective_weights", "edge_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor"]
 
 
 def edge_residuals(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -83,6 +88,13 @@ def check_graph(vg: ViewGraph, connected: bool = True) -> None:
             "use pipeline.averaging.average(), which solves the largest component and reports the rest, "
             "or restrict it with vg.largest_component()"
         )
+
+
+def effective_weights(w: np.ndarray) -> np.ndarray:
+    """``w`` (M,) with the weights below :data:`NEGLIGIBLE_WEIGHT` of the largest set to 0 (others unchanged)."""
+    w = np.asarray(w, dtype=np.float64)
+    top = float(w.max()) if w.size else 0.0
+    return np.where(w > NEGLIGIBLE_WEIGHT * top, w, 0.0)
 
 
 def factor_symmetric(A: sp.spmatrix) -> sla.SuperLU:
@@ -210,7 +222,7 @@ class LaplacianSolver:
 
     def matrix(self, w: np.ndarray) -> sp.csc_matrix:
         """The gauge-fixed (N, N) Laplacian ``Aᵀ diag(w) A`` for edge weights ``w`` (M,)."""
-        w = np.asarray(w, dtype=np.float64)
+        w = effective_weights(w)
         self.pinned = self._pins(w)
         data = np.bincount(self._pos, weights=self._sign * w[self._edge_of], minlength=self._nnz)
         if self.pinned.any():

@@ -19,13 +19,24 @@ from pipeline.core.atomic import write_json
 from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
-from pipeline.evaluation.report import report_data, summary_table, write_report
+from pipeline.evaluation.flags import evidence_console, method_disagreement, run_evidence
+from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
 from pipeline.reference.types import Reference
 
 __all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "OUR_PATH"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
-OUR_PATH = ("features", "matching", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
+OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
+
+
+def _intrinsics(work: Path) -> dict[str, Any]:
+    """The cameras stage's summary (focal used, its source, distortion); empty if the stage has not run."""
+    from pipeline.frontend.camera_stage import intrinsics_summary, load_cameras  # noqa: PLC0415
+
+    try:
+        return intrinsics_summary(load_cameras(work))
+    except (PipelineError, OSError):
+        return {}
 
 
 @dataclass
@@ -57,9 +68,24 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
             sub = truth_on_registered(plan.truth, p, vg)
             refs += ([sub] if sub is not None else []) + [p]
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
+    metrics["evidence"] = _evidence(plan.out, metrics["methods"], results)
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs)
+
+
+def _evidence(out: Path, methods: dict[str, Any], results: dict[str, dict]) -> dict[str, Any]:
+    """The view graph's flags and messages joined with each method's per-camera support and the methods'
+    disagreement ({} without a view-graph summary)."""
+    from pipeline.graph.stage import load_graph_summary  # noqa: PLC0415
+    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+
+    try:
+        graph = load_graph_summary(out)
+    except PipelineError:
+        return {}
+    rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
+    return run_evidence(graph, methods, method_disagreement(rots))
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,
@@ -72,6 +98,7 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     stages = {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()}
     data = report_data(metrics, refs, ev.camera_errors, ev.edge_errors, histories, vg, plan.notes, stages,
                        f"Rotations of {plan.images}", plan.run.plots)
+    data.intrinsics = _intrinsics(plan.work)
     return write_report(plan.out, data)
 
 
@@ -90,9 +117,15 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "n_edges": vg.n_edges, "left_out": list(left_out), "left_out_why": left_out,
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
+    metrics["intrinsics"] = _intrinsics(plan.work)
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
+        if metrics["intrinsics"]:
+            print(intrinsics_console(metrics["intrinsics"]), flush=True)
+        lines = evidence_console(metrics.get("evidence") or {})
+        if lines:
+            print(lines, flush=True)
         print(f"report: {plan.out / 'report.md'}\nmetrics: {path}", flush=True)
     return path

@@ -22,12 +22,13 @@ from pipeline.core.names import rows_by_name
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
 from pipeline.evaluation.compare import subset_prefix
+from pipeline.evaluation.flags import CERTIFICATE_NOTE, evidence_markdown
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summary_table", "console_table",
-           "summary_rows", "edge_rows"]
+           "summary_rows", "edge_rows", "intrinsics_lines", "intrinsics_console"]
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
@@ -58,6 +59,8 @@ class ReportData:
         sections: ``{title: markdown lines}`` shown before the notes (the refinement's
             per-camera table).
         stages: ``{stage: seconds}``.
+        evidence: the "Evidence" section (markdown lines, :func:`pipeline.evaluation.flags.evidence_markdown`):
+            graph messages, flagged cameras with the reason, what a certificate proves.
         title: report title.
     """
 
@@ -72,7 +75,9 @@ class ReportData:
     notes: list[str] = field(default_factory=list)
     sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
+    evidence: list[str] = field(default_factory=list)
     title: str = "Rotation averaging report"
+    intrinsics: dict[str, Any] = field(default_factory=dict)
 
 
 def _slug(s: str) -> str:
@@ -95,9 +100,9 @@ def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
         cert = ""
-        if "certified" in m:
+        if "certified" in m:  # † : what it proves and what it does not, under the table and in "Evidence"
             cert = ("certified" if m["certified"] else "NOT certified") + (
-                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "")
+                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "") + " †"
         if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
@@ -141,7 +146,8 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     data = ReportData(
         metrics=table, camera_errors=camera_errors, edge_errors=edge_errors, histories=histories,
         vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
-        notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages, title=title)
+        notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages,
+        evidence=evidence_markdown(metrics.get("evidence") or {}), title=title)
     if not plots_on:
         data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
     return data
@@ -181,13 +187,17 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"# {data.title}", ""]
+    lines += intrinsics_lines(data.intrinsics)
     if data.stages:
         total = sum(data.stages.values())
         lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
         lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
         lines += [f"| **total** | {total:.2f} |", ""]
+    lines += data.evidence
     for ref, rows in data.metrics.items():
         lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
+        if any("certified" in m for m in rows.values()):
+            lines += [f"† {CERTIFICATE_NOTE} (see \"Evidence\").", ""]
         errs = data.camera_errors.get(ref)
         if errs:
             p = plots.plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)
@@ -216,6 +226,33 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
     return path
 
 
+def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
+    """The report's "Intrinsics" section: the focal used, where it came from, and the distortion."""
+    if not intr or not intr.get("focal"):
+        return []
+    lines = ["## Intrinsics", "", "| focal (px) | images | source |", "|---|---|---|"]
+    for f in intr["focal"]:
+        rng = "" if f["min_px"] == f["max_px"] else f" ({f['min_px']:.1f}–{f['max_px']:.1f})"
+        lines.append(f"| {f['median_px']:.1f}{rng} | {f['n_images']} | {f['source']} |")
+    lines.append("")
+    for d in intr.get("distortion", []):
+        if d["source"] != "none":
+            lines.append(f"- distortion of {d['n_images']} image(s): {', '.join(d['models'])} "
+                         f"{[list(p) for p in d['extra_params']]} ({d['source']})")
+    for g in intr.get("estimates", []):
+        for key in ("focal", "radial"):
+            note = (g.get(key) or {}).get("note")
+            if note:
+                lines.append(f"- {key}: {note}")
+    return lines + ([""] if lines[-1] else [])
+
+
+def intrinsics_console(intr: dict[str, Any]) -> str:
+    """One console line: the focal used and its source."""
+    parts = [f"{f['median_px']:.1f} px ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
+    return "focal: " + "; ".join(parts) if parts else ""
+
+
 # ------------------------------------------------------------------ console
 def _f(v: Any, nd: int = 3) -> str:
     try:
@@ -229,8 +266,8 @@ def summary_table(metrics: dict[str, Any]) -> str:
     rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
     for label, m in metrics["methods"].items():
         note = ""
-        if "certified" in m:
-            note = "certified" if m["certified"] else "NOT certified"
+        if "certified" in m:  # † : optimal for its cost, not a check of the pairs (printed under the table)
+            note = "certified †" if m["certified"] else "NOT certified †"
         if m.get("method") == "refine":
             note = f"refine {m['status']}"
         for rname, s in m.get("references", {}).items():

@@ -9,10 +9,12 @@ with their reason.
 WORK folder layout::
 
     WORK/features.json            manifest: image folder, names, sizes (w, h), K per image
-                                  and its source, skipped images and why, item keys
+                                  and its source, skipped images and why, item keys, and the
+                                  images whose contrast threshold was lowered (``lowered``:
+                                  {name: {n_normal, n_keypoints, contrast_used, preblur_sigma}})
     WORK/features/chunk-*.npz     one image each: keypoints (n, 2) float32 px, scales,
                                   orientations (deg), responses, descriptors (n, 128) uint8,
-                                  size (w, h)
+                                  size (w, h), n_normal, lowered, contrast_used, preblur_sigma
     WORK/features/index.json      the item keys of the current images
     WORK/features.record.json     the stage record (pipeline.stage)
 
@@ -40,7 +42,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
-from pipeline.frontend.features import FeatureConfig, extract_sift
+from pipeline.frontend.features import FeatureConfig, extract_sift_adaptive
 from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
 from pipeline.frontend.intrinsics import check_K, resolve_intrinsics
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
@@ -66,6 +68,8 @@ class FeatureSet:
         descriptors: N arrays (n_i, 128) uint8.
         images: image folder.
         K_source: N strings: ``file:<path>``, ``exif`` or ``default``.
+        lowered: ``{name: {n_normal, n_keypoints, contrast_used, preblur_sigma}}`` of the images
+            whose contrast threshold was lowered (low texture).
         digest: the features stage's fingerprint (downstream cache input).
         config: the extraction config.
         signatures: (N, 2) int64 byte size and mtime (ns) of each image file.
@@ -81,6 +85,7 @@ class FeatureSet:
     digest: str = ""
     config: FeatureConfig | None = None
     signatures: np.ndarray | None = None
+    lowered: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 def _extract_task(args: tuple[str, str, str, dict[str, Any], str]) -> tuple[str, str, int | None, str]:
@@ -92,11 +97,21 @@ def _extract_task(args: tuple[str, str, str, dict[str, Any], str]) -> tuple[str,
     gray, reason = read_gray(path)
     if gray is None:
         return key, name, None, reason
-    kp = extract_sift(gray, FeatureConfig(**cfg))
+    kp, info = extract_sift_adaptive(gray, FeatureConfig(**cfg))
     chunk = ItemStore(folder).write_chunk({key: {
         "keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations, "responses": kp.responses,
-        "descriptors": kp.descriptors, "size": np.array([gray.shape[1], gray.shape[0]])}})
+        "descriptors": kp.descriptors, "size": np.array([gray.shape[1], gray.shape[0]]),
+        "n_normal": np.array(info.n_normal), "lowered": np.array(info.lowered),
+        "contrast_used": np.array(info.contrast_used), "preblur_sigma": np.array(info.preblur_sigma)}})
     return key, name, len(kp.xy), chunk.name
+
+
+def _lowered_record(item: dict[str, np.ndarray]) -> dict[str, Any] | None:
+    """What the extraction of one image lowered, from its stored arrays (None: nothing)."""
+    if "lowered" not in item or not bool(item["lowered"]):
+        return None
+    return {"n_normal": int(item["n_normal"]), "n_keypoints": int(len(item["keypoints"])),
+            "contrast_used": round(float(item["contrast_used"]), 6), "preblur_sigma": float(item["preblur_sigma"])}
 
 
 class FeaturesStage(Stage[FeatureConfig]):
@@ -190,6 +205,11 @@ class FeaturesStage(Stage[FeatureConfig]):
                                  f"are usable ({why}); at least 2 are needed")
         files = store.write_index([keys[n] for n in usable])
         keep = [s["names"].index(n) for n in usable]
+        lowered = {}
+        for n in usable:
+            rec = _lowered_record(store.get(keys[n]))
+            if rec is not None:
+                lowered[n] = rec
         manifest = {
             "format": "rotavg-features",
             "images": str(self.images.resolve()),
@@ -202,6 +222,7 @@ class FeaturesStage(Stage[FeatureConfig]):
             "signatures": [list(s["sigs"][n]) for n in usable],
             "keys": [keys[n] for n in usable],
             "config": cfg.as_dict(),
+            "lowered": lowered,
             "n_extracted": len(n_kp),
             "n_cached": len(usable) - len(n_kp),
         }
@@ -209,7 +230,12 @@ class FeaturesStage(Stage[FeatureConfig]):
         logger.info("features: %d images (%d extracted, %d from cache, %d skipped); median %d keypoints per "
                     "extracted image", len(usable), len(n_kp), len(usable) - len(n_kp), len(skipped),
                     int(np.median(n_kp)) if n_kp else 0)
-        return [path, *files], {"n_images": len(usable), "n_extracted": len(n_kp), "n_skipped": len(skipped)}
+        if lowered:
+            logger.info("features: low texture, contrast threshold lowered for %d image(s): %s", len(lowered),
+                        ", ".join(f"{n} ({r['n_normal']} -> {r['n_keypoints']} keypoints)"
+                                  for n, r in list(lowered.items())[:5]) + (" ..." if len(lowered) > 5 else ""))
+        return [path, *files], {"n_images": len(usable), "n_extracted": len(n_kp), "n_skipped": len(skipped),
+                                "n_lowered": len(lowered)}
 
     def verify(self, record: StageRecord) -> None:
         m = load_manifest(self.folder)
@@ -280,6 +306,7 @@ def load_features(work: Path, descriptors: bool = True) -> FeatureSet:
         digest=rec.fingerprint if rec is not None else "",
         config=FeatureConfig.from_dict(m["config"]),
         signatures=np.array(m["signatures"], np.int64).reshape(-1, 2),
+        lowered=dict(m.get("lowered") or {}),
     )
 
 

@@ -6,6 +6,23 @@ OpenCV's SIFT keeps the ``max_keypoints`` strongest keypoints; their coordinates
 are scaled back to the full-resolution pixel frame (pixel centres at integers),
 where the intrinsics K live. The stage that runs it over a folder, caches it per
 image and reads it back is :mod:`pipeline.frontend.feature_stage`.
+
+**Low texture** (issue 13). A dark, low-contrast image gives few keypoints at the
+usual contrast threshold. OpenCV keeps a keypoint when its interpolated DoG value
+``|D| ≥ contrastThreshold / nOctaveLayers`` (image in [0, 1]) and reports ``|D|`` as
+its ``response``, so a detection at a lower threshold cut at a response is exactly a
+detection at that threshold. An image with fewer than ``min_keypoints`` keypoints
+(per 640×480 at extraction size, at most ``max_keypoints / 2``) at
+``contrast_threshold`` is therefore detected once more at ``contrast_floor`` and keeps
+its ``min_keypoints`` strongest, never below the floor: its threshold alone is lowered,
+as OpenSfM's ``feature_min_frames`` does (COLMAP's CPU SIFT has no such rule; its
+``darkness_adaptivity`` exists in SiftGPU only). Before that second detection the image
+is blurred by ``preblur_sigma``: OpenCV's SIFT starts from a 2× upsampled image, whose
+finest octave is noise on a dark image; the blur doubled the correct matches of the
+rendered low-texture scene (research r13-lowtex). Every other image keeps exactly the
+features of one detection at ``contrast_threshold``. No local contrast equalization
+(CLAHE): its tone curve follows the content, which moves between views, and it gave
+fewer correct matches than the lowered threshold at the same keypoint count.
 """
 
 from __future__ import annotations
@@ -19,7 +36,10 @@ from pipeline.core.config import option
 from pipeline.core.errors import ConfigError
 from pipeline.core.parallel import ExecutorOptions
 
-__all__ = ["FeatureConfig", "Keypoints", "extract_sift"]
+__all__ = ["FeatureConfig", "Keypoints", "Extraction", "extract_sift", "extract_sift_adaptive", "keypoint_target"]
+
+#: Image area (px², 640×480) at which ``min_keypoints`` applies as given.
+REFERENCE_AREA = 640 * 480
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -42,12 +62,21 @@ class FeatureConfig(ExecutorOptions):
     n_octave_layers: int = option(3, "scales per octave", ge=1, le=10)
     sigma: float = option(1.6, "Gaussian blur of the base octave", gt=0)
     precise_upscale: bool = option(True, "OpenCV's enable_precise_upscale (removes a +0.25 px bias)")
+    min_keypoints: int = option(2000, "an image with fewer keypoints at contrast_threshold (per 640x480 at extraction "
+                                      "size, at most max_keypoints/2) keeps its strongest this many down to "
+                                      "contrast_floor (0: never lowered)", ge=0)
+    contrast_floor: float = option(0.0025, "lowest contrastThreshold of a lowered image", gt=0)
+    preblur_sigma: float = option(1.0, "Gaussian blur (px at extraction size) of a lowered image before its "
+                                       "detection at the lower threshold (0: none)", ge=0)
     workers: int = option(2, "images extracted concurrently (threads: OpenCV releases the GIL)", ge=1, runtime=True)
 
     def check(self) -> None:
         if 0 < self.max_image_size < 64:
             raise ConfigError(f"[features] max_image_size={self.max_image_size} but expected >= 64 "
                               "(or <= 0 for full size)")
+        if self.contrast_floor > self.contrast_threshold:
+            raise ConfigError(f"[features] contrast_floor={self.contrast_floor} but expected <= contrast_threshold="
+                              f"{self.contrast_threshold} (the floor is the lowest threshold ever used)")
 
 
 @dataclass
@@ -70,25 +99,64 @@ class Keypoints:
 
 
 
-def _sift(config: FeatureConfig) -> cv2.SIFT:
+
+@dataclass
+class Extraction:
+    """What one image's extraction did (the per-image record of the features stage).
+
+    Attributes:
+        n_normal: keypoints at ``contrast_threshold`` (before the ``max_keypoints`` cut).
+        lowered: the threshold was lowered for this image (it had fewer than its target).
+        contrast_used: the ``contrastThreshold`` the kept keypoints reach (OpenCV units).
+        preblur_sigma: the blur applied before detection (0: none).
+        target: the keypoint target of this image.
+    """
+
+    n_normal: int
+    lowered: bool = False
+    contrast_used: float = 0.0
+    preblur_sigma: float = 0.0
+    target: int = 0
+
+
+def _sift(config: FeatureConfig, contrast: float | None = None, nfeatures: int | None = None) -> cv2.SIFT:
     return cv2.SIFT_create(
-        nfeatures=config.max_keypoints,
+        nfeatures=config.max_keypoints if nfeatures is None else nfeatures,
         nOctaveLayers=config.n_octave_layers,
-        contrastThreshold=config.contrast_threshold,
+        contrastThreshold=config.contrast_threshold if contrast is None else contrast,
         edgeThreshold=config.edge_threshold,
         sigma=config.sigma,
         enable_precise_upscale=config.precise_upscale,
     )
 
 
-def extract_sift(gray: np.ndarray, config: FeatureConfig | None = None) -> Keypoints:
-    """SIFT on a copy resized to ``config.max_image_size``, scaled back to full resolution.
+def keypoint_target(config: FeatureConfig, width: int, height: int) -> int:
+    """The keypoint count below which an image of ``width × height`` (extraction size) is lowered."""
+    return min(int(round(config.min_keypoints * width * height / REFERENCE_AREA)), config.max_keypoints // 2)
+
+
+def _arrays(kps: tuple, desc: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    n = len(kps)
+    if n == 0:
+        return (np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
+                np.zeros(0, np.float32), np.zeros((0, 128), np.uint8))
+    xy = cv2.KeyPoint_convert(kps).astype(np.float32).reshape(-1, 2)
+    size = np.array([k.size for k in kps], np.float32)
+    ori = np.array([k.angle for k in kps], np.float32)
+    resp = np.array([k.response for k in kps], np.float32)
+    # OpenCV's SIFT descriptors are integers in [0, 255] stored as float: uint8 is lossless
+    desc = np.clip(np.round(desc), 0, 255).astype(np.uint8)
+    return xy, size, ori, resp, desc
+
+
+def extract_sift_adaptive(gray: np.ndarray, config: FeatureConfig | None = None) -> tuple[Keypoints, Extraction]:
+    """SIFT with the low-texture rule of the module docstring, and what it did.
 
     Args:
         gray: (h, w) uint8 image.
         config: extraction options.
     Returns:
-        :class:`Keypoints` in the pixel frame of ``gray``.
+        :class:`Keypoints` in the pixel frame of ``gray`` and the :class:`Extraction` record.
     """
     config = config or FeatureConfig()
     if gray.ndim != 2 or gray.dtype != np.uint8:
@@ -101,23 +169,50 @@ def extract_sift(gray: np.ndarray, config: FeatureConfig | None = None) -> Keypo
         new_w, new_h = max(1, round(w * scale)), max(1, round(h * scale))
         img = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
     kps, desc = _sift(config).detectAndCompute(img, None)
-    n = len(kps)
-    if n == 0:
-        return Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32),
-                         np.zeros(0, np.float32), np.zeros((0, 128), np.uint8))
-    xy = cv2.KeyPoint_convert(kps).astype(np.float32).reshape(-1, 2)
-    size = np.array([k.size for k in kps], np.float32)
-    ori = np.array([k.angle for k in kps], np.float32)
-    resp = np.array([k.response for k in kps], np.float32)
+    target = keypoint_target(config, img.shape[1], img.shape[0]) if config.min_keypoints > 0 else 0
+    info = Extraction(n_normal=len(kps), contrast_used=config.contrast_threshold, target=target)
+    xy, size, ori, resp, desc = _arrays(kps, desc)
+    if len(kps) < target:
+        xy, size, ori, resp, desc = _lowered(img, config, target, info)
     if scale != 1.0:
         # per-axis factors of the integer-rounded resize; pixel centres at integers
         sx, sy = w / img.shape[1], h / img.shape[0]
         xy = (xy + 0.5) * np.array([sx, sy], np.float32) - 0.5
         size = size * np.float32(0.5 * (sx + sy))
-    # OpenCV's SIFT descriptors are integers in [0, 255] stored as float: uint8 is lossless
-    desc = np.clip(np.round(desc), 0, 255).astype(np.uint8)
     # OpenCV may return a few more than nfeatures (ties); keep the strongest
-    if n > config.max_keypoints:
+    if len(xy) > config.max_keypoints:
         keep = np.argsort(-resp, kind="stable")[: config.max_keypoints]
         xy, size, ori, resp, desc = xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
-    return Keypoints(xy, size, ori, resp, desc)
+    return Keypoints(xy, size, ori, resp, desc), info
+
+
+def _lowered(img: np.ndarray, config: FeatureConfig, target: int, info: Extraction) -> tuple[np.ndarray, ...]:
+    """The detection of a low-texture image: blurred, at the floor, cut at its ``target``-th response."""
+    if config.preblur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), config.preblur_sigma)
+    kps, desc = _sift(config, config.contrast_floor, 0).detectAndCompute(img, None)
+    xy, size, ori, resp, desc = _arrays(kps, desc)
+    L = config.n_octave_layers
+    thr = config.contrast_floor / L
+    if len(resp) >= target:
+        thr = max(thr, float(np.sort(resp)[::-1][target - 1]))
+    thr = min(thr, config.contrast_threshold / L)  # everything a normal detection keeps stays
+    keep = np.flatnonzero(resp >= thr)
+    info.lowered = True
+    info.contrast_used = float(thr * L)
+    info.preblur_sigma = float(config.preblur_sigma)
+    return xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
+
+
+def extract_sift(gray: np.ndarray, config: FeatureConfig | None = None) -> Keypoints:
+    """SIFT on a copy resized to ``config.max_image_size``, scaled back to full resolution.
+
+    The threshold of a low-texture image is lowered (:func:`extract_sift_adaptive`).
+
+    Args:
+        gray: (h, w) uint8 image.
+        config: extraction options.
+    Returns:
+        :class:`Keypoints` in the pixel frame of ``gray``.
+    """
+    return extract_sift_adaptive(gray, config)[0]

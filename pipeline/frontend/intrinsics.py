@@ -5,12 +5,19 @@ Intrinsics are taken, per image, from the first source that has them:
 1. a file or folder given by the user (``--K``) or found in the image folder:
    ``K.txt`` (one 3×3 for all images); a per-image cameras file (``name fx fy cx cy
    [...]`` as the renderer writes); Middlebury ``*_par.txt``
-   (``name k11..k33 r11..r33 t1 t2 t3``); or a reference folder with K (Strecha
-   ``gt_dense_cameras/``). Without ``--K``, ``K.txt``, ``cameras.txt`` or a single
-   ``*_par.txt`` inside the image folder is used;
+   (``name k11..k33 r11..r33 t1 t2 t3``); a reference folder with K (Strecha
+   ``gt_dense_cameras/``); or a camera file with lens distortion
+   (:mod:`pipeline.frontend.distortion`: a COLMAP ``cameras.txt``/``.bin`` or model
+   folder, an OpenCV K followed by its distortion coefficients, an OpenCV
+   ``.yaml``/``.xml``), whose pinhole part is the K here and whose distortion the
+   cameras stage applies (:func:`camera_models_for_names`). Without ``--K``,
+   ``K.txt``, ``cameras.txt`` or a single ``*_par.txt`` inside the image folder is used;
 2. the EXIF focal length (``pycolmap.infer_camera_from_image``, COLMAP's reader
-   with its sensor database, else Pillow's ``FocalLengthIn35mmFilm``);
-3. otherwise ``f = 1.2·max(w, h)`` (COLMAP's default factor), with a warning.
+   with its sensor database, else Pillow's ``FocalLengthIn35mmFilm``): a prior,
+   which the cameras stage (:mod:`pipeline.frontend.camera_stage`) checks against
+   the view graph;
+3. otherwise ``f = 1.2·max(w, h)`` (COLMAP's default factor), a start value that the
+   cameras stage replaces by a focal estimated from the view graph.
 
 Every K is checked (finite, ``fx, fy > 0``, last row ``0 0 1``, invertible) when
 it is read, before any image is processed. The source of each K is recorded.
@@ -26,11 +33,12 @@ import numpy as np
 
 from pipeline.core.errors import InputFileError
 from pipeline.core.names import match_names, split_fields
+from pipeline.frontend.distortion import CameraModel, is_camera_model_file, pinhole_K, read_camera_models
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_FOCAL_FACTOR", "parse_intrinsics_file", "check_K", "find_intrinsics_file", "exif_focal",
-           "default_K", "read_intrinsics", "resolve_intrinsics", "intrinsics_for_names"]
+           "default_K", "read_intrinsics", "resolve_intrinsics", "intrinsics_for_names", "camera_models_for_names"]
 
 DEFAULT_FOCAL_FACTOR = 1.2
 MAX_FILE_BYTES = 64 << 20
@@ -126,6 +134,11 @@ def read_intrinsics(source: str | os.PathLike) -> np.ndarray | dict[str, np.ndar
     path = Path(source)
     if not path.exists():
         raise InputFileError(f"intrinsics file {path} does not exist; pass a K.txt (3x3) or a cameras file")
+    if is_camera_model_file(path):  # COLMAP or OpenCV, with distortion: its pinhole part
+        models = read_camera_models(path)
+        if "*" in models:
+            return check_K(pinhole_K(models["*"]), path)
+        return {nm: check_K(pinhole_K(cam), f"{path} ({nm})") for nm, cam in models.items()}
     if path.is_file():
         return parse_intrinsics_file(path)
     from pipeline.reference.truth import read_reference  # noqa: PLC0415 - a folder of true cameras
@@ -150,6 +163,23 @@ def intrinsics_for_names(parsed: np.ndarray | dict[str, np.ndarray], names: list
     if found.any():
         K[found] = np.stack([parsed[keys[i]] for i in idx[found]])
     return K, found
+
+
+def camera_models_for_names(source: str | os.PathLike, names: list[str]) -> list[CameraModel | None]:
+    """The camera model (with its distortion) of each of ``names`` from a COLMAP or OpenCV camera file.
+
+    Returns:
+        N models, None for the images the file does not name; all None when ``source``
+        is a plain K file (no distortion).
+    """
+    if not is_camera_model_file(source):
+        return [None] * len(names)
+    models = read_camera_models(source)
+    if "*" in models:
+        return [models["*"]] * len(names)
+    keys = list(models)
+    idx = match_names(names, keys, what=str(source))
+    return [models[keys[i]] if i >= 0 else None for i in idx]
 
 
 def exif_focal(path: str | os.PathLike) -> float | None:
@@ -220,8 +250,9 @@ def resolve_intrinsics(folder: Path, names: list[str], sizes: np.ndarray, K_path
                        src, len(absent), ", ".join(absent[:5]) + (" ..." if len(absent) > 5 else ""))
     if missing_default:
         logger.warning(
-            "no intrinsics file and no EXIF focal length for %d image(s) (%s): assuming f = %.1f·max(w, h). "
-            "Pass --K K.txt (3x3) or a cameras file for accurate rotations",
+            "no intrinsics file and no EXIF focal length for %d image(s) (%s): f = %.1f·max(w, h) is only a start "
+            "value, which the cameras stage replaces by a focal estimated from the view graph (unless "
+            "cameras.estimate_focal is off). Pass --K K.txt (3x3) or a cameras file for the most accurate rotations",
             len(missing_default), ", ".join(missing_default[:5]) + (" ..." if len(missing_default) > 5 else ""),
             DEFAULT_FOCAL_FACTOR)
     return K, sources

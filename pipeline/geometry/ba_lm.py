@@ -80,7 +80,7 @@ def robust_sigma(s2: np.ndarray) -> float:
     return float(np.sqrt(max(med / CHI2_1_MEDIAN, 1e-12)))
 
 
-def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose, adapt_scale=None, state=None, cache=None):
+def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_iterations, fix_pose, adapt_scale=None, state=None, cache=None, focal=None):
     """Levenberg–Marquardt with IRLS weights on the robust cost.
 
     Each iteration eliminates the points exactly (:func:`reduced_system`), damps
@@ -90,12 +90,19 @@ def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_itera
     points move. With ``adapt_scale = k`` the loss scale shrinks to ``k·σ̂``
     (median-based) after each accepted step, never grows, and the cost is
     re-evaluated at the new scale so that every comparison uses one scale.
+    With ``focal`` (:class:`pipeline.geometry.ba_focal.FocalUnknowns`, m > 0) the
+    system is (5+m)×(5+m) and the accepted focal lengths are kept in it; ``Ki``,
+    ``Kj`` must then be its current ones.
 
     Returns:
         ``R, t, P, (r, valid, aux), w, history, iterations, converged, c``;
         ``state`` = ``(r, valid, aux)`` of :func:`project` at the input, if known;
         ``cache`` (see :func:`linearize`) shares the Jacobian of a state with the caller.
     """
+    if focal is not None and focal.m == 0:
+        focal = None
+    if focal is not None and fix_pose:
+        raise ValueError("fix_pose moves the points only; it cannot refine the focal lengths")
     r, valid, aux = state if state is not None else project(R, t, P, xi, xj, Ki, Kj)
     active_b = np.asarray(active, dtype=bool)
     all_active = bool(active_b.all())
@@ -108,6 +115,9 @@ def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_itera
     while iterations < max_iterations:
         iterations += 1
         B, J, nv, j, nden = linearize(R, t, P, Kj, Ki, aux, cache)
+        if focal is not None:
+            Jf = focal.jacobian(P, Ki, Kj, aux)
+            j = np.vstack([j, focal.reduced(nv, Jf)])
         frozen = w <= 0.0
         any_frozen = bool(frozen.any())
         if not fix_pose:
@@ -123,10 +133,12 @@ def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_itera
                 s_ = r
             else:
                 Sd = S.copy()
-                Sd.flat[::6] += lam * dS + floor  # S + diag(λ dS + floor)
+                Sd.flat[::S.shape[0] + 1] += lam * dS + floor  # S + diag(λ dS + floor)
                 dc = np.linalg.solve(Sd, neg_g)
                 s_ = r.copy()
-                s_[2:] += dc @ Jc
+                s_[2:] += dc[:5] @ Jc
+                if focal is not None:
+                    s_ += np.einsum("a,ran->rn", dc[5:], Jf)
             dp = point_step(s_, nv, J, Ki, nden)
             if any_frozen:
                 np.copyto(dp, 0.0, where=frozen)  # dp[:, frozen] = 0, without fancy indexing
@@ -138,10 +150,17 @@ def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_itera
                 lam *= 10.0
                 continue
             R_new = exp3(dc[:3]) @ R
-            t_new = t + B @ dc[3:]
+            t_new = t + B @ dc[3:5]
             t_new /= np.sqrt(t_new @ t_new)
             P_new = P + dp
-            r_new, valid_new, aux_new = project(R_new, t_new, P_new, xi, xj, Ki, Kj)
+            Ki_new, Kj_new = Ki, Kj
+            if focal is not None:
+                phi_new = focal.phi + dc[5:]
+                if not focal.admissible(phi_new):
+                    lam *= 10.0
+                    continue
+                Ki_new, Kj_new = focal.Ks(phi_new)
+            r_new, valid_new, aux_new = project(R_new, t_new, P_new, xi, xj, Ki_new, Kj_new)
             cost_new, w_new, s2_new = robust_cost(r_new, valid_new, active, loss, c)
             if cost_new <= cost:
                 accepted = True
@@ -153,6 +172,9 @@ def levenberg_marquardt(R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, max_itera
             break
         decrease = cost - cost_new
         R, t, P = R_new, t_new, P_new
+        if focal is not None:
+            Ki, Kj = Ki_new, Kj_new
+            focal.accept(phi_new, Ki, Kj)
         r, valid, aux, w, s2 = r_new, valid_new, aux_new, w_new, s2_new
         cost = cost_new
         history.append(cost)

@@ -39,6 +39,7 @@ from pipeline.core import so3
 from pipeline.core.config import option
 from pipeline.core.errors import PipelineError
 from pipeline.core.parallel import ExecutorOptions
+from pipeline.geometry.ba_focal import FocalUnknowns, focal_columns
 from pipeline.geometry.ba_hessian import linearize, marginalize_translation, pinv_sym, reduced_system
 from pipeline.geometry.ba_lm import levenberg_marquardt, robust_sigma
 from pipeline.geometry.ba_model import point_s2, project, translation_from_rotation, triangulate
@@ -71,6 +72,10 @@ class BAConfig(ExecutorOptions):
     tol: float = option(1e-6, "stop when the relative cost decrease falls below this", ge=0)
     min_points: int = option(12, "pairs with fewer (inlier) points are rejected (5 pose unknowns + σ² need "
                                  ">= 6)", ge=6)
+    refine_focal: Literal["none", "shared", "per_camera"] = option(
+        "none", "refine the focal length of cameras whose intrinsics are not known (estimated, EXIF or default), "
+                "marginalized into H with the translation: none, one shared by the pair, or one per camera; "
+                "known intrinsics are never refined")
     workers: int = option(2, "processes refining pairs (1 = in this process)", ge=1, runtime=True)
     chunk_size: int = option(8, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
     progress: bool = option(True, "show a progress bar", runtime=True)
@@ -96,6 +101,8 @@ class PairBAResult:
             starting with the initial cost; the refit's history follows.
         converged: every fit met ``tol`` before ``max_iterations``.
         t_basis: (3, 2) tangent basis of ``t`` used for ``H_pose``.
+        K_i, K_j: (3, 3) intrinsics at the optimum (refined when focal lengths were unknowns).
+        focal_log_sd: (m,) marginal sd of the refined log focal scales (relative: 0.01 = 1%).
     """
 
     R: np.ndarray
@@ -112,6 +119,9 @@ class PairBAResult:
     cost_history: list[float] = field(default_factory=list)
     converged: bool = True
     t_basis: np.ndarray | None = None
+    K_i: np.ndarray | None = None
+    K_j: np.ndarray | None = None
+    focal_log_sd: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def n_inliers(self) -> int:
@@ -124,7 +134,7 @@ class PairBAResult:
         return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
-def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None) -> np.ndarray:
+def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None, focal=None) -> np.ndarray:
     """Inlier points (n,) at the current fit: leave-one-out residual test and cheirality.
 
     A point that pulled the pose towards itself hides its error; its
@@ -135,6 +145,8 @@ def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None) -> np.ndarray:
     """
     r, valid, aux = state
     _, J, nv, j, _ = linearize(R, t, P, Kj, Ki, aux, cache)
+    if focal is not None:
+        j = np.vstack([j, focal.reduced(nv, focal.jacobian(P, Ki, Kj, aux))])
     S = (j * w) @ j.T
     h = w * (j * (pinv_sym(S) @ j)).sum(axis=0)
     np.minimum(np.maximum(h, 0.0, out=h), 0.99, out=h)  # np.clip, without its overhead
@@ -186,6 +198,7 @@ def refine_pair(
     R0: np.ndarray,
     t0: np.ndarray,
     config: BAConfig | None = None,
+    focal: np.ndarray | None = None,
 ) -> PairBAResult:
     """Two-view BA of one pair and the marginalized rotation precision ``H_ij``.
 
@@ -197,6 +210,10 @@ def refine_pair(
         R0: (3, 3) initial ``R_ij = R_j R_iᵀ`` (e.g. from RANSAC).
         t0: (3,) initial translation, ``x_j = R_ij x_i + t_ij`` (any positive scale).
         config: options; default :class:`BAConfig`.
+        focal: (2, m) which camera each focal unknown scales
+            (:func:`pipeline.geometry.ba_focal.focal_columns`); default: ``config.refine_focal``
+            with both cameras unknown. K_i, K_j are then start values; the focal lengths
+            are marginalized into ``H`` with the translation.
 
     Returns:
         The refined pair. ``H`` is (3, 3) symmetric positive definite in 1/rad².
@@ -211,6 +228,11 @@ def refine_pair(
     if n < cfg.min_points:
         raise TwoViewBAError(f"pair has {n} correspondences but min_points={cfg.min_points}; lower min_points or drop the pair")
     xi, xj = np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T)
+    A = focal_columns(cfg.refine_focal) if focal is None else np.asarray(focal, np.float64).reshape(2, -1)
+    if A.shape[1] and cfg.refine_focal == "shared" and focal is None and not np.allclose(Ki, Kj):
+        raise ValueError("refine_focal='shared' needs K_i == K_j at the start; use per_camera for two cameras")
+    fu = FocalUnknowns(A, Ki, Kj) if A.shape[1] and cfg.enabled else None
+    m = 0 if fu is None else fu.m
     all_pts = np.ones(n, dtype=bool)
     P = triangulate(R, t, xi, xj, Ki, Kj)
     fix_pose = not cfg.enabled
@@ -222,10 +244,12 @@ def refine_pair(
     cache: dict[str, Any] = {}
 
     def run(loss: str, c: float, active: np.ndarray, tol: float, adapt: float | None = None):
-        nonlocal R, t, P, iterations, converged, state
+        nonlocal R, t, P, iterations, converged, state, Ki, Kj
         R, t, P, state, w, hist, it, conv, c = levenberg_marquardt(
-            R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, cfg.max_iterations, fix_pose, adapt, state, cache
+            R, t, P, xi, xj, Ki, Kj, active, loss, c, tol, cfg.max_iterations, fix_pose, adapt, state, cache, fu
         )
+        if fu is not None:
+            Ki, Kj = fu.K_i, fu.K_j
         history.extend(hist)
         iterations += it
         converged = converged and conv
@@ -241,7 +265,7 @@ def refine_pair(
     tol_robust = max(cfg.tol, 1e-4) if cfg.refit_inliers else cfg.tol
     r, valid, w, c = run(cfg.loss, c, all_pts, tol_robust, adapt)
     sigma_cls = cfg.sigma_px if cfg.sigma_px is not None else robust_sigma(point_s2(r)[valid])
-    inliers = _classify(R, t, P, state, w, sigma_cls, cfg.inlier_chi2, Ki, Kj, cache)
+    inliers = _classify(R, t, P, state, w, sigma_cls, cfg.inlier_chi2, Ki, Kj, cache, fu)
     # 2. Drop the outliers and refine again by least squares (unit weights). If
     #    outliers were dropped, check every point once more at the new pose
     #    (the dropped points first re-triangulated there) and refit if the set changed.
@@ -261,7 +285,7 @@ def refine_pair(
             P = P.copy()
             P[:, out] = P_out
             state = project(R, t, P, xi, xj, Ki, Kj)
-            new = _classify(R, t, P, state, inliers.astype(np.float64), sigma_cls, cfg.inlier_chi2, Ki, Kj, cache)
+            new = _classify(R, t, P, state, inliers.astype(np.float64), sigma_cls, cfg.inlier_chi2, Ki, Kj, cache, fu)
             # Any point of the fit that now fails forces another fit (a hidden
             # outlier biases H); a few (≤ 0.5%) dropped points coming back do not.
             if not np.any(inliers & ~new) and int((new & ~inliers).sum()) <= max(1, int(0.005 * n)):
@@ -274,7 +298,7 @@ def refine_pair(
     if cfg.sigma_px is not None:
         sigma2, estimated = float(cfg.sigma_px) ** 2, False
     else:
-        dof = wsum - 5.0  # 2·n_obs − n_params = 4n − (3n + 5) for unit weights
+        dof = wsum - 5.0 - m  # 2·n_obs − n_params = 4n − (3n + 5 + m) for unit weights
         if dof <= 0:
             raise TwoViewBAError(f"{wsum:.1f} effective points leave no degrees of freedom to estimate σ²; pass sigma_px")
         sigma2 = float((w * s2).sum() / dof)
@@ -287,6 +311,8 @@ def refine_pair(
         sigma2, estimated = max(sigma2, 1e-12), True
     # 3. H_full = JᵀWJ/σ² at the optimum; points, then translation, marginalized.
     B, J, nv, j, _ = linearize(R, t, P, Kj, Ki, state[2], cache)
+    if fu is not None:  # the focal rows: marginalized with the translation below
+        j = np.vstack([j, fu.reduced(nv, fu.jacobian(P, Ki, Kj, state[2]))])
     S_pose, _ = reduced_system(r, w, J, nv, j)
     H_rot, S = marginalize_translation(S_pose)
     H = H_rot / sigma2
@@ -303,6 +329,14 @@ def refine_pair(
     return PairBAResult(
         R=R, t=t, points=X, point_params=P.T.copy(), residuals=r.T.copy(), sigma2=sigma2, sigma2_estimated=estimated,
         H=H, H_pose=S / sigma2, iterations=iterations, inlier_mask=inliers, cost_history=history,
-        converged=bool(converged), t_basis=B,
+        converged=bool(converged), t_basis=B, K_i=Ki, K_j=Kj, focal_log_sd=_focal_sd(S, sigma2, m),
     )
+
+
+def _focal_sd(S: np.ndarray, sigma2: float, m: int) -> np.ndarray:
+    """Marginal sd of the m log focal scales (points and pose marginalized)."""
+    if m == 0:
+        return np.zeros(0)
+    cov = np.linalg.pinv(S / sigma2, rcond=1e-14, hermitian=True)
+    return np.sqrt(np.maximum(np.diag(cov)[5:], 0.0))
 

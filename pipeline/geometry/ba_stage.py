@@ -15,8 +15,10 @@ and writes::
 Per-edge stats written: ``t`` (M, 3) refined unit translation, ``t_ransac``,
 ``R_ransac`` (M, 3, 3), ``ba_sigma2`` (px²), ``ba_rms_px``, ``ba_iterations``,
 ``ba_n_points``, ``ba_n_inliers``, ``ba_converged``, ``ba_rotation_change_deg``
-(angle between the RANSAC and the refined rotation), ``ba_cond_H``, plus every
-stat of the input graph that is not overwritten.
+(angle between the RANSAC and the refined rotation), ``ba_cond_H``, ``ba_focal`` (M, 2)
+(the focal lengths of cameras i and j at the optimum: refined when ``refine_focal`` is
+on and the cameras stage did not read them from a file), plus every stat of the input
+graph that is not overwritten.
 """
 
 from __future__ import annotations
@@ -34,10 +36,11 @@ from pipeline.core import so3
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.geometry.ba_focal import focal_columns
 from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair
 from pipeline.geometry.stage_io import PairStage, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.geometry.two_view_stage import NAME as TWO_VIEW, load_two_view
-from pipeline.stage import StageRecord
+from pipeline.stage import StageRecord, read_record
 
 __all__ = ["TwoViewBAStage", "load_ba_viewgraph", "main_cli", "OUTPUT_NAME"]
 
@@ -50,16 +53,16 @@ STORE = "two_view_ba_pairs"
 _STATS = ("t", "t_ransac", "R_ransac", "ba_sigma2", "ba_rms_px", "ba_iterations", "ba_n_points", "ba_n_inliers",
           "ba_converged", "ba_rotation_change_deg", "ba_cond_H")
 
-Task = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+Task = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def _refine_chunk(tasks: list[Task], config: BAConfig) -> list[dict[str, Any]]:
     """Worker: refine a chunk of pairs given as arrays; failures become records with a reason."""
     out = []
-    for xi, xj, Ki, Kj, R0, t0 in tasks:
+    for xi, xj, Ki, Kj, R0, t0, A in tasks:
         t_start, c_start = time.perf_counter(), time.thread_time()
         try:
-            res = refine_pair(xi, xj, Ki, Kj, R0, t0, config)
+            res = refine_pair(xi, xj, Ki, Kj, R0, t0, config, focal=A)
         except (TwoViewBAError, ValueError, np.linalg.LinAlgError) as exc:
             out.append({"ok": False, "reason": " ".join(str(exc).split()), "n_points": int(len(xi))})
             continue
@@ -68,8 +71,24 @@ def _refine_chunk(tasks: list[Task], config: BAConfig) -> list[dict[str, Any]]:
             "R": res.R, "t": res.t, "H": res.H, "sigma2": res.sigma2, "iterations": res.iterations,
             "n_points": int(len(xi)), "n_inliers": res.n_inliers, "converged": res.converged,
             "rms_px": res.rms_px, "time_s": time.perf_counter() - t_start, "cpu_s": time.thread_time() - c_start,
+            "focal": np.array([res.K_i[0, 0], res.K_j[0, 0]]),
         })
     return out
+
+
+def _known_intrinsics(work: Path, n: int) -> np.ndarray:
+    """(n,) True where K comes from a file (never refined); all True without a cameras result."""
+    from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras  # noqa: PLC0415
+
+    if read_record(work, CAMERAS) is None:
+        logger.info("two-view BA: no cameras result in %s; every K is taken as known (refine_focal has no effect)",
+                    work)
+        return np.ones(n, bool)
+    known = load_cameras(work).known
+    if len(known) != n:
+        raise CacheError(f"the cameras of {work} are of {len(known)} images, the two-view result of {n}; re-run "
+                         "the front end")
+    return known
 
 
 def _result(item: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -128,11 +147,15 @@ class TwoViewBAStage(PairStage[BAConfig]):
         logger.info("two-view BA config: %s", cfg.as_dict())
         M = vg_in.n_edges
         t_in = np.asarray(vg_in.stats["t"], dtype=np.float64).reshape(M, 3)
+        known = _known_intrinsics(work, vg_in.n_cameras) if cfg.refine_focal != "none" else np.ones(vg_in.n_cameras, bool)
         tasks: list[Task] = []
         for k in range(M):  # gathering the per-edge arrays: I/O, not the hot path
             xi, xj = data.correspondences(k)
             i, j = vg_in.edges[k]
-            tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k]))
+            A = focal_columns(cfg.refine_focal if np.allclose(K[i], K[j]) or cfg.refine_focal != "shared"
+                              else "per_camera", bool(known[i]), bool(known[j]))
+            tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k],
+                          A))
         fp = cfg.fingerprint()
         keys = [item_key(fp, *task) for task in tasks]
         store = ItemStore(work / self.store)
@@ -179,6 +202,7 @@ def _assemble(vg_in: ViewGraph, t_in: np.ndarray, results: list[dict[str, Any]])
     stats["ba_n_points"] = np.array([r["n_points"] for r in good], dtype=np.int64)
     stats["ba_n_inliers"] = np.array([r["n_inliers"] for r in good], dtype=np.int64)
     stats["ba_converged"] = np.array([r["converged"] for r in good], dtype=bool)
+    stats["ba_focal"] = np.array([r["focal"] for r in good], dtype=np.float64).reshape(-1, 2)
     stats["ba_rotation_change_deg"] = np.rad2deg(so3.angle_between(R, vg_in.R_rel[kept])) if len(kept) else np.zeros(0)
     lamH = np.linalg.eigvalsh(H) if len(kept) else np.zeros((0, 3))
     stats["ba_cond_H"] = lamH[:, -1] / lamH[:, 0] if len(kept) else np.zeros(0)

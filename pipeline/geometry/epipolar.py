@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.core import so3
 
-__all__ = ["normalize", "essential_from_Rt", "sampson_distance", "refine_pose", "rotation_from_bearings",
+__all__ = ["normalize", "essential_from_Rt", "sampson_distance", "sampson_for_matrix", "refine_pose", "rotation_from_bearings",
            "rotation_only_residual_px", "triangulation_depths", "pose_from_essential"]
 
 
@@ -39,10 +39,21 @@ def sampson_distance(R: np.ndarray, t: np.ndarray, y_i: np.ndarray, y_j: np.ndar
         (n,) distances; multiply by the focal length for pixels.
     """
     E = np.cross(t[None, :], R.T).T  # [t]× R, column by column
-    hi = np.column_stack([y_i, np.ones(len(y_i))])
-    hj = np.column_stack([y_j, np.ones(len(y_j))])
-    Ex = hi @ E.T
-    Etx = hj @ E
+    return sampson_for_matrix(E, y_i, y_j)
+
+
+def sampson_for_matrix(M: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """Signed Sampson distances of matches under ``x_jᵀ M x_i = 0`` (M an essential or fundamental matrix).
+
+    Args:
+        M: (3, 3); x_i, x_j: (n, 2) points in the units of M (normalized for E, pixels for F).
+    Returns:
+        (n,) distances in the same units.
+    """
+    hi = np.column_stack([x_i, np.ones(len(x_i))])
+    hj = np.column_stack([x_j, np.ones(len(x_j))])
+    Ex = hi @ M.T
+    Etx = hj @ M
     num = np.sum(hj * Ex, axis=1)
     den = Ex[:, 0] ** 2 + Ex[:, 1] ** 2 + Etx[:, 0] ** 2 + Etx[:, 1] ** 2
     return num / np.sqrt(np.maximum(den, 1e-30))

@@ -16,7 +16,15 @@ For a pair ``(i, j)``, ``i < j`` (:func:`estimate_pair`):
 4. Pairs are rejected, with the reason and counts recorded, when they have too
    few matches, when E cannot be estimated, or when fewer than ``min_inliers``
    inliers survive the cheirality check.
-5. Near-degenerate pairs are kept but flagged:
+5. **Zero motion** (``static_px``): when at least ``static_fraction`` of the inliers moved
+   less than ``static_px`` pixels between the two images, the model describes content that
+   is static in the image (a static object beside a turntable, a watermark, a duplicate
+   image), not the cameras' motion. Those matches (motion below ``2·static_px``) are
+   removed and the pose is estimated again from the rest; if nothing is left the pair is
+   rejected ("no image motion"). COLMAP's ``filter_stationary_matches`` (off by default)
+   drops every slow match before estimation; this test only acts when the static matches
+   dominate, so a real small-motion pair keeps its slow points.
+6. Near-degenerate pairs are kept but flagged:
 
    - *small baseline*: the median triangulation angle of the inliers is below
      ``min_triangulation_deg``, or a rotation-only homography ``K_j R K_i⁻¹``
@@ -59,10 +67,15 @@ class TwoViewConfig(ExecutorOptions):
     threshold_px: float = option(1.0, "inlier threshold in pixels at the feature-extraction image size", gt=0)
     confidence: float = option(0.999, "RANSAC confidence", gt=0, lt=1)
     max_iterations: int = option(2000, "RANSAC iteration cap", ge=1)
-    min_matches: int = option(20, "pairs with fewer matches are rejected without RANSAC (the 5-point solver "
+    min_matches: int = option(12, "pairs with fewer matches are rejected without RANSAC (the 5-point solver "
                                   "needs >= 5)", ge=5)
-    min_inliers: int = option(20, "pairs with fewer inliers after the cheirality check are rejected (the "
-                                  "5-point solver needs >= 5)", ge=5)
+    min_inliers: int = option(12, "pairs with fewer inliers after the cheirality check are rejected; the view "
+                                  "graph's checks keep a pair below its own min_inliers (15) only when a cycle "
+                                  "confirms it (provisional)", ge=5)
+    static_px: float = option(1.0, "zero-motion test: when static_fraction of the inliers moved less than this "
+                                   "(px at extraction size), the static matches are removed and the pair estimated "
+                                   "again (0: off)", ge=0)
+    static_fraction: float = option(0.5, "zero-motion test: fraction of static inliers that triggers it", gt=0, le=1)
     min_triangulation_deg: float = option(1.0, "a median triangulation angle below this flags a small baseline",
                                           ge=0)
     planar_ratio: float = option(0.9, "homography inliers / E inliers at or above this flags a dominant plane",
@@ -93,6 +106,8 @@ class PairGeometry:
         median_parallax_px: median distance, in image j, between x_j and x_i mapped by the
             rotation-only homography ``K_j R_ij K_i⁻¹`` (pixels at extraction size).
         small_baseline, planar: degeneracy flags.
+        n_static: matches removed by the zero-motion test (0: it did not act); ``n_matches``
+            then counts the other matches, the ones the pose was estimated from.
     """
 
     ok: bool
@@ -108,11 +123,12 @@ class PairGeometry:
     median_parallax_px: float = float("nan")
     small_baseline: bool = False
     planar: bool = False
+    n_static: int = 0
 
 
 def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray,
                   config: TwoViewConfig | None = None, pixel_scale: float = 1.0) -> PairGeometry:
-    """Relative pose of one pair from matched pixels (pure function).
+    """Relative pose of one pair from matched pixels (pure function), with the zero-motion test.
 
     Args:
         x_i, x_j: (n, 2) matched pixel coordinates in images i and j.
@@ -120,9 +136,32 @@ def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.nda
         config: options.
         pixel_scale: full-resolution pixels per extraction-size pixel (threshold scaling).
     Returns:
-        :class:`PairGeometry`.
+        :class:`PairGeometry`; its ``inlier_mask`` is over the n input matches.
     """
     config = config or TwoViewConfig()
+    geom = _estimate(x_i, x_j, K_i, K_j, config, pixel_scale)
+    if not geom.ok or config.static_px <= 0:
+        return geom
+    thr = config.static_px * pixel_scale
+    moved = np.linalg.norm(np.asarray(x_i, np.float64) - np.asarray(x_j, np.float64), axis=1)
+    if np.mean(moved[geom.inlier_mask] < thr) < config.static_fraction:
+        return geom
+    moving = moved >= 2.0 * thr
+    n, n_static = len(x_i), int(np.sum(~moving))
+    geom = _estimate(x_i[moving], x_j[moving], K_i, K_j, config, pixel_scale)
+    mask = np.zeros(n, bool)
+    if geom.inlier_mask.shape == (int(moving.sum()),):
+        mask[moving] = geom.inlier_mask
+    geom.inlier_mask, geom.n_static = mask, n_static
+    if not geom.ok:
+        geom.reason = (f"no image motion: {n_static} of {n} matches did not move (static content: a static object, "
+                       f"a watermark, a duplicate image); the others: {geom.reason}")
+    return geom
+
+
+def _estimate(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray, config: TwoViewConfig,
+              pixel_scale: float) -> PairGeometry:
+    """Steps 1–4 and 6 of the module docstring (no zero-motion test)."""
     n = len(x_i)
     if x_i.shape != (n, 2) or x_j.shape != (n, 2):
         raise ValueError(f"x_i.shape={x_i.shape}, x_j.shape={x_j.shape} but expected two (n, 2) arrays")

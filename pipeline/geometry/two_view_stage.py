@@ -1,6 +1,7 @@
 """The two-view stage: the relative pose of every matched pair of a WORK folder (``python -m pipeline.two_view``).
 
-It reads the front end's features and matches, estimates each pair with
+It reads the front end's features, matches and camera models (K, and the keypoints
+undistorted where the cameras stage found distortion), estimates each pair with
 :func:`pipeline.geometry.ransac.estimate_pair` in chunks on an executor
 (:mod:`pipeline.core.parallel`), keeps every finished chunk in an item store (an
 interrupted run resumes per pair; a changed option recomputes), and writes::
@@ -8,9 +9,9 @@ interrupted run resumes per pair; a changed option recomputes), and writes::
     WORK/two_view.npz          the ViewGraph (allow_isolated=True): edges, R_rel = R_j R_iᵀ (cam2_from_cam1),
                                inliers, stats "t" (M, 3) unit translation (x_j = R_ij x_i + t),
                                "n_matches", "n_inliers_E", "n_inliers_H", "h_ratio",
-                               "median_triangulation_deg", "median_parallax_px",
-                               "small_baseline", "planar", "degenerate" (M,) bool
-    WORK/two_view_corr.npz     K (N, 3, 3), sizes (N, 2), offsets (M+1,), inlier pixel
+                               "median_triangulation_deg", "median_parallax_px", "n_static" (matches
+                               the zero-motion test removed), "small_baseline", "planar", "degenerate" (M,) bool
+    WORK/two_view_corr.npz     K (N, 3, 3) of the cameras stage, sizes (N, 2), offsets (M+1,), inlier (undistorted) pixel
                                coordinates x_i (total, 2), x_j (total, 2), keypoint indices kp_i, kp_j (total,)
     WORK/two_view.record.json  the stage record; its summary lists the rejected pairs
                                ({pair, names, n_matches, n_inliers, reason}) and the counts
@@ -39,6 +40,8 @@ from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
+from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras
+from pipeline.frontend.distortion import CameraModel, undistort_points
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.stage import StageRecord, read_record
@@ -57,8 +60,35 @@ _CORR_ARRAYS = {"K": "f", "sizes": "iu", "offsets": "iu", "x_i": "f", "x_j": "f"
 
 
 def _frontend_inputs(work: Path) -> dict[str, str]:
-    """Fingerprints of the front-end results this stage reads (their stage records)."""
-    return {name: _upstream_record(work, name).fingerprint for name in ("features", "matching")}
+    """Fingerprints of the front-end results this stage reads (their stage records; the cameras stage's if it ran)."""
+    inp = {name: _upstream_record(work, name).fingerprint for name in ("features", "matching")}
+    rec = read_record(work, CAMERAS)
+    if rec is not None:
+        inp[CAMERAS] = rec.fingerprint
+    return inp
+
+
+def _cameras(work: Path, fm: dict[str, Any]) -> tuple[np.ndarray, list[CameraModel | None]]:
+    """K (N, 3, 3) and, per image, the camera model whose distortion the worker removes (None: none).
+
+    The cameras stage's result when it ran, else the features' K as it is (with a warning
+    when that loses something: an EXIF or default focal, or a file with distortion).
+    """
+    names = list(fm["names"])
+    if read_record(work, CAMERAS) is None:
+        from pipeline.frontend.distortion import is_camera_model_file  # noqa: PLC0415
+
+        sources = [str(s) for s in fm.get("K_source", [])]
+        lossy = any(not s.startswith("file:") or is_camera_model_file(s[len("file:"):]) for s in sources)
+        (logger.warning if lossy else logger.info)(
+            "two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF or default "
+            "focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
+        return np.array(fm["K"], float).reshape(-1, 3, 3), [None] * len(names)
+    cams = load_cameras(work)
+    if cams.names != names:
+        raise InputFileError(f"{work}: the cameras were computed for other images than the current features; "
+                             f"re-run `python -m pipeline.cameras --work {work}`")
+    return cams.K, [m if m.has_distortion else None for m in cams.models]
 
 
 def _upstream_record(work: Path, name: str) -> StageRecord:
@@ -173,13 +203,20 @@ def load_two_view(work: Path) -> TwoViewData:
 
 # ----------------------------------------------------------------- per pair
 # A task names its inputs on disk: (feature chunk a, feature key a, feature chunk b, feature key b, match chunk,
-# match key, K_a, K_b, pixel scale); the worker reads them itself (a worker holds a few images, never the collection).
-Task = tuple[str, str, str, str, str, str, np.ndarray, np.ndarray, float]
+# match key, K_a, K_b, pixel scale, camera model a, camera model b); the worker reads them itself (a worker holds a
+# few images, never the collection) and undistorts the keypoints of a camera model with distortion.
+Task = tuple[str, str, str, str, str, str, np.ndarray, np.ndarray, float, "CameraModel | None", "CameraModel | None"]
 
 
 @functools.lru_cache(maxsize=64)
-def _keypoints(chunk: str, key: str) -> np.ndarray:
+def _raw_keypoints(chunk: str, key: str) -> np.ndarray:
     return ItemStore.read_chunk(Path(chunk))[key]["keypoints"].astype(np.float32)
+
+
+def _keypoints(chunk: str, key: str, camera: CameraModel | None) -> np.ndarray:
+    """The keypoints the geometry uses: undistorted to the pinhole K where the camera has distortion."""
+    kp = _raw_keypoints(chunk, key)
+    return kp if camera is None else undistort_points(camera, kp)
 
 
 @functools.lru_cache(maxsize=4)
@@ -191,8 +228,8 @@ def _estimate_chunk(tasks: list[Task], config: TwoViewConfig) -> list[dict[str, 
     """Worker: estimate a chunk of pairs read from disk; each result as arrays (see :func:`_geometry_from_item`),
     with the inliers' keypoint indices ``kp_i``, ``kp_j`` and pixels ``x_i``, ``x_j``."""
     out = []
-    for ca, ka, cb, kb, cm, km, K_i, K_j, pixel_scale in tasks:
-        kp_a, kp_b = _keypoints(ca, ka), _keypoints(cb, kb)
+    for ca, ka, cb, kb, cm, km, K_i, K_j, pixel_scale, cam_a, cam_b in tasks:
+        kp_a, kp_b = _keypoints(ca, ka, cam_a), _keypoints(cb, kb, cam_b)
         m = _match_chunk(cm)[km]["matches"].astype(np.int32).reshape(-1, 2)
         g = estimate_pair(kp_a[m[:, 0]], kp_b[m[:, 1]], K_i, K_j, config, pixel_scale=pixel_scale)
         item = {f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)}
@@ -239,7 +276,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
         if list(mm["names"]) != names:
             raise InputFileError(f"{work}: the matches were computed for other images than the current features; "
                                  f"re-run `python -m pipeline.matching --work {work}`")
-        K = np.array(fm["K"], float).reshape(-1, 3, 3)
+        K, cams = _cameras(work, fm)
         sizes = np.array(fm["sizes"], np.int64).reshape(-1, 2)
         max_size = int(fm.get("config", {}).get("max_image_size", 0) or 0)
         scale = np.ones(len(names))
@@ -253,11 +290,15 @@ class TwoViewStage(PairStage[TwoViewConfig]):
         def task(p: int) -> Task:
             a, b = pairs[p]
             return (str(fdir / fwhere[fkeys[a]]), fkeys[a], str(fdir / fwhere[fkeys[b]]), fkeys[b],
-                    str(mdir / mwhere[mkeys[p]]), mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])))
+                    str(mdir / mwhere[mkeys[p]]), mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])),
+                    cams[a], cams[b])
+
+        def lens(c: CameraModel | None) -> Any:
+            return None if c is None else [c.model, c.params]
 
         fp = config.fingerprint()
-        keys = [item_key(fp, fkeys[a], fkeys[b], mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])))
-                for p, (a, b) in enumerate(pairs)]
+        keys = [item_key(fp, fkeys[a], fkeys[b], mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])),
+                         lens(cams[a]), lens(cams[b])) for p, (a, b) in enumerate(pairs)]
         store = ItemStore(work / self.store)
         done = store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
@@ -298,6 +339,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "h_ratio": np.array([g.n_inliers_H / max(g.n_inliers_E, 1) for g in G], float),
             "median_triangulation_deg": np.array([g.median_triangulation_deg for g in G], float),
             "median_parallax_px": np.array([g.median_parallax_px for g in G], float),
+            "n_static": np.array([g.n_static for g in G], np.int64),
             "small_baseline": np.array([g.small_baseline for g in G], bool),
             "planar": np.array([g.planar for g in G], bool),
         }
@@ -328,6 +370,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "n_degenerate": int(stats["degenerate"].sum()),
             "n_small_baseline": int(stats["small_baseline"].sum()),
             "n_planar": int(stats["planar"].sum()),
+            "n_static_removed": int((stats["n_static"] > 0).sum()),
             "isolated": [names[k] for k in np.flatnonzero(vg.degrees() == 0)],
             "rejected_reasons": reasons,
             "rejected": rejected,

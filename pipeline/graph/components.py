@@ -30,9 +30,9 @@ def left_out_reasons(vg_all: ViewGraph, rejected: list[dict]) -> dict[str, str]:
         nm = vg_all.names[k]
         if deg[k] == 0:
             why = by_image.get(nm, [])
-            common = Counter(why).most_common(1)[0][0] if why else "no match with any image"
-            reasons[nm] = (f"no accepted image pair ({len(why)} pair(s) rejected, most often: {common})"
-                           if why else f"no accepted image pair ({common})")
+            common = ", ".join(f"{w} ×{c}" for w, c in Counter(w.split(" (")[0] for w in why).most_common(3))
+            reasons[nm] = (f"no accepted image pair ({len(why)} pair(s) rejected: {common})"
+                           if why else "no accepted image pair (no match with any image)")
         else:
             others = [vg_all.names[j] for j in np.flatnonzero(labels == labels[k]) if j != k]
             reasons[nm] = (f"in another connected component of {sizes[labels[k]]} images "

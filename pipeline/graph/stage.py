@@ -1,49 +1,79 @@
-"""The view-graph stage: the largest connected component of the two-view BA graph, in OUT.
+"""The view-graph stage: the checked view graph that every averaging method reads, in OUT.
 
-Reads the two-view BA's view graph (with H) from WORK, keeps its largest
-connected component and names every image left out with why. Writes
-``OUT/viewgraph.npz`` (the graph every averaging method reads) and
-``OUT/viewgraph.json`` (the images left out and why, counts).
+Reads the two-view BA's view graph (with H) from WORK, runs the checks of
+:mod:`pipeline.graph.checks` (evidence tiers, co-location, short and long cycles, the
+robust filter), keeps the largest connected component of the pairs that pass, and flags
+the cameras whose rotation rests on evidence nothing checks (:mod:`pipeline.graph.flags`).
+Writes
+
+- ``OUT/viewgraph.npz``: the checked graph (stat ``confirmed``: the edge is in a consistent cycle);
+- ``OUT/viewgraph.json``: counts; ``left_out`` (every image outside it, with why);
+  ``pairs`` (every pair that was estimated or rejected: its status, the step that rejected
+  it and why, its tier); ``flags`` (``{camera: [reasons]}``); ``messages`` (graph-level,
+  e.g. no cycle: the result cannot be verified); the checks' figures.
+
+With ``checks: false`` every pair of the BA graph is kept, as before this stage checked them.
+Command line::
+
+    python -m pipeline.viewgraph --work WORK --out OUT [--config YAML] [--min-inliers 15] ...
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
+
+import numpy as np
 
 from pipeline.core.atomic import write_json
-from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, PipelineError
 from pipeline.core.readers import name_list, read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.geometry.ba_stage import load_ba_viewgraph
 from pipeline.geometry.two_view_stage import load_two_view
+from pipeline.graph.checks import GraphChecks, ViewGraphConfig, check_view_graph
 from pipeline.graph.components import left_out_reasons
+from pipeline.graph.flags import graph_flags
 from pipeline.stage import Stage, StageRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "GRAPH", "SUMMARY"]
+__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "main_cli", "GRAPH", "SUMMARY"]
 
 GRAPH = "viewgraph.npz"
 SUMMARY = "viewgraph.json"
 
 
-@dataclass(frozen=True, kw_only=True)
-class ViewGraphConfig(Config):
-    """Options of the view-graph stage (YAML section ``viewgraph``)."""
+def _unchecked(vg: ViewGraph) -> GraphChecks:
+    M = vg.n_edges
+    return GraphChecks(np.ones(M, bool), np.full(M, "", object), np.full(M, "", object), np.full(M, "", object),
+                       np.zeros(M, bool), np.zeros(M, bool), {"checks": False})
 
-    SECTION = "viewgraph"
+
+def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], ba_dropped: list[dict]
+               ) -> list[dict[str, Any]]:
+    """One row per pair: two-view rejections, BA failures, then every pair of the BA graph."""
+    rows = [{"pair": list(r.get("names", [])), "status": "rejected", "step": "two_view", "reason": r.get("reason", ""),
+             "n_inliers": r.get("n_inliers")} for r in two_view_rejected]
+    rows += [{"pair": list(d.get("pair", [])), "status": "rejected", "step": "two_view_ba", "reason": d.get("reason", "")}
+             for d in ba_dropped]
+    n_in = np.asarray(vg.stats.get("n_inliers_E", vg.inliers if vg.inliers is not None else np.zeros(vg.n_edges)))
+    for k, (a, b) in enumerate(vg.edges.tolist()):  # one JSON row per pair: I/O, not a hot path
+        rows.append({"pair": [vg.names[a], vg.names[b]], "status": "kept" if chk.kept[k] else "rejected",
+                     "step": str(chk.step[k]), "reason": str(chk.reason[k]), "tier": str(chk.tier[k]),
+                     "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k])})
+    return rows
 
 
 class ViewGraphStage(Stage[ViewGraphConfig]):
-    """The largest connected component of WORK's BA view graph, written to OUT (folder = OUT)."""
+    """The checked view graph of WORK's BA graph, its largest component, written to OUT (folder = OUT)."""
 
     name = "viewgraph"
-    title = "view graph"
+    title = "view graph and its checks"
     config_cls = ViewGraphConfig
+    version = 3
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)
@@ -58,18 +88,57 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
         if vg_all.n_edges == 0:
             raise PipelineError(f"no pair of the {vg_all.n_cameras} images has enough geometrically consistent "
                                 "matches; the images must overlap (see the warnings above for each pair's reason)")
-        sub, info = vg_all.largest_component()
-        left_out: dict[str, str] = {}
-        if info.dropped_names:
-            left_out = left_out_reasons(vg_all, list(load_two_view(self.work).rejected))
+        chk = check_view_graph(vg_all, self.config) if self.config.checks else _unchecked(vg_all)
+        if not chk.kept.any():
+            steps = {s: int((chk.step == s).sum()) for s in set(chk.step.tolist())}
+            raise PipelineError(f"the checks rejected all {vg_all.n_edges} pairs ({steps}); nothing can be averaged. "
+                                f"See {self.folder / SUMMARY} for each pair's reason, or set viewgraph.checks: false")
+        kept = ViewGraph(vg_all.names, vg_all.edges[chk.kept], vg_all.R_rel[chk.kept], H=vg_all.H[chk.kept],
+                         inliers=None if vg_all.inliers is None else vg_all.inliers[chk.kept],
+                         stats={**{k: v[chk.kept] for k, v in vg_all.stats.items()},
+                                "confirmed": chk.confirmed[chk.kept]}, allow_isolated=True)
+        sub, info = kept.largest_component()
+        two_view = load_two_view(self.work)
+        ba_dropped = list(self.upstream("two_view_ba", self.work).summary.get("dropped", []))
+        rejected = list(two_view.rejected) + [
+            {"names": [vg_all.names[a], vg_all.names[b]], "reason": str(r)}
+            for (a, b), r in zip(vg_all.edges[~chk.kept].tolist(), chk.reason[~chk.kept])]
+        left_out = left_out_reasons(kept, rejected) if info.dropped_names else {}
+        solved = np.zeros(vg_all.n_cameras, bool)
+        solved[info.kept] = True
+        fl = graph_flags(vg_all.edges, vg_all.n_cameras, chk.kept, chk.confirmed, chk.inconsistent, vg_all.names,
+                         cameras=solved, cycles_checked=self.config.checks)
+        flags = {vg_all.names[k]: v for k, v in sorted(fl.cameras.items())}
+        messages = list(fl.messages)
+        self._log(vg_all, sub, chk, left_out, flags, messages)
+        path = sub.save(self.folder / GRAPH)
+        summary = {"n_images": vg_all.n_cameras, "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,
+                   "names": list(sub.names), "left_out": left_out, "flags": flags, "messages": messages,
+                   "n_cycles": fl.n_cycles, "n_bridges": int(fl.bridge.sum()) if fl.bridge is not None else 0,
+                   "checks": {k: v for k, v in chk.info.items()},
+                   "pairs": _pair_rows(vg_all, chk, list(two_view.rejected), ba_dropped)}
+        counts = {k: summary[k] for k in ("n_images", "n_cameras", "n_edges", "n_cycles")}
+        return [path, write_json(self.folder / SUMMARY, summary)], {**counts, "n_flagged": len(flags)}
+
+    @staticmethod
+    def _log(vg_all: ViewGraph, sub: ViewGraph, chk: GraphChecks, left_out: dict[str, str],
+             flags: dict[str, list[str]], messages: list[str]) -> None:
+        if chk.info.get("checks", True):
+            steps = {s: int((chk.step == s).sum()) for s in ("acceptance", "colocation", "cycles", "path",
+                                                            "unconfirmed", "robust")}
+            logger.info("view graph checks: %d of %d pairs kept, %d confirmed by a cycle; rejected by step: %s",
+                        int(chk.kept.sum()), vg_all.n_edges, int(chk.confirmed.sum()),
+                        ", ".join(f"{k} {v}" for k, v in steps.items() if v) or "none")
+        if left_out:
             logger.warning("the view graph is not connected: using the largest component (%d of %d images); "
                            "left out: %s", sub.n_cameras, vg_all.n_cameras,
                            "; ".join(f"{n}: {w}" for n, w in left_out.items()))
-        path = sub.save(self.folder / GRAPH)
-        summary = {"n_images": vg_all.n_cameras, "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,
-                   "names": list(sub.names), "left_out": left_out}
-        return [path, write_json(self.folder / SUMMARY, summary)], {k: summary[k] for k in
-                                                                    ("n_images", "n_cameras", "n_edges")}
+        for m in messages:
+            logger.warning("%s", m)
+        if flags:
+            logger.warning("%d camera(s) rest on evidence nothing checks: %s", len(flags),
+                           "; ".join(f"{n}: {w[0]}" for n, w in list(flags.items())[:5])
+                           + (" ..." if len(flags) > 5 else ""))
 
     def verify(self, record: StageRecord) -> None:
         s = load_graph_summary(self.folder)
@@ -82,7 +151,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
 
 
 def load_graph_summary(out: Path) -> dict[str, Any]:
-    """The summary written beside the view graph (names, counts, images left out and why)."""
+    """The summary written beside the view graph (names, counts, images left out and why, flags, pairs)."""
     path = Path(out) / SUMMARY
     s = read_json(path, "the view-graph summary", CacheError)
     try:
@@ -92,6 +161,32 @@ def load_graph_summary(out: Path) -> dict[str, Any]:
             raise ValueError("left_out is not a mapping of names to reasons")
         if s["n_cameras"] != n or not (isinstance(s["n_edges"], int) and s["n_edges"] >= 0):
             raise ValueError("its counts disagree with its names")
+        s.setdefault("flags", {})
+        s.setdefault("messages", [])
+        if not isinstance(s["flags"], dict) or not isinstance(s["messages"], list):
+            raise ValueError("flags or messages of the wrong type")
         return s
     except (ValueError, TypeError, KeyError) as exc:
         raise CacheError(f"{path} is missing or damaged ({' '.join(str(exc).split())[:80]})") from None
+
+
+def main_cli(argv: Sequence[str] | None = None) -> int:
+    """``python -m pipeline.viewgraph --work WORK --out OUT``: check WORK's BA graph, write OUT/viewgraph.npz."""
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.viewgraph",
+                                description="Check the two-view BA's view graph of WORK (pair evidence, cycles, "
+                                            "robust filter), keep its largest component, flag the cameras nothing "
+                                            "checks; writes OUT/viewgraph.npz and OUT/viewgraph.json.")
+    p.add_argument("--work", type=Path, required=True, help="the WORK folder of the front end")
+    p.add_argument("--out", type=Path, required=True, help="where viewgraph.npz and viewgraph.json go")
+    p.add_argument("--config", type=Path, default=None, help="YAML config; its 'viewgraph' section is used")
+    add_config_args(p, ViewGraphConfig)
+    p.add_argument("--overwrite", action="store_true", help="recompute even if an intact, up-to-date result exists")
+
+    def body(a: argparse.Namespace) -> int:
+        ViewGraphStage(a.out, config_from_args(ViewGraphConfig, a, a.config), work=a.work).run(a.overwrite)
+        print(Path(a.out) / GRAPH)
+        return 0
+
+    return run_cli(body, p, argv)

@@ -36,7 +36,7 @@ from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.names import match_names
 from pipeline.io.rotations import read_rotations, write_rotations
 from pipeline.refine.refine import RefineConfig, RefineResult, refine_rotations
-from pipeline.stage import Stage, StageRecord
+from pipeline.stage import Stage, StageRecord, read_record
 
 logger = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ __all__ = ["RefineStage", "recommended_start", "run_refine", "refine_for_run", "
            "main_cli", "MODEL", "PREFERRED"]
 
 MODEL = "sparse"
+GRAPH = "viewgraph.npz"  # the checked view graph (pipeline.graph.stage) beside the rotations
 ROTATIONS = "rotations"
 #: The recommended starts, best first: IRLS-H-ℓ½ where the view graph has H, else IRLS-ℓ½. The
 #: refined result hardly depends on the start (r14: < 1e-4° between both); what matters is a
@@ -68,14 +69,50 @@ def recommended_start(labels: Sequence[str]) -> tuple[str, str]:
 
 
 def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
-    """Intrinsics read from a file are known (kept constant); EXIF and default focals are refined."""
+    """Intrinsics read from a file are known (kept constant); estimated, EXIF and default focals are refined."""
     if len(sources) != n:
         return np.zeros(n, bool)
     return np.array([str(s).startswith("file") for s in sources], bool)
 
 
-def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str], np.ndarray]:
+def _intrinsics(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray], list[str]]:
+    """The starting intrinsics: the cameras stage's (estimated focal, undistorted keypoints), else the features'.
+
+    Returns K (N, 3, 3), the keypoints the geometry used (undistorted where the cameras
+    stage found distortion: the model's cameras are then PINHOLE in undistorted pixels)
+    and each K's source.
+    """
+    from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras  # noqa: PLC0415
+
+    if read_record(work, CAMERAS) is None:
+        return fs.K, list(fs.keypoints), list(fs.K_source)
+    cams = load_cameras(work)
+    if cams.names != list(fs.names):
+        raise CacheError(f"{work}: the cameras were computed for other images than the current features; "
+                         "re-run the front end")
+    return cams.K, cams.keypoints_for_geometry(fs.keypoints), list(cams.K_source)
+
+
+def _checked_pairs(vg: Any, graph: Path | None) -> Any:
+    """The two-view BA graph ``vg`` cut to the pairs the view-graph stage kept (``graph``, OUT/viewgraph.npz)."""
+    from pipeline.core.viewgraph import ViewGraph  # noqa: PLC0415
+
+    if graph is None or not Path(graph).is_file():
+        return vg
+    g = ViewGraph.load(graph, allow_isolated=True)
+    kept = {(g.names[a], g.names[b]) for a, b in g.edges.tolist()}
+    keep = np.array([(vg.names[a], vg.names[b]) in kept or (vg.names[b], vg.names[a]) in kept
+                     for a, b in vg.edges.tolist()], bool)
+    return ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], H=vg.H[keep],
+                     inliers=None if vg.inliers is None else vg.inliers[keep],
+                     stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
+
+
+def load_inputs(work: Path, rotations: Path, graph: Path | None = None) -> tuple[dict[str, Any], list[str], np.ndarray]:
     """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
+
+    Only the pairs of the checked view graph ``graph`` (OUT/viewgraph.npz: what the view-graph
+    stage kept, so no pair its checks rejected) make tracks; every two-view BA pair without it.
 
     Returns:
         the inputs (over every image of the features; NaN rotations for images the file
@@ -87,7 +124,7 @@ def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str],
 
     fs = load_features(work, descriptors=False)
     tv = load_two_view(work)
-    vg = load_ba_viewgraph(work)
+    vg = _checked_pairs(load_ba_viewgraph(work), graph)
     n = len(fs.names)
     if tv.vg.n_cameras != n or vg.n_cameras != n:
         raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
@@ -111,11 +148,12 @@ def load_inputs(work: Path, rotations: Path) -> tuple[dict[str, Any], list[str],
                              f"{[nm for nm, c in zip(names, cams) if c < 0][:3]}); re-run the averaging")
     R_init = np.full((n, 3, 3), np.nan)
     R_init[cams] = R
-    return {"names": list(fs.names), "K": fs.K, "sizes": fs.sizes, "keypoints": fs.keypoints, "edges": vg.edges,
+    K, keypoints, sources = _intrinsics(work, fs)
+    return {"names": list(fs.names), "K": K, "sizes": fs.sizes, "keypoints": keypoints, "edges": vg.edges,
             "match_offsets": offsets,
             "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
             "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
-            "known_K": _known_K(fs.K_source, n)}, list(names), cams
+            "known_K": _known_K(sources, n)}, list(names), cams
 
 
 class RefineStage(Stage[RefineConfig]):
@@ -148,18 +186,25 @@ class RefineStage(Stage[RefineConfig]):
         self.label = refined_label(self.start)
         self.rotations_path = self.rot_dir / f"{self.label}.txt"
         self.stats_path = self.rot_dir / f"{self.label}.json"
+        self.known_K: np.ndarray | None = None
 
     def inputs(self) -> dict[str, str]:
         if not (self.rot_dir / f"{self.start}.record.json").is_file():
             raise InputFileError(f"{self.rot_dir} has no rotations of '{self.start}', the refinement's start: run that "
                                  "averaging method first (run.py --methods), or set refine.start to a method that ran")
         out = {"averaging": self.upstream("averaging", self.rot_dir, self.start).fingerprint}
-        out.update({up: self.upstream(up, self.work).fingerprint for up in ("features", "two_view", "two_view_ba")})
+        ups = ("features", "cameras", "two_view", "two_view_ba") if read_record(self.work, "cameras") is not None \
+            else ("features", "two_view", "two_view_ba")
+        out.update({up: self.upstream(up, self.work).fingerprint for up in ups})
+        graph = read_record(self.folder, "viewgraph")  # the checked pairs, when the view-graph stage ran here
+        if graph is not None:
+            out["viewgraph"] = graph.fingerprint
         return out
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
         logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
-        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt")
+        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH)
+        self.known_K = inputs["known_K"]
         res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
         paths: list[Path] = []
         model = self.folder / MODEL
@@ -193,11 +238,23 @@ def _deg(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
+def _model_focals(rec: Any) -> dict[int, float]:
+    """Image index → the model's (refined, mean of fx and fy) focal length in pixels; empty without a model."""
+    if rec is None:
+        return {}
+    out = {}
+    for iid in rec.reg_image_ids():
+        f = rec.camera(rec.image(iid).camera_id).focal_length_x, rec.camera(rec.image(iid).camera_id).focal_length_y
+        out[iid - 1] = float(np.mean(f))
+    return out
+
+
 def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: RefineStage) -> dict[str, Any]:
     """The JSON stats of a refinement over the start's cameras ``names`` (images ``rows`` of ``res``)."""
     sigma = np.degrees(np.sqrt(np.trace(res.cov, axis1=1, axis2=2))) if res.cov is not None else \
         np.full(len(res.R), np.nan)
     cams = list(zip(names, rows.tolist()))
+    focal = _model_focals(res.reconstruction)
     cameras = {}
     for nm, k in cams:
         c: dict[str, Any] = {"refined": bool(res.refined[k]), "change_deg": _deg(res.change_deg[k]),
@@ -208,6 +265,8 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
                 c["refined_cam_from_world"] = res.R_refined[k].ravel().tolist()
         if res.cov is not None and np.isfinite(res.cov[k]).all():
             c["cov_rad2"] = res.cov[k].ravel().tolist()
+        if k in focal:
+            c["focal_px"] = focal[k]
         cameras[nm] = c
     ok_sigma = sigma[rows][np.isfinite(sigma[rows])]
     s = res.stats
@@ -218,6 +277,8 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
             "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
             "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
+            "focal_px_median": float(np.median(list(focal.values()))) if focal else None,
+            "focal_refined": not bool(np.all(stage.known_K)) if stage.known_K is not None else None,
             "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
             "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
             "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
@@ -251,6 +312,9 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
         s = r["stats"]
         notes.append(f"{label}: started from {s['start_why']}; status {s['status']}, {s['n_refined']}/{s['n_cameras']} "
                      f"cameras refined" + (f"; COLMAP model in {MODEL}/" if s.get("model") else "; no model written"))
+        if s.get("focal_refined") and s.get("focal_px_median") is not None:
+            notes.append(f"{label}: focal lengths not given by a file were refined by pycolmap's bundle adjustment "
+                         f"(from the cameras stage's); median {s['focal_px_median']:.1f} px")
         if s["status"] == "failed":
             notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
         notes += [f"{label}: {nm} keeps its averaged rotation: {why}" for nm, why in s["kept_averaged"].items()

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.core import so3
 
-__all__ = ["SyntheticPair", "synthetic_pair", "synthetic_pairs"]
+__all__ = ["SyntheticPair", "synthetic_pair", "synthetic_pairs", "perturbed_focal"]
 
 
 @dataclass
@@ -53,6 +53,7 @@ def synthetic_pair(
     init_perturb_deg: float = 1.0,
     size: tuple[int, int] = (640, 480),
     focal: float = 600.0,
+    offset_axes: bool = False,
 ) -> SyntheticPair:
     """A converging pair of pinhole cameras looking at random points, with pixel noise.
 
@@ -72,6 +73,10 @@ def synthetic_pair(
         init_perturb_deg: size of the random perturbation of ``R0`` and ``t0``.
         size: image (width, height) in px.
         focal: focal length in px.
+        offset_axes: aim camera j 1.5 units beside the cloud centre, so that the two
+            optical axes do not meet: the focal length is then observable from the pair
+            (aimed at the centre from nearly equal distances, the pair is close to
+            Sturm's degenerate configuration for a shared focal).
 
     Returns:
         The pair with its truth.
@@ -87,6 +92,8 @@ def synthetic_pair(
     C = np.array([np.cos(ang), 0.25 * np.sin(ang), 0.0])
     C[2] = geo.uniform(-0.2, 0.2)
     C /= np.linalg.norm(C)
+    if offset_axes:
+        centre = np.array([geo.choice([-1.0, 1.0]) * 1.5, geo.uniform(-1.0, 1.0), 7.0])
     # Look-at rotation (cam_from_world rows = camera axes in camera-i frame).
     zc = centre - C
     zc /= np.linalg.norm(zc)
@@ -159,3 +166,14 @@ def synthetic_pairs(n_cams: int, n_points: int = 60, sigma_px: float = 0.5, outl
             edges.append((i, j))
             pairs.append(synthetic_pair(n_points, sigma_px=sigma_px, outlier_frac=outlier_frac, seed=10 * i + j))
     return [f"im{k}.png" for k in range(n_cams)], np.array(edges, dtype=np.int64), pairs
+
+
+def perturbed_focal(K: np.ndarray, rel_error: float, seed: int) -> np.ndarray:
+    """``K`` with its focal lengths scaled by a uniform random factor in ``1 ± rel_error``: a start value.
+
+    Args:
+        K: (3, 3) true intrinsics.  rel_error: largest relative error.  seed: seed of the factor.
+    """
+    out = np.array(K, dtype=np.float64)
+    out[:2, :2] *= 1.0 + np.random.default_rng([seed, 31337]).uniform(-rel_error, rel_error)
+    return out

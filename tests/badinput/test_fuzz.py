@@ -39,7 +39,7 @@ from pipeline.frontend.intrinsics import check_K
 from pipeline.synthetic.damage import damaged_copies
 
 N = int(os.environ.get("FUZZ_N", "200"))
-CALL_LIMIT_S = 20.0  # per read; the COLMAP reader's own child-process limit is shorter
+CALL_LIMIT_S = 60.0  # per read: a hang backstop above the readers' own child-process limits (COLMAP: 20 s)
 MEMORY_HEADROOM = 3 << 30  # a read may allocate this much beyond what the test process holds
 
 

@@ -13,7 +13,7 @@ import pytest
 from pipeline import features
 from pipeline.core.errors import InputFileError
 from pipeline.frontend.feature_stage import load_features
-from pipeline.frontend.features import FeatureConfig, extract_sift
+from pipeline.frontend.features import FeatureConfig, extract_sift, extract_sift_adaptive
 from pipeline.frontend.intrinsics import parse_intrinsics_file
 from pipeline.frontend.matching import match_descriptors
 from pipeline.synthetic.render import SceneConfig, render_scene
@@ -53,6 +53,58 @@ def test_rejects_bad_config_and_input():
         FeatureConfig(max_keypoints=0)
     with pytest.raises(ValueError, match="expected \\(h, w\\) uint8"):
         extract_sift(np.zeros((10, 10, 3), np.uint8))
+
+
+def test_response_cut_is_a_higher_threshold(scene):
+    # the low-texture rule rests on this: OpenCV keeps |D| >= contrastThreshold / nOctaveLayers and reports
+    # |D| as the response, so a detection at a low threshold cut at a response is a detection at that threshold
+    gray = cv2.cvtColor(scene.images[0], cv2.COLOR_RGB2GRAY)
+    a = cv2.SIFT_create(contrastThreshold=0.02, enable_precise_upscale=True).detect(gray, None)
+    b = cv2.SIFT_create(contrastThreshold=0.0025, enable_precise_upscale=True).detect(gray, None)
+    key = lambda k: (round(k.pt[0], 3), round(k.pt[1], 3), round(k.size, 3))  # noqa: E731
+    assert sorted(map(key, a)) == sorted(key(k) for k in b if k.response >= 0.02 / 3)
+    assert len(b) > len(a)
+
+
+def test_textured_image_keeps_the_features_of_one_detection(scene):
+    gray = cv2.cvtColor(scene.images[0], cv2.COLOR_RGB2GRAY)
+    k, info = extract_sift_adaptive(gray)
+    plain = extract_sift(gray, FeatureConfig(min_keypoints=0))
+    assert not info.lowered and info.n_normal == len(k.xy) >= info.target == 500  # 320x240: 2000 / 4
+    for a, b in zip((k.xy, k.scales, k.orientations, k.responses, k.descriptors),
+                    (plain.xy, plain.scales, plain.orientations, plain.responses, plain.descriptors)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_dark_image_is_lowered_and_its_matches_hold(scene):
+    gray = [(cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) // 12).astype(np.uint8) for im in scene.images[:2]]  # dark, flat
+    (k0, i0), (k1, _) = (extract_sift_adaptive(g) for g in gray)
+    plain = [extract_sift(g, FeatureConfig(min_keypoints=0)) for g in gray]
+    assert i0.lowered and i0.n_normal == len(plain[0].xy) < 500 <= len(k0.xy)
+    assert 0.0025 <= i0.contrast_used < 0.02 and i0.preblur_sigma == 1.0
+    m, m_plain = (match_descriptors(a.descriptors, b.descriptors) for a, b in ((k0, k1), plain))
+    err = scene.epipolar_distance_px(0, 1, k0.xy[m[:, 0]], k1.xy[m[:, 1]])
+    err_plain = scene.epipolar_distance_px(0, 1, plain[0].xy[m_plain[:, 0]], plain[1].xy[m_plain[:, 1]])
+    assert (err < 1.0).sum() > 2 * (err_plain < 1.0).sum()  # more correct matches (true geometry, px)
+    with pytest.raises(ValueError, match="contrast_floor"):
+        FeatureConfig(contrast_floor=0.05)
+
+
+def test_stage_records_the_lowered_images(scene, tmp_path):
+    images = tmp_path / "img"
+    images.mkdir()
+    for k, n in enumerate(scene.names):
+        im = cv2.imread(str(scene.out / n))
+        cv2.imwrite(str(images / n), im // 12 if k == 1 else im)
+    shutil.copy(scene.out / "cameras.txt", images)
+    m = json.loads(features.main(images, tmp_path / "work", progress=False).read_text())
+    assert list(m["lowered"]) == [scene.names[1]]
+    r = m["lowered"][scene.names[1]]
+    assert r["n_normal"] < 500 <= r["n_keypoints"] and r["preblur_sigma"] == 1.0
+    assert load_features(tmp_path / "work").lowered == m["lowered"]
+    (tmp_path / "work" / "features.record.json").unlink()  # the manifest again, every image from the store
+    m = json.loads(features.main(images, tmp_path / "work", progress=False).read_text())
+    assert m["n_cached"] == 3 and list(m["lowered"]) == [scene.names[1]]
 
 
 def test_main_cache_and_resume(scene, tmp_path):

@@ -91,13 +91,40 @@ def test_dominant_plane_is_flagged():
 
 def test_too_few_matches_rejected_with_reason():
     rng = np.random.default_rng(6)
-    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=12)
+    x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=10)
     g = estimate_pair(x_i, x_j, K_i, K_j)
-    assert not g.ok and "too few matches (12 < min_matches=20)" in g.reason
+    assert not g.ok and "too few matches (10 < min_matches=12)" in g.reason
     x_i, x_j, K_i, K_j, _, _ = _random_pair(rng, n=60)
     x_j = rng.uniform([0, 0], [640, 480], x_j.shape)  # pure noise
     g = estimate_pair(x_i, x_j, K_i, K_j)
     assert not g.ok and "too few" in g.reason
+
+
+def _with_static(rng, n_static):
+    """A true pair plus n_static matches that did not move (a static object: x_j = x_i + 0.2 px noise)."""
+    x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, n=200)
+    s = rng.uniform([50, 50], [590, 430], (n_static, 2))
+    return (np.vstack([x_i, s]), np.vstack([x_j, s + rng.normal(0, 0.2, s.shape)]), K_i, K_j, R_j)
+
+
+def test_zero_motion_matches_are_removed_and_the_motion_estimated():
+    rng = np.random.default_rng(8)
+    x_i, x_j, K_i, K_j, R_j = _with_static(rng, 600)  # the static object dominates: rotation I explains it
+    plain = estimate_pair(x_i, x_j, K_i, K_j, TwoViewConfig(static_px=0))
+    assert plain.ok and _deg(plain.R, np.eye(3)) < 0.5 and _deg(plain.R, R_j) > 10  # the wrong, static model
+    g = estimate_pair(x_i, x_j, K_i, K_j)
+    assert g.ok and g.n_static == 600 and g.n_matches == 200 and _deg(g.R, R_j) < 0.3
+    assert g.inlier_mask.shape == (800,) and not g.inlier_mask[200:].any() and g.inlier_mask[:200].mean() > 0.9
+    x_i, x_j, K_i, K_j, R_j = _with_static(rng, 100)  # a minority of static matches changes nothing
+    assert estimate_pair(x_i, x_j, K_i, K_j).n_static == 0
+
+
+def test_a_pair_with_no_image_motion_is_rejected():
+    rng = np.random.default_rng(9)
+    s = rng.uniform([50, 50], [590, 430], (300, 2))
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    g = estimate_pair(s, s + rng.normal(0, 0.2, s.shape), K, K)
+    assert not g.ok and g.reason.startswith("no image motion: 300 of 300 matches did not move")
 
 
 def test_config_and_input_validation():

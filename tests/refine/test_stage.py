@@ -143,3 +143,26 @@ def test_help_and_one_line_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(tmp_path / "none")],
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_tracks_come_only_from_the_pairs_the_checked_view_graph_kept(rendered_run, tmp_path):
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.refine.stage import load_inputs
+
+    rot = rendered_run / "rotations" / "irls-h-l0.5.txt"
+    checked = ViewGraph.load(rendered_run / "viewgraph.npz", allow_isolated=True)
+    every, _, _ = load_inputs(rendered_run / "work", rot)  # no checked graph: every two-view BA pair
+    kept, _, _ = load_inputs(rendered_run / "work", rot, rendered_run / "viewgraph.npz")
+    assert len(kept["edges"]) == checked.n_edges <= len(every["edges"])
+    a, b = checked.edges[0]
+    fewer = ViewGraph(checked.names, checked.edges[1:], checked.R_rel[1:], H=checked.H[1:],
+                      inliers=None if checked.inliers is None else checked.inliers[1:],
+                      stats={k: np.asarray(v)[1:] for k, v in checked.stats.items()}, allow_isolated=True)
+    fewer.save(tmp_path / "viewgraph.npz")
+    got, _, _ = load_inputs(rendered_run / "work", rot, tmp_path / "viewgraph.npz")
+    names = every["names"]
+    pairs = {(names[i], names[j]) for i, j in got["edges"].tolist()}
+    assert len(got["edges"]) == checked.n_edges - 1 and (checked.names[a], checked.names[b]) not in pairs
+    assert got["match_offsets"][-1] == len(got["matches"]) < kept["match_offsets"][-1]
+    # the intrinsics are the cameras stage's, K from the rendered scene's file: known, kept constant
+    assert kept["known_K"].all()

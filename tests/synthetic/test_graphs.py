@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -103,13 +102,9 @@ def test_knn_protocol_degree_and_noise() -> None:
 
 
 @pytest.mark.slow
-def test_knn_scale_10000_under_2s() -> None:
-    knn_graph(500, seed=0)  # warm-up (imports, caches)
-    t = time.perf_counter()
-    g = knn_graph(10_000, seed=5)
-    dt = time.perf_counter() - t
+def test_knn_scale_10000() -> None:
+    g = knn_graph(10_000, seed=5)  # its time is a benchmark's business, not a test's (no wall-clock asserts)
     assert g.vg.n_cameras == 10_000 and g.vg.is_connected()
-    assert dt < 2.0, f"knn_graph(10000) took {dt:.2f} s"
 
 
 @pytest.mark.parametrize(

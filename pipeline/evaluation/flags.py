@@ -1,0 +1,146 @@
+"""What vouches for each camera of a run: the view graph's flags, each method's support, and what a certificate is.
+
+:func:`run_evidence` joins the view-graph stage's flags and messages
+(:mod:`pipeline.graph.stage`) with each method's per-camera support
+(:mod:`pipeline.averaging.evidence`: "single edge", "rejected edges only") into
+``metrics.json``'s ``evidence``; :func:`evidence_markdown` and :func:`evidence_console`
+word it for the report and the console. A certificate is never shown alone: every
+place that shows one also says what it proves (optimality of a cost on the edges the
+method used) and what it does not (that those pairs are right).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "method_disagreement", "run_evidence", "evidence_markdown",
+           "evidence_console"]
+
+#: Methods that disagree by more than this on a camera (degrees) flag it: at least one of them is wrong there.
+DISAGREEMENT_DEG = 2.0
+
+CERTIFICATE_NOTE = ("a certificate proves that a method's rotations are optimal for its cost on the pairs it used; "
+                    "it does not check that those pairs are right")
+_SUPPORT = {"single edge": "rests on one pair the method kept, the others down-weighted or rejected",
+            "rejected edges only": "the method rejected or down-weighted every pair of it"}
+
+
+def method_disagreement(rotations: dict[str, tuple[list[str], np.ndarray]]) -> dict[str, tuple[float, str]]:
+    """Per camera, the largest angle between two methods' rotations, and which two (no truth involved).
+
+    Each pair of methods is aligned on the cameras they share by the geodesic median (robust to a few
+    cameras one method got wrong), then compared camera by camera.
+
+    Args:
+        rotations: ``{label: (names, (n, 3, 3) cam_from_world)}``.
+    Returns:
+        ``{name: (degrees, "a vs b")}`` for every camera two methods solved.
+    """
+    from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: PLC0415
+
+    out: dict[str, tuple[float, str]] = {}
+    labels = list(rotations)
+    for a in range(len(labels)):
+        for b in range(a + 1, len(labels)):
+            na, Ra = rotations[labels[a]]
+            pos = {n: k for k, n in enumerate(rotations[labels[b]][0])}
+            common = [k for k, n in enumerate(na) if n in pos]
+            if len(common) < 2:
+                continue
+            Rb = rotations[labels[b]][1][[pos[na[k]] for k in common]]
+            d = rotation_errors_deg(np.asarray(Ra)[common], Rb, align="l1")
+            for k, x in zip(common, d):
+                if x > out.get(na[k], (-1.0, ""))[0]:
+                    out[na[k]] = (float(x), f"{labels[a]} vs {labels[b]}")
+    return out
+
+
+def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
+                 disagreement: dict[str, tuple[float, str]] | None = None) -> dict[str, Any]:
+    """The ``evidence`` entry of metrics.json.
+
+    Args:
+        graph: the view-graph stage's summary (``flags``, ``messages``, ``left_out``, ``names``, ``pairs``, ...).
+        methods: metrics.json's ``methods`` (each with the ``evidence`` the averaging stage wrote).
+        disagreement: :func:`method_disagreement` of the methods' rotations; cameras beyond
+            :data:`DISAGREEMENT_DEG` are flagged.
+    Returns:
+        ``{"messages", "flags": {name: [reasons]}, "cameras": {name: {"status", "flags"}}, "n_flagged",
+        "n_cycles", "left_out", "pairs": counts by status and step, "certificate_note"}``.
+    """
+    flags: dict[str, list[str]] = {n: list(v) for n, v in (graph.get("flags") or {}).items()}
+    support: dict[tuple[str, str], list[str]] = {}
+    for label, m in methods.items():
+        for cam in (m.get("evidence") or {}).get("cameras", []):
+            if cam.get("support", "") in _SUPPORT:
+                support.setdefault((cam["name"], cam["support"]), []).append(label)
+    for (name, kind), labels in support.items():
+        if kind == "single edge" and any(w.startswith("rests on a single pair") for w in flags.get(name, [])):
+            continue  # the graph has one pair there: every method rests on it
+        flags.setdefault(name, []).append(f"{_SUPPORT[kind]} ({', '.join(labels)})")
+    for n, (deg, which) in (disagreement or {}).items():
+        if deg > DISAGREEMENT_DEG:
+            flags.setdefault(n, []).append(f"the methods disagree by {deg:.1f}° on it ({which}): at least one is "
+                                           "wrong there")
+    cameras: dict[str, dict[str, Any]] = {}
+    for n in graph.get("names", []):
+        cameras[n] = {"status": "flagged" if n in flags else "checked", "flags": flags.get(n, [])}
+        if disagreement and n in disagreement:
+            cameras[n]["methods_disagree_deg"] = round(disagreement[n][0], 4)
+    for n, why in (graph.get("left_out") or {}).items():
+        cameras[n] = {"status": "left out", "flags": [why]}
+    counts: dict[str, int] = {}
+    for p in graph.get("pairs", []):
+        key = p.get("status", "?") if p.get("status") == "kept" else f"rejected at {p.get('step', '?')}"
+        counts[key] = counts.get(key, 0) + 1
+    certified = [k for k, m in methods.items() if "certified" in m or (m.get("evidence") or {}).get("verdict")]
+    return {"messages": list(graph.get("messages", [])), "flags": {n: flags[n] for n in sorted(flags)},
+            "cameras": cameras, "n_flagged": len(flags), "n_cycles": graph.get("n_cycles"),
+            "left_out": dict(graph.get("left_out") or {}), "pairs": counts,
+            "certificate_note": CERTIFICATE_NOTE if certified else ""}
+
+
+def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[str]]:
+    msgs = list(ev.get("messages", []))
+    if ev.get("n_flagged"):
+        msgs.append(f"{ev['n_flagged']} camera(s) rest on evidence nothing checks (flagged below)")
+    items = [f"{n}: {'; '.join(w)}" for n, w in ev.get("flags", {}).items()]
+    if limit is not None and len(items) > limit:
+        items = items[:limit] + [f"... and {len(items) - limit} more (metrics.json: evidence.flags)"]
+    return msgs, items
+
+
+def evidence_markdown(ev: dict[str, Any]) -> list[str]:
+    """The report's "Evidence" section (markdown lines); empty when there is nothing to say."""
+    if not ev:
+        return []
+    msgs, items = _lines(ev, None)
+    out = ["## Evidence behind the rotations", ""]
+    out += [f"**{m}.**" for m in msgs] + ([""] if msgs else [])
+    pairs = ev.get("pairs") or {}
+    if pairs:
+        out += ["Pairs: " + ", ".join(f"{v} {k}" for k, v in sorted(pairs.items())) + " (viewgraph.json lists each "
+                "with its reason).", ""]
+    if items:
+        out += ["| camera | why it is flagged |", "|---|---|"]
+        out += [f"| {i.split(': ', 1)[0]} | {i.split(': ', 1)[1]} |" for i in items]
+        out.append("")
+    elif not msgs:
+        out += ["Every camera's rotation is checked by a cycle of consistent pairs.", ""]
+    if ev.get("certificate_note"):
+        out += [f"† {ev['certificate_note'][0].upper()}{ev['certificate_note'][1:]}; the flags above are what "
+                "vouches, or fails to vouch, for the input.", ""]
+    return out
+
+
+def evidence_console(ev: dict[str, Any], limit: int = 10) -> str:
+    """A few console lines: graph messages, flagged cameras with the reason, the certificate's meaning."""
+    if not ev:
+        return ""
+    msgs, items = _lines(ev, limit)
+    out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {i}" for i in items]
+    if ev.get("certificate_note"):
+        out.append(f"† {ev['certificate_note']}")
+    return "\n".join(out)

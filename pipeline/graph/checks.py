@@ -1,0 +1,194 @@
+"""The checks of a view graph before averaging: which pairs it keeps, and why each other pair goes.
+
+:func:`check_view_graph` is a pure function on a :class:`ViewGraph` with H (the two-view
+BA's). In order:
+
+1. evidence tiers (:mod:`pipeline.graph.tiers`): gates on inliers, inlier ratio and the
+   conditioning of H; strong, normal and provisional pairs;
+2. co-location (:func:`~pipeline.graph.loops.colocation_check`): a small-baseline pair's claim
+   that its cameras share a centre, tested by third cameras;
+3. short cycles (:func:`~pipeline.graph.loops.cycle_filter`): triangles and 4-cycles, the
+   edge most cycles disagree with removed first, with per-edge σ = ``max(σ_weak, sigma_floor_deg)``;
+4. longer cycles (:func:`~pipeline.graph.loops.cycle_check`): each edge in no short cycle
+   against the cheapest other path, σ = ``max(h_inflation·σ_weak, sigma_floor_deg)`` (an edge
+   whose short cycles are inconsistent is not confirmed by a longer, looser one);
+5. pairs still unconfirmed are dropped unless strong (provisional ones always);
+6. the robust solution: IRLS-ℓ½ on each component of the kept graph; an edge whose residual
+   exceeds ``max(robust_floor_deg, robust_k_sigma·h_inflation·σ_weak)`` is rejected. It sees
+   what only long cycles see (a repeated structure's pair whose cycles it makes consistent).
+
+What they did (research r13-lowtex, 8 rendered low-texture scenes, temple, castle-P30):
+castle-P30's 46 pairs > 5° off were all removed by steps 3–6 alone, 2 good ones lost (12
+with triangles only); the gates remove most wrong pairs on weak data. The thresholds are
+trade-offs measured there, not tuned on a benchmark's truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.core.config import Config, option
+from pipeline.core.errors import ConfigError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.graph.loops import colocation_check, cycle_check, cycle_filter
+from pipeline.graph.tiers import evidence_tiers, pair_evidence
+
+__all__ = ["ViewGraphConfig", "GraphChecks", "check_view_graph", "REJECTION_STEPS"]
+
+REJECTION_STEPS = ("acceptance", "colocation", "cycles", "path", "unconfirmed", "robust")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ViewGraphConfig(Config):
+    """Options of the view-graph stage (YAML section ``viewgraph``): its checks (module docstring)."""
+
+    SECTION = "viewgraph"
+
+    checks: bool = option(True, "accept pairs by their evidence and the graph's cycles (false: every pair, as before)")
+    min_inliers: int = option(15, "gate: RANSAC inliers among the putative matches (COLMAP: 15)", ge=5)
+    min_inlier_ratio: float = option(0.25, "gate: inliers / matches (COLMAP: 0.25)", ge=0, le=1)
+    provisional_min_inliers: int = option(12, "pairs with this many inliers, fewer than min_inliers, are kept only "
+                                              "when a cycle confirms them", ge=5)
+    h_inflation: float = option(3.0, "H's overconfidence on real images: σ_weak = 1/√λ_min(H) is multiplied by it",
+                                gt=0)
+    max_sigma_deg: float = option(3.0, "gate: h_inflation·σ_weak at most this, degrees", gt=0)
+    strong_min_inliers: int = option(30, "strong pair (kept unconfirmed): inliers", ge=0)
+    strong_min_ratio: float = option(0.4, "strong pair: inlier ratio", ge=0, le=1)
+    strong_max_sigma_deg: float = option(3.0, "strong pair: h_inflation·σ_weak at most this, degrees", gt=0)
+    strong_max_cond: float = option(50.0, "strong pair: √(λ_max/λ_min) of H at most this", gt=0)
+    min_parallax_deg: float = option(5.0, "strong pair: median triangulation angle at least this, degrees", ge=0)
+    wide_parallax_deg: float = option(75.0, "weak or strong pairs whose rays meet at more than this are not kept "
+                                            "(confirmed normal pairs are)", gt=0)
+    max_cycle_length: int = option(4, "short cycles checked: 3 (triangles) or 4 (also 4-cycles)", ge=3, le=4)
+    max_four_cycles: int = option(2_000_000, "budget of 4-cycles (dense graphs of thousands of cameras have "
+                                             "millions): beyond it each diagonal keeps its first few", ge=0)
+    cycle_k_sigma: float = option(3.0, "a cycle is consistent when its angle <= k·κ·σ_C", gt=0)
+    cycle_min_deg: float = option(1.0, "a cycle below this angle is always consistent, degrees", ge=0)
+    cycle_max_deg: float = option(10.0, "a cycle above this angle is never consistent, degrees", gt=0)
+    max_bad_fraction: float = option(0.5, "an edge is removed when more than this share of its cycles is bad", ge=0,
+                                     lt=1)
+    sigma_floor_deg: float = option(0.5, "floor of every edge's σ, degrees (H is most overconfident where strongest)",
+                                    gt=0)
+    path_k_sigma: float = option(3.0, "an edge in no short cycle is consistent with a path when within k·σ", gt=0)
+    path_min_deg: float = option(2.0, "... or within this many degrees", ge=0)
+    path_max_deg: float = option(15.0, "paths whose threshold would exceed this check nothing, degrees", gt=0)
+    colocation_max_deg: float = option(10.0, "a small-baseline pair whose third cameras see its two centres this "
+                                             "far apart (median, degrees) is rejected", gt=0)
+    robust_filter: bool = option(True, "reject the edges the robust solution (IRLS-ℓ½) leaves far off")
+    robust_floor_deg: float = option(5.0, "robust filter: reject residuals above max(this, k·h_inflation·σ_weak)",
+                                     gt=0)
+    robust_k_sigma: float = option(4.0, "robust filter: k", gt=0)
+
+    def check(self) -> None:
+        if self.provisional_min_inliers > self.min_inliers:
+            raise ConfigError(f"[viewgraph] provisional_min_inliers={self.provisional_min_inliers} but expected <= "
+                              f"min_inliers={self.min_inliers}")
+        if self.cycle_min_deg > self.cycle_max_deg:
+            raise ConfigError(f"[viewgraph] cycle_min_deg={self.cycle_min_deg} but expected <= "
+                              f"cycle_max_deg={self.cycle_max_deg}")
+
+
+@dataclass
+class GraphChecks:
+    """Result of :func:`check_view_graph`, per edge of the input graph (all (M,)).
+
+    Attributes:
+        kept: the edges averaging may use.
+        reason: why an edge was rejected ("" if kept).
+        step: the step that rejected it (one of :data:`REJECTION_STEPS`, "" if kept).
+        tier: "strong", "normal", "provisional" or "" (not a candidate).
+        confirmed: kept edges in a consistent cycle (short, or a longer path).
+        inconsistent: edges rejected because they disagree with the others (steps 2–4, 6).
+        info: counts and figures of each step (JSON-ready).
+    """
+
+    kept: np.ndarray
+    reason: np.ndarray
+    step: np.ndarray
+    tier: np.ndarray
+    confirmed: np.ndarray
+    inconsistent: np.ndarray
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _reject(chk: GraphChecks, mask: np.ndarray, step: str, why: Callable[[np.ndarray], list[str]] | np.ndarray) -> int:
+    """Reject the kept edges of ``mask`` at ``step``; ``why(indices)`` words the reasons (only theirs)."""
+    mask = mask & chk.kept
+    idx = np.flatnonzero(mask)
+    chk.reason[idx] = why(idx) if callable(why) else np.asarray(why, object)[idx]
+    chk.step[idx] = step
+    chk.kept = chk.kept & ~mask
+    if step != "unconfirmed" and step != "acceptance":
+        chk.inconsistent |= mask
+    return int(mask.sum())
+
+
+def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> GraphChecks:
+    """Every check of the module docstring on ``vg`` (pure function)."""
+    cfg = config or ViewGraphConfig()
+    M, N = vg.n_edges, vg.n_cameras
+    ev = pair_evidence(vg)
+    tiers = evidence_tiers(ev, cfg)
+    tier = np.where(tiers.strong, "strong", np.where(tiers.provisional, "provisional",
+                                                     np.where(tiers.candidate, "normal", ""))).astype(object)
+    chk = GraphChecks(np.ones(M, bool), np.full(M, "", object), np.full(M, "", object), tier, np.zeros(M, bool),
+                      np.zeros(M, bool))
+    info: dict[str, Any] = {"n_pairs": M, "tiers": {t: int((tier == t).sum()) for t in ("strong", "normal",
+                                                                                       "provisional")}}
+    info["acceptance"] = _reject(chk, ~tiers.candidate, "acceptance", tiers.reason)
+    sw = np.nan_to_num(ev.sigma_weak_deg, nan=cfg.sigma_floor_deg)
+    t = np.asarray(vg.stats.get("t", np.ones((M, 3))), float).reshape(M, 3)
+    n_wit, med, bad = colocation_check(vg.edges, vg.R_rel, t, ev.small_baseline, chk.kept, N, cfg.colocation_max_deg)
+    info["colocation"] = _reject(chk, bad, "colocation", lambda ix: [
+        f"its small baseline claims one camera centre; {n_wit[k]} third camera(s) see the two centres "
+        f"{med[k]:.0f}° apart (median)" for k in ix])
+    cf = cycle_filter(vg.edges, vg.R_rel, N, np.maximum(sw, cfg.sigma_floor_deg), max_len=cfg.max_cycle_length,
+                      k_sigma=cfg.cycle_k_sigma, min_deg=cfg.cycle_min_deg, max_deg=cfg.cycle_max_deg,
+                      max_bad_fraction=cfg.max_bad_fraction, active=chk.kept, max_four_cycles=cfg.max_four_cycles)
+    info["cycles"] = _reject(chk, ~cf.kept, "cycles", lambda ix: [
+        f"{cf.n_bad[k]} of its {cf.n_cycles[k]} short cycles are inconsistent" for k in ix])
+    info["kappa2"], info["n_short_cycles"] = float(cf.kappa2), len(cf.cycles)
+    confirmed = cf.confirmed.copy()
+    sig_path = np.maximum(cfg.h_inflation * sw, cfg.sigma_floor_deg)
+    # only edges in no short cycle: one whose short cycles disagree is not confirmed by a longer, looser one
+    pc = cycle_check(vg.edges, vg.R_rel, N, chk.kept, chk.kept & ~confirmed & (cf.n_cycles == 0), sig_path, confirmed,
+                     k_sigma=cfg.path_k_sigma, min_deg=cfg.path_min_deg, max_path_deg=cfg.path_max_deg)
+    info["path"] = _reject(chk, pc.checked & ~pc.consistent & pc.path_confirmed, "path", lambda ix: [
+        f"disagrees by {pc.discrepancy_deg[k]:.1f}° (threshold {pc.threshold_deg[k]:.1f}°) with the path of "
+        f"{pc.path_length[k]} confirmed pairs between its cameras" for k in ix])
+    confirmed |= pc.checked & pc.consistent
+    unconf = chk.kept & ~confirmed & ((tier != "strong") | tiers.provisional)
+    info["unconfirmed"] = _reject(chk, unconf, "unconfirmed", np.where(
+        tiers.provisional, "provisional (few inliers) and confirmed by no cycle",
+        "confirmed by no cycle and not strong enough to stand alone").astype(object))
+    info["robust"] = _robust_filter(vg, chk, sw, cfg) if cfg.robust_filter else 0
+    chk.confirmed = confirmed & chk.kept
+    info["n_kept"], info["n_confirmed"] = int(chk.kept.sum()), int(chk.confirmed.sum())
+    chk.info = info
+    return chk
+
+
+def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, cfg: ViewGraphConfig) -> int:
+    """Step 6: reject the kept edges whose IRLS-ℓ½ residual is far beyond their σ, in every component with a cycle."""
+    from pipeline.averaging.irls import IRLSConfig  # noqa: PLC0415 - the graph checks use one averaging method
+    from pipeline.averaging.solve import average  # noqa: PLC0415
+
+    keep = np.flatnonzero(chk.kept)
+    if not len(keep):
+        return 0
+    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], allow_isolated=True)
+    labels = sub.components()
+    r = np.full(vg.n_edges, np.nan)
+    for c in range(int(labels.max()) + 1):  # one solve per component (a few): the left-out ones are checked too
+        comp, restr = sub.subgraph(labels == c)
+        if comp.n_edges < comp.n_cameras:  # a tree: no residual to judge
+            continue
+        res = average(comp, "irls", IRLSConfig(certify=False))
+        r[keep[restr.edge_kept[res.edge_index]]] = np.degrees(res.residuals_rad)
+    thr = np.maximum(cfg.robust_floor_deg, cfg.robust_k_sigma * cfg.h_inflation * sigma_weak_deg)
+    bad = np.isfinite(r) & (r > thr)
+    return _reject(chk, bad, "robust", lambda ix: [
+        f"the robust solution (IRLS-ℓ½) leaves it {r[k]:.1f}° off (threshold {thr[k]:.1f}°)" for k in ix])

@@ -1,0 +1,215 @@
+"""Flags of the cameras whose rotation rests on evidence nothing checks, with the reason.
+
+Pure functions on arrays. A camera is flagged when
+
+- it rests on a single pair (degree 1): that pair's error is the camera's;
+- it is joined to the rest only through a *bridge* (an edge in no cycle: its error
+  can never be detected), i.e. it lies outside the largest 2-edge-connected block of
+  its component;
+- none of its pairs is in a consistent cycle (unconfirmed);
+- some of its pairs were rejected as inconsistent with the others.
+
+A graph without cycles (a forest) gets the message that its result cannot be verified.
+
+Bridges (:func:`bridges`) come from one depth-first order (scipy) and the low points of
+its subtrees, computed on the preorder with sparse tables: O((N + M) log N), vectorized.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, connected_components, depth_first_order
+
+from pipeline.graph.cycles import EdgeIndex
+
+__all__ = ["bridges", "two_edge_blocks", "GraphFlags", "graph_flags", "NO_CYCLE"]
+
+NO_CYCLE = ("the view graph has no cycle: no relative rotation is checked by another, so the result cannot be "
+            "verified")
+
+
+def _graph(a: np.ndarray, b: np.ndarray, n: int) -> sp.csr_matrix:
+    return sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n))
+
+
+def _depths(pred: np.ndarray, root: int) -> np.ndarray:
+    """Depth of every node of a tree given by its predecessors (pointer doubling, log N rounds)."""
+    jump = np.where(pred < 0, root, pred)
+    jump[root] = root
+    dist = (np.arange(len(pred)) != root).astype(np.int64)
+    while np.any(jump != root):
+        dist = dist + np.where(jump != root, dist[jump], 0)
+        jump = jump[jump]
+    return dist
+
+
+def _sparse_table(x: np.ndarray) -> list[np.ndarray]:
+    """Range-minimum tables: ``t[k][p] = min(x[p : p + 2^k])``."""
+    t = [x]
+    k = 1
+    while (1 << k) <= len(x):
+        prev = t[-1]
+        h = 1 << (k - 1)
+        t.append(np.minimum(prev[:-h], prev[h:]))
+        k += 1
+    return t
+
+
+def _range_min(t: list[np.ndarray], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """min(x[lo:hi]) for hi > lo (vectorized)."""
+    k = np.floor(np.log2(np.maximum(hi - lo, 1))).astype(np.int64)
+    out = np.empty(len(lo), t[0].dtype)
+    for kk in np.unique(k):
+        s = k == kk
+        out[s] = np.minimum(t[kk][lo[s]], t[kk][hi[s] - (1 << kk)])
+    return out
+
+
+def bridges(edges: np.ndarray, n: int, active: np.ndarray | None = None) -> np.ndarray:
+    """(M,) bool: the active edges whose removal disconnects their component (edges in no cycle)."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    act = np.ones(len(edges), bool) if active is None else np.asarray(active, bool)
+    out = np.zeros(len(edges), bool)
+    if not act.any():
+        return out
+    a, b = edges[act, 0], edges[act, 1]
+    _, lab = connected_components(_graph(a, b, n), directed=False)
+    reps = np.unique(lab, return_index=True)[1]  # one camera per component, joined to a virtual root n
+    G = _graph(np.r_[a, np.full(len(reps), n)], np.r_[b, reps], n + 1)
+    order, pred = depth_first_order(G, n, directed=False, return_predecessors=True)
+    depth = _depths(pred, n)
+    pos = np.empty(n + 1, np.int64)
+    pos[order] = np.arange(n + 1)
+    index = EdgeIndex(edges, n, act)
+    child = np.flatnonzero((pred >= 0) & (pred < n))  # real tree edges (pred[child], child)
+    tree = index.lookup(pred[child], child)
+    non_tree = act.copy()
+    non_tree[tree] = False
+    lowd = depth.copy()  # the shallowest depth reached from each node by one non-tree edge
+    ea, eb = edges[non_tree, 0], edges[non_tree, 1]
+    np.minimum.at(lowd, ea, depth[eb])
+    np.minimum.at(lowd, eb, depth[ea])
+    D = depth[order]
+    tD = _sparse_table(D)
+    # end of each subtree in preorder: the first later position whose depth is not deeper
+    s = pos[child] + 1
+    dx = depth[child]
+    for k in range(len(tD) - 1, -1, -1):
+        step = 1 << k
+        can = s + step <= n + 1
+        m = np.full(len(s), -1)
+        m[can] = tD[k][s[can]]
+        s = np.where(can & (m > dx), s + step, s)
+    sub_min = _range_min(_sparse_table(lowd[order]), pos[child], s)
+    out[tree[sub_min >= dx]] = True
+    return out
+
+
+def two_edge_blocks(edges: np.ndarray, n: int, kept: np.ndarray, bridge: np.ndarray) -> np.ndarray:
+    """(N,) label of each camera's 2-edge-connected block (the pieces left when the bridges are cut)."""
+    use = np.asarray(kept, bool) & ~np.asarray(bridge, bool)
+    return connected_components(_graph(edges[use, 0], edges[use, 1], n), directed=False)[1]
+
+
+@dataclass
+class GraphFlags:
+    """Result of :func:`graph_flags`.
+
+    Attributes:
+        cameras: {camera index: [reasons]} of every flagged camera.
+        bridge: (M,) bool the kept edges in no cycle.
+        messages: graph-level messages (no cycle).
+        n_cycles: the cycle rank M − N + c of the kept graph over the cameras considered.
+    """
+
+    cameras: dict[int, list[str]] = field(default_factory=dict)
+    bridge: np.ndarray | None = None
+    messages: list[str] = field(default_factory=list)
+    n_cycles: int = 0
+
+
+def _bridge_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.ndarray, block: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera: whether its block is its component's largest, and the bridge leaving its block towards it."""
+    n_blocks = int(block.max()) + 1
+    size = np.bincount(block, minlength=n_blocks)
+    _, comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)
+    comp_of_block = np.zeros(n_blocks, np.int64)
+    comp_of_block[block] = comp
+    # the core of a component: its largest block (the lowest label among equals)
+    order = np.lexsort((np.arange(n_blocks), -size, comp_of_block))
+    first = np.r_[True, comp_of_block[order][1:] != comp_of_block[order][:-1]]
+    core = np.zeros(n_blocks, bool)
+    core[order[first]] = True
+    bi = np.flatnonzero(br)
+    ba, bb = block[edges[bi, 0]], block[edges[bi, 1]]
+    cores = np.flatnonzero(core)
+    T = _graph(np.r_[ba, np.full(len(cores), n_blocks)], np.r_[bb, cores], n_blocks + 1)
+    _, pred = breadth_first_order(T, n_blocks, directed=False, return_predecessors=True)
+    towards = np.full(n_blocks, -1)
+    nc = ~core & (pred[:n_blocks] >= 0)
+    towards[nc] = EdgeIndex(np.stack([np.minimum(ba, bb), np.maximum(ba, bb)], 1), n_blocks).lookup(
+        np.flatnonzero(nc), pred[:n_blocks][nc])
+    towards = np.where(towards >= 0, bi[np.maximum(towards, 0)], -1) if len(bi) else towards
+    return core[block], towards[block]
+
+
+def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarray, inconsistent: np.ndarray,
+                names: list[str], cameras: np.ndarray | None = None, cycles_checked: bool = True) -> GraphFlags:
+    """Flag the cameras whose rotation rests on unchecked or disputed evidence (module docstring).
+
+    Args:
+        edges: (M, 2); n: number of cameras.
+        kept: (M,) bool the edges the averaging uses.
+        confirmed: (M,) bool kept edges in a consistent cycle (or consistent with a longer one).
+        inconsistent: (M,) bool edges rejected because they disagree with the others.
+        names: camera names (for the reasons).
+        cameras: (N,) bool the cameras to flag (default all with a kept edge); the cycle rank
+            and the messages are those of the kept edges among them.
+        cycles_checked: False when no cycle was tested (``confirmed`` means nothing): the
+            structural flags only (single pair, bridge).
+    Returns:
+        :class:`GraphFlags`.
+    """
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    kept = np.asarray(kept, bool)
+    deg = np.bincount(edges[kept].ravel(), minlength=n)
+    cams = deg > 0 if cameras is None else np.asarray(cameras, bool) & (deg > 0)
+    kept = kept & cams[edges[:, 0]] & cams[edges[:, 1]]
+    flags: dict[int, list[str]] = {}
+    if not kept.any():
+        return GraphFlags(flags, np.zeros(len(edges), bool), [], 0)
+
+    def add(ks: np.ndarray, why: list[str]) -> None:
+        for k, w in zip(ks.tolist(), why):
+            flags.setdefault(int(k), []).append(w)
+
+    pair = lambda e: f"({names[edges[e, 0]]}, {names[edges[e, 1]]})"  # noqa: E731
+    # the single kept edge of each degree-1 camera
+    inc_e = np.r_[np.flatnonzero(kept), np.flatnonzero(kept)]
+    inc_c = np.r_[edges[kept, 0], edges[kept, 1]]
+    one = deg[inc_c] == 1
+    add(inc_c[one], [f"rests on a single pair {pair(e)}: nothing checks it" for e in inc_e[one]])
+    br = bridges(edges, n, kept)
+    block = two_edge_blocks(edges, n, kept, br)
+    in_core, towards = _bridge_towards_core(edges, n, kept, br, block)
+    size = np.bincount(block, minlength=int(block.max()) + 1)[block]
+    cut = np.flatnonzero(cams & ~in_core & (towards >= 0) & ((deg > 1) | (size > 1)))
+    add(cut, [f"joined to the rest only through the bridge pair {pair(towards[k])}: an error in that pair cannot be "
+              "detected" for k in cut])
+    conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
+    unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
+    add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
+    rej = np.bincount(edges[np.asarray(inconsistent, bool)].ravel(), minlength=n)
+    disputed = np.flatnonzero(cams & (rej > 0))
+    add(disputed, [f"{rej[k]} of its {rej[k] + deg[k]} pairs disagree with the others and were rejected"
+                   for k in disputed])
+    n_comp = len(np.unique(connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)[1][cams]))
+    n_cycles = int(kept.sum()) - int(cams.sum()) + n_comp
+    messages = [NO_CYCLE] if n_cycles == 0 else []
+    if n_cycles and cycles_checked and not (kept & confirmed).any():
+        messages.append("the view graph has cycles but none is consistent: no pair is confirmed")
+    return GraphFlags(flags, br, messages, n_cycles)

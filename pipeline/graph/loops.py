@@ -1,0 +1,334 @@
+"""Loop consistency: the view graph's own redundancy judges its edges.
+
+Pure functions on arrays (``edges`` (M, 2), ``R_rel`` (M, 3, 3), per-edge standard
+deviations ``sigma_deg`` (M,)); cycles from :mod:`pipeline.graph.cycles`.
+
+- :func:`cycle_filter`: every triangle and 4-cycle is *consistent* when the angle of its
+  composed rotation is at most ``clip(k·κ·σ_C, min_deg, max_deg)``, ``σ_C² = Σ σ_e²``
+  over its edges; ``κ² = max(1, median(θ²/σ_C²) / median(χ²₃))`` is calibrated on all
+  cycles once (the σ are overconfident on real images by a common factor; the outliers are
+  a minority). Greedily, the edge with the largest fraction of bad cycles is removed when
+  that fraction exceeds ``max_bad_fraction`` and it is, in at least one of its bad cycles,
+  strictly the most suspicious edge (its partners are consistent elsewhere); then the
+  counts are updated and the step repeated. A lone bad triangle blames nobody: its
+  edges stay, unconfirmed. Cycles are enumerated once: the cycles of the kept graph are
+  those whose edges are all kept.
+- :func:`cycle_check`: an edge in no consistent short cycle is compared with the
+  cheapest other path between its cameras (Dijkstra on σ²): first through confirmed
+  edges only (all sources in one call), else through any kept edge. It is rejected only
+  when it disagrees with a path of confirmed edges.
+- :func:`colocation_check`: a rotation-only pair (``t = 0``: the two-view stage's
+  zero-baseline model) claims that its cameras share a centre; a third camera with an
+  ordinary pair to each must then see both centres in one direction. Static content and
+  repeated structure fit the rotation-only model well and fail this test.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+from scipy.stats import chi2
+
+from pipeline.core import so3
+from pipeline.graph.cycles import (Cycles, EdgeIndex, cycle_angles, cycle_variance, edge_cycles, find_cycles,
+                                   find_triangles)
+
+__all__ = ["CycleResult", "cycle_filter", "PathCheck", "cycle_check", "colocation_check", "group_median"]
+
+
+@dataclass
+class CycleResult:
+    """Result of :func:`cycle_filter`.
+
+    Attributes:
+        kept: (M,) bool edges kept.
+        removed: edge indices in the order they were removed.
+        n_cycles, n_bad: (M,) cycles and inconsistent cycles through each edge (kept edges: in the
+            final graph; removed edges: when they were removed).
+        kappa2: the calibrated inflation of σ.
+        confirmed: (M,) bool kept edges in at least one consistent cycle of the final graph.
+        cycles: every cycle of the input graph; ``consistent`` (C,) and ``alive`` (C,) their state.
+        angles: (C,) their angles, degrees.
+    """
+
+    kept: np.ndarray
+    removed: list[int]
+    n_cycles: np.ndarray
+    n_bad: np.ndarray
+    kappa2: float
+    confirmed: np.ndarray
+    cycles: Cycles
+    consistent: np.ndarray
+    alive: np.ndarray
+    angles: np.ndarray
+
+
+def _blame(cyc_edges: np.ndarray, frac: np.ndarray, M: int) -> np.ndarray:
+    """(M,) number of cycles of ``cyc_edges`` (K, 4) in which each edge has strictly the largest ``frac``."""
+    f = np.where(cyc_edges >= 0, frac[np.maximum(cyc_edges, 0)], -1.0)
+    top = np.sort(f, axis=1)
+    second = np.where(f == top[:, -1:], top[:, -2:-1], top[:, -1:])  # the largest of the others
+    strict = (cyc_edges >= 0) & (f > second)
+    return np.bincount(cyc_edges[strict], minlength=M)
+
+
+def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
+                 k_sigma: float = 3.0, min_deg: float = 1.0, max_deg: float | None = 10.0,
+                 max_bad_fraction: float = 0.5, min_cycles: int = 1, calibrate: bool = True,
+                 active: np.ndarray | None = None, max_four_cycles: int = 2_000_000) -> CycleResult:
+    """Greedy removal of the edges that most short cycles disagree with (module docstring).
+
+    Args:
+        edges: (M, 2); R_rel: (M, 3, 3); n_cameras: N.
+        sigma_deg: (M,) per-edge standard deviation, degrees.
+        max_len: 3 (triangles) or 4 (also 4-cycles: a ring whose pairs (i, i+1), (i, i+2)
+            are partly missing keeps 4-cycles).
+        k_sigma, min_deg, max_deg: the consistency threshold.
+        max_bad_fraction, min_cycles: when an edge is judged.
+        calibrate: estimate κ²; otherwise κ² = 1.
+        active: (M,) bool edges to consider (default all).
+        max_four_cycles: the budget of 4-cycles (:func:`~pipeline.graph.cycles.find_cycles`).
+    Returns:
+        :class:`CycleResult`.
+    """
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    M = len(edges)
+    kept = np.ones(M, bool) if active is None else np.asarray(active, bool).copy()
+    cyc = find_cycles(edges, n_cameras, kept, max_len, max_four_cycles)
+    ang = cycle_angles(R_rel, cyc)
+    sC2 = cycle_variance(np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2, cyc)
+    kappa2 = 1.0
+    if calibrate and len(cyc):
+        kappa2 = max(1.0, float(np.median(ang**2 / sC2)) / chi2.median(3))
+    thr = np.maximum(min_deg, k_sigma * np.sqrt(kappa2 * sC2))
+    if max_deg is not None:
+        thr = np.minimum(thr, max_deg)
+    ok = ang <= thr
+    alive = np.ones(len(cyc), bool)
+    valid = cyc.edges >= 0
+    flat, bad_rep = cyc.edges[valid], np.broadcast_to(~ok[:, None], cyc.edges.shape)[valid]
+    n_c = np.bincount(flat, minlength=M)
+    n_b = np.bincount(flat[bad_rep], minlength=M)
+    ptr, through = edge_cycles(cyc, M)
+    bad_idx = np.flatnonzero(~ok)
+    removed: list[int] = []
+    n_c_at, n_b_at = n_c.copy(), n_b.copy()
+    while True:
+        frac = np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
+        cand = kept & (n_c >= min_cycles) & (frac > max_bad_fraction)
+        if cand.any():
+            live_bad = bad_idx[alive[bad_idx]]
+            cand &= _blame(cyc.edges[live_bad], frac, M) >= 1
+        if not cand.any():
+            break
+        c = np.flatnonzero(cand)
+        best = int(c[np.lexsort((-n_b[c], -frac[c]))[0]])
+        n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
+        kept[best] = False
+        removed.append(best)
+        dead = through[ptr[best]:ptr[best + 1]]
+        dead = dead[alive[dead]]
+        alive[dead] = False
+        e = cyc.edges[dead]
+        m = e >= 0
+        n_c -= np.bincount(e[m], minlength=M)
+        n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
+    confirmed = np.zeros(M, bool)
+    ce = cyc.edges[alive & ok].ravel()
+    confirmed[ce[ce >= 0]] = True
+    n_c_at[kept], n_b_at[kept] = n_c[kept], n_b[kept]
+    return CycleResult(kept, removed, n_c_at, n_b_at, kappa2, confirmed & kept, cyc, ok, alive, ang)
+
+
+@dataclass
+class PathCheck:
+    """Result of :func:`cycle_check`.
+
+    Attributes:
+        checked: (M,) bool: another path between the edge's cameras was found.
+        consistent: (M,) bool: the edge agrees with it.
+        discrepancy_deg, threshold_deg: (M,) the angle between the edge and the path's composition
+            and the threshold it was held to (NaN: no path).
+        path_length: (M,) edges on the path (0: none).
+        path_confirmed: (M,) bool: every edge of the path is confirmed.
+    """
+
+    checked: np.ndarray
+    consistent: np.ndarray
+    discrepancy_deg: np.ndarray
+    threshold_deg: np.ndarray
+    path_length: np.ndarray
+    path_confirmed: np.ndarray
+
+
+def _compose_paths(pred: np.ndarray, rows: np.ndarray, i: np.ndarray, j: np.ndarray, index: EdgeIndex,
+                   R_rel: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Compose the rotations along the predecessor paths from ``i`` to ``j`` (all paths at once, step by step).
+
+    Returns the (K, 3, 3) composition ``R_{i→j}``, (K,) path lengths and the (K, L) edges walked (-1 padded).
+    """
+    K = len(i)
+    P = np.broadcast_to(np.eye(3), (K, 3, 3)).copy()
+    v = j.copy()
+    length = np.zeros(K, np.int64)
+    walked: list[np.ndarray] = []
+    live = v != i
+    while live.any():  # one step of every path per round: the loop is over path lengths
+        u = np.where(live, pred[rows, v], v)
+        e = np.where(live, index.lookup(u, v), -1)
+        Ruv = np.where((u < v)[:, None, None], R_rel[np.maximum(e, 0)], np.swapaxes(R_rel[np.maximum(e, 0)], 1, 2))
+        P[live] = P[live] @ Ruv[live]  # R_{i→j} = R_{v_{L-1}→j} ··· R_{i→v_1}: prepend walking back
+        length += live
+        walked.append(e)
+        v = u
+        live = v != i
+    return P, length, (np.stack(walked, 1) if walked else np.zeros((K, 0), np.int64))
+
+
+def _shortest(edges: np.ndarray, var: np.ndarray, use: np.ndarray, n: int, sources: np.ndarray,
+              limit: float) -> tuple[np.ndarray, np.ndarray]:
+    e = edges[use]
+    w = var[use]
+    G = sp.csr_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
+    return dijkstra(G, directed=False, indices=sources, return_predecessors=True, limit=limit)
+
+
+def cycle_check(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, kept: np.ndarray, which: np.ndarray,
+                sigma_deg: np.ndarray, confirmed: np.ndarray, *, k_sigma: float = 3.0, min_deg: float = 2.0,
+                max_path_deg: float = 15.0) -> PathCheck:
+    """Check each edge of ``which`` against the cheapest other path between its cameras (module docstring).
+
+    The edge is consistent when the angle between it and the path's composition is at most
+    ``max(min_deg, k_sigma·√(σ_e² + Σ_path σ²))``. Paths whose threshold would exceed
+    ``max_path_deg`` check nothing and are not searched.
+
+    Args:
+        edges: (M, 2); R_rel: (M, 3, 3); n_cameras: N.
+        kept: (M,) bool the graph searched; which: (M,) bool edges to check (subset of kept).
+        sigma_deg: (M,) per-edge standard deviation, degrees.
+        confirmed: (M,) bool edges confirmed by a consistent short cycle.
+    Returns:
+        :class:`PathCheck`.
+    """
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    M = len(edges)
+    kept, conf = np.asarray(kept, bool), np.asarray(confirmed, bool) & np.asarray(kept, bool)
+    out = PathCheck(np.zeros(M, bool), np.zeros(M, bool), np.full(M, np.nan), np.full(M, np.nan),
+                    np.zeros(M, np.int64), np.zeros(M, bool))
+    var = np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2
+    limit = (max_path_deg / k_sigma) ** 2
+    todo = np.flatnonzero(np.asarray(which, bool) & kept)
+    index = EdgeIndex(edges, n_cameras, kept)
+    # 1. through confirmed edges only: every source in one call (the edges checked are not confirmed)
+    # 2. the rest: through any other kept edge, one search per edge (those no confirmed path reaches)
+    for phase in (1, 2):
+        if not len(todo):
+            break
+        if phase == 1:
+            src, rows_of = np.unique(edges[todo, 0], return_inverse=True)
+            dist, pred = _shortest(edges, var, conf, n_cameras, src, limit)
+            rows, ok = rows_of, np.isfinite(dist[rows_of, edges[todo, 1]])
+            batch = [(todo[ok], rows[ok], dist, pred)]
+            todo = todo[~ok]
+        else:
+            batch = []
+            for e in todo:  # the few edges no confirmed path reaches (e.g. a ring without triangles)
+                use = kept.copy()
+                use[e] = False
+                d, p = _shortest(edges, var, use, n_cameras, np.array([edges[e, 0]]), limit)
+                if np.isfinite(d[0, edges[e, 1]]):
+                    batch.append((np.array([e]), np.zeros(1, np.int64), d, p))
+        for es, rows, dist, pred in batch:
+            i, j = edges[es, 0], edges[es, 1]
+            P, length, walked = _compose_paths(pred, rows, i, j, index, R_rel, edges)
+            ang = np.degrees(so3.angle_between(P, R_rel[es]))
+            thr = np.maximum(min_deg, k_sigma * np.sqrt(var[es] + dist[rows, j]))
+            out.checked[es] = True
+            out.discrepancy_deg[es], out.threshold_deg[es] = ang, thr
+            out.consistent[es] = ang <= thr
+            out.path_length[es] = length
+            out.path_confirmed[es] = np.where(walked >= 0, conf[np.maximum(walked, 0)], True).all(1)
+    return out
+
+
+def group_median(groups: np.ndarray, values: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) count and median of ``values`` per group id in ``groups`` (NaN where empty)."""
+    order = np.lexsort((values, groups))
+    g, x = groups[order], values[order]
+    count = np.bincount(g, minlength=n)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    med = np.full(n, np.nan)
+    has = count > 0
+    lo = start[has] + (count[has] - 1) // 2
+    hi = start[has] + count[has] // 2
+    med[has] = 0.5 * (x[lo] + x[hi])
+    return count, med
+
+
+def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotation_only: np.ndarray,
+                     kept: np.ndarray, n_cameras: int, max_deg: float = 10.0
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Test the claim of every rotation-only pair that its two cameras stand at one place.
+
+    Camera c's centre, seen from camera k across edge e: ``t_ck`` when e is stored (c, k)
+    (``x_k = R_ck x_c + t_ck``), ``−R_kcᵀ t_kc`` when stored (k, c). Witnesses: a triangle
+    (a, b, k) with (a, b) rotation-only and ordinary pairs (a, k), (b, k): both centres in one
+    direction from k; a 4-cycle with two opposite rotation-only edges (v₀, v₁), (v₂, v₃): the
+    two claims make the baselines v₁ → v₂ and v₀ → v₃ parallel (a ring around two copies of an
+    object has such cycles and no triangle).
+
+    Args:
+        edges: (M, 2); R_rel: (M, 3, 3); t: (M, 3) translations (zeros for rotation-only pairs).
+        rotation_only: (M,) bool; kept: (M,) bool; n_cameras: N; max_deg: largest median angle accepted.
+    Returns:
+        number of witnesses (M,), their median angle (M,) in degrees (NaN: none), reject (M,) bool.
+    """
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    M = len(edges)
+    t = np.asarray(t, float)
+    tn = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    ro = np.asarray(rotation_only, bool) | (np.linalg.norm(t, axis=1) < 1e-9)
+    if not (ro & kept).any():
+        return np.zeros(M, np.int64), np.full(M, np.nan), np.zeros(M, bool)
+
+    def centre_dir(cam: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """(K, 3) direction of camera ``cam``'s centre in the frame of the other end of edge ``e``."""
+        first = edges[e, 0] == cam
+        return np.where(first[:, None], tn[e], -np.einsum("kji,kj->ki", R_rel[e], tn[e]))
+
+    rows, angs = [], []
+    tri = find_triangles(edges, n_cameras, kept).edges[:, :3]  # edges ij, jk, ik of i < j < k
+    ends = (lambda e: (edges[e, 0], edges[e, 1]))  # noqa: E731
+    for pos in range(3):
+        if not len(tri):
+            break
+        others = [c for c in range(3) if c != pos]
+        e_ro, e1, e2 = tri[:, pos], tri[:, others[0]], tri[:, others[1]]
+        sel = ro[e_ro] & ~ro[e1] & ~ro[e2]
+        e_ro, e1, e2 = e_ro[sel], e1[sel], e2[sel]
+        cu, cv = ends(e_ro)
+        ea = np.where((edges[e1] == cu[:, None]).any(1), e1, e2)  # the witness's edge to cu
+        eb = np.where(ea == e1, e2, e1)
+        d = np.sum(centre_dir(cu, ea) * centre_dir(cv, eb), 1)
+        rows.append(e_ro)
+        angs.append(np.degrees(np.arccos(np.clip(d, -1, 1))))
+    cyc = find_cycles(edges, n_cameras, kept, 4)
+    q = cyc.length == 4
+    E4, F4 = cyc.edges[q], cyc.forward[q]
+    for shift in (0, 1):
+        Es, Fs = np.roll(E4, -shift, axis=1), np.roll(F4, -shift, axis=1)
+        sel = ro[Es[:, 0]] & ro[Es[:, 2]] & ~ro[Es[:, 1]] & ~ro[Es[:, 3]]
+        Es, Fs = Es[sel], Fs[sel]
+        v = np.where(Fs, edges[Es, 0], edges[Es, 1])  # start camera of each walked edge
+        d_a = centre_dir(v[:, 2], Es[:, 1])  # centre of v₂ in v₁'s frame
+        d_b = centre_dir(v[:, 3], Es[:, 3])  # centre of v₃ in v₀'s frame
+        R01 = np.where(Fs[:, 0, None, None], R_rel[Es[:, 0]], np.swapaxes(R_rel[Es[:, 0]], 1, 2))
+        ang = np.degrees(np.arccos(np.clip(np.sum(d_a * np.einsum("kij,kj->ki", R01, d_b), 1), -1, 1)))
+        rows += [Es[:, 0], Es[:, 2]]
+        angs += [ang, ang]
+    r, a = np.concatenate(rows), np.concatenate(angs)
+    n_w, med = group_median(r, a, M)
+    return n_w, med, (n_w > 0) & (med > max_deg)

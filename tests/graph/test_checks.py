@@ -1,0 +1,97 @@
+"""pipeline.graph.tiers and .checks: each pair's tier and fate, with the reason; wrong pairs removed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.core.errors import ConfigError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.graph.checks import ViewGraphConfig, check_view_graph
+from pipeline.graph.tiers import evidence_tiers, pair_evidence
+
+
+def _vg(E, Rm, n, inl=100, matches=160, tri=10.0, sigma_deg=0.3, small=None):
+    M = len(E)
+    full = lambda v, dt=float: np.broadcast_to(np.asarray(v, dt), (M,)).copy()  # noqa: E731
+    sig = full(sigma_deg)
+    H = np.eye(3)[None] / np.deg2rad(sig)[:, None, None] ** 2
+    sb = np.zeros(M, bool) if small is None else np.asarray(small, bool)
+    t = np.where(sb[:, None], 0.0, np.array([1.0, 0, 0]))
+    return ViewGraph([f"c{k:02d}" for k in range(n)], E, Rm, H=H, inliers=full(inl, np.int64), stats={
+        "n_inliers_E": full(inl, np.int64), "n_matches": full(matches, np.int64),
+        "median_triangulation_deg": full(tri), "small_baseline": sb, "t": t})
+
+
+def _truth(n=20, p=0.4, seed=0, noise_deg=0.2):
+    rng = np.random.default_rng(seed)
+    R = so3.random_rotations(n, rng)
+    E = np.stack(np.triu_indices(n, 1), 1)
+    E = E[rng.random(len(E)) < p]
+    Rm = so3.exp(np.deg2rad(noise_deg) * rng.standard_normal((len(E), 3))) @ (R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2))
+    return rng, R, E, Rm
+
+
+def test_gates_and_tiers():
+    E = np.array([[0, 1]] * 1)
+    cases = [  # (inliers, matches, tri, σ°, small baseline) -> (tier, reason)
+        ((100, 160, 10, 0.3, False), ("strong", "")),
+        ((20, 160, 10, 0.3, False), ("", "inlier ratio too low")),
+        ((20, 40, 10, 0.3, False), ("normal", "")),
+        ((13, 30, 10, 0.3, False), ("provisional", "")),
+        ((13, 30, 80, 0.3, False), ("", "weak and wide parallax")),
+        ((10, 30, 10, 0.3, False), ("", "too few inliers")),
+        ((100, 160, 10, 2.0, False), ("", "rotation poorly determined (weak H)")),
+        ((100, 160, 0, 0.3, True), ("normal", "")),  # a rotation-only claim is never strong
+        ((100, 160, 80, 0.3, False), ("normal", "")),  # wide rays: legitimate when a cycle confirms them
+    ]
+    for (inl, m, tri, sig, sb), (tier, why) in cases:
+        vg = _vg(E, np.eye(3)[None], 2, inl, m, tri, sig, [sb])
+        t = evidence_tiers(pair_evidence(vg), ViewGraphConfig())
+        got = "strong" if t.strong[0] else "provisional" if t.provisional[0] else "normal" if t.candidate[0] else ""
+        assert (got, t.reason[0]) == (tier, why), (inl, m, tri, sig, sb)
+
+
+def test_wrong_pairs_are_removed_with_their_reason():
+    rng, R, E, Rm = _truth()
+    bad = rng.choice(len(E), 8, replace=False)
+    Rm[bad] = so3.exp(np.deg2rad(rng.uniform(10, 60, (8, 1))) * so3.random_rotations(8, rng)[:, 0]) @ Rm[bad]
+    chk = check_view_graph(_vg(E, Rm, 20))
+    assert not chk.kept[bad].any()
+    assert (chk.reason[bad] != "").all() and set(chk.step[bad]) <= {"cycles", "path", "robust"}
+    assert chk.inconsistent[bad].all()
+    good = np.setdiff1d(np.arange(len(E)), bad)
+    assert chk.kept[good].mean() > 0.97 and chk.confirmed[good].mean() > 0.97
+    assert chk.info["cycles"] >= 6 and chk.info["n_kept"] == int(chk.kept.sum())
+
+
+def test_provisional_and_unconfirmed_pairs():
+    rng, R, E, Rm = _truth(seed=1)
+    # a camera 20 joined by one provisional pair (no cycle) and camera 21 by two strong ones forming no cycle
+    R2 = so3.random_rotations(2, rng)
+    E2 = np.array([[0, 20], [1, 21]])
+    Rm2 = np.stack([R2[0] @ R[0].T, R2[1] @ R[1].T])
+    vg = _vg(np.r_[E, E2], np.r_[Rm, Rm2], 22)
+    vg.stats["n_inliers_E"][-2] = 13
+    vg.stats["n_matches"][-2] = 30
+    vg.stats["n_inliers_E"][-1] = 14
+    vg.stats["n_matches"][-1] = 30
+    vg.stats["n_inliers_E"][:3] = 13  # provisional pairs inside the graph: confirmed by their cycles
+    vg.stats["n_matches"][:3] = 30
+    chk = check_view_graph(vg)
+    assert chk.kept[:3].all() and (chk.tier[:3] == "provisional").all()
+    assert not chk.kept[-2:].any() and (chk.step[-2:] == "unconfirmed").all()
+    assert "provisional" in chk.reason[-2]
+    vg.stats["n_inliers_E"][-1] = 100  # a strong pair stands alone (it will be flagged)
+    vg.stats["n_matches"][-1] = 160
+    chk = check_view_graph(vg)
+    assert chk.kept[-1] and not chk.confirmed[-1] and chk.tier[-1] == "strong"
+
+
+def test_config_checks():
+    with pytest.raises(ConfigError, match="provisional_min_inliers"):
+        ViewGraphConfig(provisional_min_inliers=20)
+    with pytest.raises(ConfigError, match="max_cycle_length"):
+        ViewGraphConfig(max_cycle_length=5)
+    assert ViewGraphConfig().min_inliers == 15

@@ -1,0 +1,55 @@
+"""pipeline.graph.flags: cameras resting on unchecked evidence are flagged with the reason; a tree says so."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.graph.flags import NO_CYCLE, graph_flags, two_edge_blocks, bridges
+
+NAMES = [f"c{k}" for k in range(8)]
+
+
+def test_a_tree_cannot_be_verified():
+    E = np.array([[0, 1], [1, 2], [1, 3]])
+    ones = np.ones(3, bool)
+    fl = graph_flags(E, 4, ones, np.zeros(3, bool), np.zeros(3, bool), NAMES)
+    assert fl.n_cycles == 0 and fl.messages == [NO_CYCLE] and fl.bridge.all()
+    # the leaves rest on a single pair; the hub's block is a lone camera too
+    assert "rests on a single pair (c0, c1)" in fl.cameras[0][0]
+    assert set(fl.cameras) == {0, 1, 2, 3}
+    assert any("single pair" in w for w in fl.cameras[3])
+
+
+def test_triangle_with_a_tail_and_a_dangling_pair():
+    # triangle 0-1-2 (confirmed), bridge 2-3, square 3-4-5-6 (unconfirmed), bridge 6-7 (single pair)
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [3, 6], [6, 7]])
+    kept = np.ones(len(E), bool)
+    conf = np.array([1, 1, 1, 0, 0, 0, 0, 0, 0], bool)
+    rej = np.zeros(len(E), bool)
+    fl = graph_flags(E, 8, kept, conf, rej, NAMES)
+    assert fl.n_cycles == 2 and not fl.messages
+    assert bridges(E, 8).tolist() == [0, 0, 0, 1, 0, 0, 0, 0, 1]
+    blocks = two_edge_blocks(E, 8, kept, fl.bridge)
+    assert len(set(blocks[[3, 4, 5, 6]])) == 1 and blocks[3] != blocks[0]
+    # the square's block is the core (4 cameras > 3): the triangle hangs on bridge (2, 3)
+    for k in (0, 1, 2):
+        assert any("bridge pair (c2, c3)" in w for w in fl.cameras[k])
+        assert not any("unconfirmed" in w for w in fl.cameras[k])
+    for k in (3, 4, 5, 6):
+        assert any("none of its" in w and "unconfirmed" in w for w in fl.cameras[k])
+        assert not any("bridge" in w for w in fl.cameras[k])
+    assert fl.cameras[7] == ["rests on a single pair (c6, c7): nothing checks it"]
+
+
+def test_rejected_pairs_and_the_cameras_considered():
+    E = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [2, 3], [1, 3], [3, 4]])
+    kept = np.array([1, 1, 1, 1, 1, 0, 0], bool)
+    rej = np.array([0, 0, 0, 0, 0, 1, 1], bool)
+    fl = graph_flags(E, 5, kept, kept.copy(), rej, NAMES)
+    assert "1 of its 3 pairs disagree" in fl.cameras[1][0]
+    assert any("2 of its 4 pairs disagree" in w for w in fl.cameras[3])
+    assert 4 not in fl.cameras  # no kept pair: not solved, reported as left out by the stage
+    fl = graph_flags(E, 5, kept, kept.copy(), rej, NAMES, cameras=np.array([1, 1, 1, 0, 0], bool))
+    assert set(fl.cameras) == {1} and fl.n_cycles == 1
+    fl = graph_flags(E, 5, kept, np.zeros(7, bool), rej, NAMES, cycles_checked=False)
+    assert not any("unconfirmed" in w for v in fl.cameras.values() for w in v) and not fl.messages
