@@ -24,6 +24,7 @@ from pipeline.evaluation.compare import EvaluationConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.pairs import parse_selector
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.graph.stage import ViewGraphConfig
@@ -128,6 +129,7 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     check_sections(yaml_data, [*STAGE_CONFIGS, *registry.sections()], config or "config")
     configs = {s: stage_config(c, yaml_data, s) for s, c in STAGE_CONFIGS.items()}
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
+    parse_selector(configs["matching"].pairs)  # type: ignore[attr-defined]  # a bad matching.pairs fails here
     overrides = {"sdp": {"solver": run_cfg.sdp_solver}}
     given = parse_methods(methods or run_cfg.methods, yaml_data, overrides)
     out = Path(out) if out is not None else default_out(images)

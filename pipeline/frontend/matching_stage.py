@@ -17,7 +17,7 @@ WORK folder layout::
 A pair's key hashes the options and the two images' feature keys: with new
 images only the new pairs are matched. Command line::
 
-    python -m pipeline.matching --work WORK [--pairs FILE|sequential:K] [--ratio 0.8]
+    python -m pipeline.matching --work WORK [--pairs auto|exhaustive|FILE|sequential:K|retrieval:K] [--ratio 0.8]
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
-from pipeline.frontend.pairs import parse_selector, select_pairs
+from pipeline.frontend.pairs import choose_pairs, parse_selector
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
@@ -108,6 +108,17 @@ def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any
     return out
 
 
+def _descriptors(work: Path, fkeys: list[str], where: dict[str, str]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Every image's descriptors (n_i, 128) uint8 and responses (n_i,), one read per feature chunk."""
+    fdir = Path(work) / feature_stage.STORE
+    items: dict[str, dict[str, np.ndarray]] = {}
+    wanted = set(fkeys)
+    for chunk in dict.fromkeys(where[k] for k in fkeys):
+        items.update({k: {"descriptors": v["descriptors"], "responses": v["responses"]}
+                      for k, v in ItemStore.read_chunk(fdir / chunk).items() if k in wanted})
+    return [items[k]["descriptors"] for k in fkeys], [items[k]["responses"] for k in fkeys]
+
+
 class MatchingStage(Stage[MatchingConfig]):
     """Descriptor matches of the selected image pairs of a WORK folder."""
 
@@ -132,7 +143,11 @@ class MatchingStage(Stage[MatchingConfig]):
         fm = feature_stage.load_manifest(self.folder)
         names, fkeys = list(fm["names"]), list(fm["keys"])
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
-        pairs = select_pairs(cfg.pairs, names)
+        pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),
+                                        cfg.exhaustive_max_images)
+        logger.info("matching pairs: %s%s: %d of %d pairs (%.1f%%)", selection["selector"],
+                    f" K={selection['k']}" if selection["k"] else "", selection["n_pairs"], selection["n_exhaustive"],
+                    100 * selection["fraction"])
         fp = cfg.fingerprint()
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
         store = ItemStore(self.folder / STORE)
@@ -151,10 +166,10 @@ class MatchingStage(Stage[MatchingConfig]):
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
             "config": cfg.as_dict(), "n_pairs": len(keys), "n_computed": len(todo),
-            "n_reused": len(keys) - len(todo)})
+            "n_reused": len(keys) - len(todo), "selection": selection})
         logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), len(todo),
                     len(keys) - len(todo), int(np.median(counts)) if counts else 0)
-        return [path, *files], {"n_pairs": len(keys), "n_computed": len(todo)}
+        return [path, *files], {"n_pairs": len(keys), "n_computed": len(todo), "pairs": selection}
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)

@@ -60,7 +60,8 @@ def kmeans(X: np.ndarray, k: int, n_iter: int = 20, seed: int = 0) -> np.ndarray
 
     X = np.ascontiguousarray(X, np.float32)
     k = int(min(k, len(X)))
-    km = faiss.Kmeans(X.shape[1], k, niter=n_iter, seed=seed, verbose=False, max_points_per_centroid=1 << 30)
+    km = faiss.Kmeans(X.shape[1], k, niter=n_iter, seed=seed, verbose=False, max_points_per_centroid=1 << 30,
+                       min_points_per_centroid=1)
     km.train(X)
     return np.asarray(km.centroids, np.float32)
 
