@@ -6,7 +6,7 @@ images) in a child process, and this script reads its ``metrics.json``:
 
 - **retrieval** (acceptance 1): recall of the renderer's truly overlapping pairs among the
   selected pairs, and the fraction of all N(N-1)/2 pairs matched; the median rotation error
-  (truth, l2 alignment, the first default method: IRLS-H-l0.5) against an exhaustive run on the
+  (truth, l2 alignment, the first default method: IRLS-l0.5; every method is in the row) against an exhaustive run on the
   same scene, where affordable (``--exhaustive-sizes``, default 100 only: N = 300 exhaustive
   means 44,850 pairs);
 - **growth** (acceptance 2): our path (features → matching → two-view → BA → view graph →
