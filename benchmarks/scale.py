@@ -16,7 +16,9 @@ images) in a child process, and this script reads its ``metrics.json``:
 - **against incremental** (acceptance 3): at ``--reference-sizes`` (default 200) the same run
   also runs the pycolmap incremental reference (``reference.use_our_matches``: pycolmap verifies
   and maps our keypoints and retrieval matches); its time is the features and matching it
-  reuses plus its own stage, and its error against the truth is pycolmap's median error.
+  reuses plus its own stage, and its error against the truth is pycolmap's median error. With
+  ``--pycolmap-own-sizes`` pycolmap's own path (its SIFT, exhaustive matching, mapping: what
+  ``run.py`` runs by default as the reference) is timed as well, on a copy of the run.
 
 Scenes, feature caches and runs live in ``--work`` (outside git; re-runs reuse them: the
 exhaustive run starts from the retrieval run's features). Usage::
@@ -60,12 +62,13 @@ def scene_dir(work: Path, layout: str, n: int) -> Path:
     return d
 
 
-def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path) -> tuple[dict, float, float]:
+def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path,
+                 our_matches: bool = True) -> tuple[dict, float, float]:
     """``python -m pipeline.run`` on ``scene`` in a child process: its metrics, wall time and peak RSS (MB)."""
     cfg = out.parent / f"{out.name}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     cfg.write_text(f"run:\n  plots: false\n  reference: {str(reference).lower()}\nmatching:\n  pairs: {pairs}\n"
-                   "reference:\n  use_our_matches: true\n")
+                   f"reference:\n  use_our_matches: {str(our_matches).lower()}\n")
     cmd = [sys.executable, "-m", "pipeline.run", str(scene), "--out", str(out), "--config", str(cfg),
            "--gt", str(scene / "cameras.txt"), "--K", str(scene / "K.txt"), "-q"]
     t0 = time.perf_counter()
@@ -81,6 +84,23 @@ def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path)
 def first_method(metrics: dict) -> tuple[str, float]:
     label = next(iter(metrics["methods"]))
     return label, float(metrics["methods"][label].get("median_deg", float("nan")))
+
+
+def pycolmap_own(work: Path, layout: str, n: int, ours: dict) -> dict:
+    """pycolmap's own path (its SIFT, exhaustive matching, incremental mapping) on the scene of a finished
+    retrieval run: the run is copied (our stages are reused) and only the reference runs."""
+    runs = work / "runs"
+    src, out = runs / f"{layout}-{n}", runs / f"{layout}-{n}-pycolmap-own"
+    if not out.exists():
+        shutil.copytree(src, out, ignore=shutil.ignore_patterns("reference", "metrics.json"))
+    m, wall, rss = run_pipeline(work / "scenes" / f"{layout}-{n}", out, "auto", True,
+                                runs / f"{layout}-{n}-pycolmap-own.log", our_matches=False)
+    pyc = m.get("pycolmap", {})
+    t = m["stages"].get("reference")
+    return {"median_deg": pyc.get("median_deg"), "n_registered": pyc.get("n_registered"), "time_s": t,
+            "pycolmap_times": pyc.get("time_s"), "peak_rss_mb": rss,
+            "time_ratio_ours": ours["our_path_s"] / t if t else None,
+            "error_ratio_ours": ours["median_deg"] / pyc["median_deg"] if pyc.get("median_deg") else None}
 
 
 def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool) -> dict:
@@ -158,6 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, default=Path("/work/scratch/scale"))
     p.add_argument("--exhaustive-sizes", nargs="*", type=int, default=[100])
     p.add_argument("--reference-sizes", nargs="*", type=int, default=[200])
+    p.add_argument("--pycolmap-own-sizes", nargs="*", type=int, default=[],
+                   help="also time pycolmap's own path (its SIFT + exhaustive matching + mapping) at these N")
+    p.add_argument("--only-pycolmap-own", action="store_true", help="keep the rows already in --json; add pycolmap's own path")
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     old = json.loads(a.json.read_text()).get("rows", []) if a.json.is_file() else []
@@ -165,7 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     for lay in a.layouts:
         for n in a.sizes:
             print(f"--- {lay}-{n}", flush=True)
-            rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes)
+            prev = rows.get((lay, n))
+            if not (prev and a.only_pycolmap_own):
+                rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes)
+            if n in a.pycolmap_own_sizes:
+                rows[(lay, n)]["pycolmap_own"] = pycolmap_own(a.work, lay, n, rows[(lay, n)])
             res = {"rows": list(rows.values()), "summary": summarize(list(rows.values())),
                    "command": "python benchmarks/scale.py " + " ".join(sys.argv[1:] if argv is None else argv),
                    "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}}

@@ -202,7 +202,7 @@ def test_help():
 
 @pytest.mark.parametrize("module", ["pipeline.reference", "pipeline.features", "pipeline.matching",
                                     "pipeline.two_view", "pipeline.two_view_ba", "pipeline.average",
-                                    "pipeline.evaluate"])
+                                    "pipeline.evaluate", "pipeline.synthetic.large"])
 def test_stage_help(module):
     r = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "usage" in r.stdout.lower()
