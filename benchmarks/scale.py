@@ -64,7 +64,11 @@ def scene_dir(work: Path, layout: str, n: int) -> Path:
 
 def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path,
                  our_matches: bool = True) -> tuple[dict, float, float]:
-    """``python -m pipeline.run`` on ``scene`` in a child process: its metrics, wall time and peak RSS (MB)."""
+    """``python -m pipeline.run`` on ``scene`` in a child process: its metrics, wall time and peak RSS (MB).
+
+    The child's CPU time (user + system, its threads and reaped descendants included) goes into
+    ``metrics["cpu_s"]``: on a shared machine it is the figure that does not depend on the load.
+    """
     cfg = out.parent / f"{out.name}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
     cfg.write_text(f"run:\n  plots: false\n  reference: {str(reference).lower()}\nmatching:\n  pairs: {pairs}\n"
@@ -78,7 +82,9 @@ def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path,
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed; see {log}")
-    return json.loads((out / "metrics.json").read_text()), wall, usage.ru_maxrss / 1024.0
+    metrics = json.loads((out / "metrics.json").read_text())
+    metrics["cpu_s"] = usage.ru_utime + usage.ru_stime
+    return metrics, wall, usage.ru_maxrss / 1024.0
 
 
 def first_method(metrics: dict) -> tuple[str, float]:
@@ -116,7 +122,8 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool) 
            "method": label, "median_deg": err, "methods_median_deg": {k: v.get("median_deg") for k, v in
                                                                       m["methods"].items()},
            "our_path_s": m["our_path_s"], "per_image_s": m["our_path_s"] / n, "stages_s": m["stages"],
-           "stages_reused": m["stages_reused"], "wall_s": wall, "peak_rss_mb": rss,
+           "stages_reused": m["stages_reused"], "wall_s": wall, "cpu_s": m["cpu_s"],
+           "cpu_per_image_s": m["cpu_s"] / n, "load_avg": os.getloadavg(), "peak_rss_mb": rss,
            "n_cameras_graph": m["input"]["n_cameras_graph"], "n_edges": m["input"]["n_edges"]}
     if reference:
         pyc = m.get("pycolmap", {})
@@ -135,7 +142,7 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool) 
                 (shutil.copytree if src.is_dir() else shutil.copy2)(src, dst)
         me, wall_e, rss_e = run_pipeline(scene, ex, "exhaustive", False, runs / f"{layout}-{n}-exhaustive.log")
         _, err_e = first_method(me)
-        row["exhaustive"] = {"median_deg": err_e, "our_path_s": me["our_path_s"], "wall_s": wall_e,
+        row["exhaustive"] = {"median_deg": err_e, "our_path_s": me["our_path_s"], "wall_s": wall_e, "cpu_s": me["cpu_s"],
                              "peak_rss_mb": rss_e, "n_pairs": me.get("pairs", {}).get("n_pairs"),
                              "error_ratio_retrieval": err / err_e if err_e else None,
                              "features_reused": bool(me["stages_reused"].get("features"))}
@@ -148,8 +155,10 @@ def summarize(rows: list[dict]) -> dict:
     for lay in sorted({r["layout"] for r in rows}):
         rs = sorted((r for r in rows if r["layout"] == lay), key=lambda r: r["n"])
         if len(rs) >= 2:
+            cpu = [r.get("cpu_per_image_s") for r in (rs[0], rs[-1])]
             out["growth"][lay] = {"n": [rs[0]["n"], rs[-1]["n"]],
                                   "per_image_ratio": rs[-1]["per_image_s"] / rs[0]["per_image_s"],
+                                  "cpu_per_image_ratio": cpu[1] / cpu[0] if None not in cpu else None,
                                   "peak_rss_mb_max": max(r["peak_rss_mb"] for r in rs)}
     return out
 
