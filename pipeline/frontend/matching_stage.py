@@ -14,8 +14,8 @@ WORK folder layout::
     WORK/matches/index.json      the item keys of the current pairs
     WORK/matching.record.json    the stage record
 
-A pair's key hashes the options and the two images' feature keys: with new
-images only the new pairs are matched. Command line::
+A pair's key hashes the matching options (not the pair selection) and the two
+images' feature keys: with new images, or another selector, only the new pairs are matched. Command line::
 
     python -m pipeline.matching --work WORK [--pairs auto|exhaustive|FILE|sequential:K|retrieval:K] [--ratio 0.8]
 """
@@ -119,6 +119,13 @@ def _descriptors(work: Path, fkeys: list[str], where: dict[str, str]) -> tuple[l
     return [items[k]["descriptors"] for k in fkeys], [items[k]["responses"] for k in fkeys]
 
 
+def _pair_fingerprint(config: MatchingConfig) -> str:
+    """The options one pair's matches depend on: not which pairs were selected, so that a pair is matched
+    once whichever selector (exhaustive, retrieval, a file) chose it."""
+    opts = {k: v for k, v in config.result_dict().items() if k not in ("pairs", "exhaustive_max_images")}
+    return fingerprint_of("matching-pair", sorted(opts.items()))
+
+
 class MatchingStage(Stage[MatchingConfig]):
     """Descriptor matches of the selected image pairs of a WORK folder."""
 
@@ -148,7 +155,7 @@ class MatchingStage(Stage[MatchingConfig]):
         logger.info("matching pairs: %s%s: %d of %d pairs (%.1f%%)", selection["selector"],
                     f" K={selection['k']}" if selection["k"] else "", selection["n_pairs"], selection["n_exhaustive"],
                     100 * selection["fraction"])
-        fp = cfg.fingerprint()
+        fp = _pair_fingerprint(cfg)
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
         store = ItemStore(self.folder / STORE)
         done = set() if self.overwrite else store.done(keys)

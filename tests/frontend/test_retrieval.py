@@ -106,4 +106,7 @@ def test_matching_stage_records_the_choice(tmp_path, caplog):
     assert json.loads((work / "matches.json").read_text())["selection"]["n_exhaustive"] == 6
     matching.main(work, MatchingConfig(), progress=False)  # 4 <= 40: exhaustive
     assert read_record(work, "matching").summary["pairs"]["selector"] == "exhaustive"
+    assert json.loads((work / "matches.json").read_text())["n_computed"] == 0  # the same 6 pairs: reused
+    matching.main(work, MatchingConfig(pairs="sequential:1"), progress=False)
+    assert json.loads((work / "matches.json").read_text())["selection"]["k"] == 1
     shutil.rmtree(tmp_path / "img")
