@@ -109,10 +109,13 @@ def pycolmap_own(work: Path, layout: str, n: int, ours: dict) -> dict:
             "error_ratio_ours": ours["median_deg"] / pyc["median_deg"] if pyc.get("median_deg") else None}
 
 
-def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool) -> dict:
+def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, fresh: bool = False) -> dict:
     scene = scene_dir(work, layout, n)
     runs = work / "runs"
     out = runs / f"{layout}-{n}"
+    if fresh:  # time every stage again (the scene stays)
+        for d in (out, runs / f"{layout}-{n}-exhaustive"):
+            shutil.rmtree(d, ignore_errors=True)
     m, wall, rss = run_pipeline(scene, out, "auto", reference, runs / f"{layout}-{n}.log")
     truth = large.true_pairs(large.load_overlap(scene), float(json.loads((scene / "scene.json").read_text())
                                                                   ["config"]["overlap_threshold"]))
@@ -189,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference-sizes", nargs="*", type=int, default=[200])
     p.add_argument("--pycolmap-own-sizes", nargs="*", type=int, default=[],
                    help="also time pycolmap's own path (its SIFT + exhaustive matching + mapping) at these N")
+    p.add_argument("--fresh", action="store_true", help="remove the runs of these scenes first (times every stage)")
     p.add_argument("--only-pycolmap-own", action="store_true", help="keep the rows already in --json; add pycolmap's own path")
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
@@ -199,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--- {lay}-{n}", flush=True)
             prev = rows.get((lay, n))
             if not (prev and a.only_pycolmap_own):
-                rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes)
+                rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes, a.fresh)
             if n in a.pycolmap_own_sizes:
                 rows[(lay, n)]["pycolmap_own"] = pycolmap_own(a.work, lay, n, rows[(lay, n)])
             res = {"rows": list(rows.values()), "summary": summarize(list(rows.values())),
