@@ -28,7 +28,7 @@ from pipeline.frontend.camera_estimate import CamerasConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
-from pipeline.frontend.pairs import select_pairs
+from pipeline.frontend.pairs import parse_selector, select_pairs
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.graph.stage import ViewGraphConfig
@@ -229,6 +229,7 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
         raise PipelineError("--database DB needs the image folder it was made from (run.py --database DB IMAGE_DIR) "
                             "and takes the intrinsics from the database (drop --K)")
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
+    parse_selector(configs["matching"].pairs)  # type: ignore[attr-defined]  # a bad matching.pairs fails here
     out = Path(out) if out is not None else default_out(images)
     _check_writable(out)
     notes: list[str] = []
@@ -256,7 +257,9 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     else:
         features = FeaturesStage(out / "work", configs["features"], images=images, K_path=K, progress=not quiet)
     scan = features.scan()  # names, headers and K, checked without decoding a pixel
-    select_pairs(configs["matching"].pairs, scan["names"])  # type: ignore[attr-defined]  # a pairs file's names
+    kind, arg = parse_selector(configs["matching"].pairs)  # type: ignore[attr-defined]
+    if kind == "file" or (kind == "database" and arg is not None):  # a pairs file's or database's names
+        select_pairs(configs["matching"].pairs, scan["names"])  # type: ignore[attr-defined]
     truth = None
     if gt is not None:
         from pipeline.reference.truth import read_reference  # noqa: PLC0415

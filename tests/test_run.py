@@ -13,7 +13,7 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.core.errors import PipelineError  # noqa: E402
+from pipeline.core.errors import ConfigError, PipelineError  # noqa: E402
 from pipeline.io.rotations import read_rotations  # noqa: E402
 from pipeline.synthetic.render import SceneConfig, render_scene  # noqa: E402
 
@@ -63,6 +63,8 @@ def test_full_run_metrics_and_report(full_run):
         e = m["edges"][tag]
         assert set(e) >= {"median_deg", "mean_deg", "rms_deg", "pct_above"}
         assert set(e["pct_above"]) == {"10", "30", "60", "90"}
+    assert m["pairs"]["selector"] == "exhaustive" and m["pairs"]["auto"]  # 6 images <= exhaustive_max_images
+    assert m["pairs"]["n_pairs"] == m["pairs"]["n_exhaustive"] == 15 and m["pairs"]["fraction"] == 1.0
     p = m["pycolmap"]
     assert p["n_registered"] == 6 and p["median_deg"] < 0.5 and p["time_s"] > 0
     g = m["peers"]["glomap"]  # GLOMAP scored as the incremental peer: against the truth and against it
@@ -196,6 +198,10 @@ def test_bad_config_key(tmp_path, scene):
     p.write_text("run:\n  no_such_key: 1\n")
     with pytest.raises(PipelineError, match="unknown key"):
         run.main(scene, tmp_path / "out", config=p, quiet=True)
+    for bad in ("retrieval:0", "retrieval:x", "sequential:0", "no_such_selector"):
+        p.write_text(f"matching:\n  pairs: {bad}\n")
+        with pytest.raises(ConfigError, match="pairs="):  # found up front, before any stage
+            run.main(scene, tmp_path / "out", config=p, quiet=True)
     p.write_text("nonsense_stage:\n  a: 1\n")
     with pytest.raises(PipelineError, match="unknown section"):
         run.main(scene, tmp_path / "out", config=p, quiet=True)

@@ -23,7 +23,7 @@ from pipeline.evaluation.flags import evidence_console, method_disagreement, run
 from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
 from pipeline.reference.types import Reference
 
-__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "OUR_PATH"]
+__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "OUR_PATH"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
 OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
@@ -102,6 +102,15 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     return write_report(plan.out, data)
 
 
+def pairs_section(work: Path) -> dict[str, Any]:
+    """How the matched pairs were chosen (the matching record's summary): selector, K, pairs vs exhaustive."""
+    from pipeline.frontend.matching_stage import MatchingStage  # noqa: PLC0415
+    from pipeline.stage import read_record  # noqa: PLC0415
+
+    rec = read_record(Path(work), MatchingStage.name)
+    return dict(rec.summary.get("pairs", {})) if rec is not None else {}
+
+
 def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[str, str], runner: Any,
                   t_start: float) -> Path:
     """Write metrics.json (with every step's time) and print the summary table; returns its path."""
@@ -118,6 +127,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
     metrics["intrinsics"] = _intrinsics(plan.work)
+    metrics["pairs"] = pairs_section(plan.work)
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)
     if not plan.quiet:

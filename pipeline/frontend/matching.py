@@ -41,8 +41,12 @@ class MatchingConfig(ExecutorOptions):
 
     SECTION = "matching"
 
-    pairs: str = option("exhaustive", "which pairs to match: exhaustive, sequential:K, database (the pairs a COLMAP "
-                        "database verified: --database DB, or database:DB), or a pairs file (lines 'name_a name_b')")
+    pairs: str = option("auto", "which pairs to match: auto (exhaustive up to exhaustive_max_images images, "
+                        "retrieval above), exhaustive, sequential:K, retrieval:K (K most similar images; retrieval: "
+                        "K from N), database (the pairs a COLMAP database verified: --database DB, or database:DB), "
+                        "or a pairs file (lines 'name_a name_b')")
+    exhaustive_max_images: int = option(40, "pairs=auto matches every pair up to this many images, and each image "
+                                        "with its most similar ones (retrieval) above", ge=1)
     ratio: float = option(0.8, "Lowe's ratio-test threshold on L2 distances", gt=0, le=1)
     mutual: bool = option(True, "keep only mutual nearest neighbours")
     method: Literal["auto", "flann", "bf"] = option("auto", "nearest-neighbour search (see pipeline.frontend.matching)")

@@ -14,10 +14,10 @@ WORK folder layout::
     WORK/matches/index.json      the item keys of the current pairs
     WORK/matching.record.json    the stage record
 
-A pair's key hashes the options and the two images' feature keys: with new
-images only the new pairs are matched. Command line::
+A pair's key hashes the matching options (not the pair selection) and the two
+images' feature keys: with new images, or another selector, only the new pairs are matched. Command line::
 
-    python -m pipeline.matching --work WORK [--pairs FILE|sequential:K] [--ratio 0.8]
+    python -m pipeline.matching --work WORK [--pairs auto|exhaustive|FILE|sequential:K|retrieval:K] [--ratio 0.8]
 """
 
 from __future__ import annotations
@@ -35,13 +35,13 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.core.atomic import write_json
-from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.errors import CacheError, ConfigError, InputFileError
 from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
 from pipeline.frontend.colmap_db import database_fingerprint
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
-from pipeline.frontend.pairs import parse_selector, select_pairs
+from pipeline.frontend.pairs import choose_pairs, parse_selector, select_pairs
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
@@ -109,6 +109,24 @@ def _match_chunk(args: tuple[list[tuple[str, str, str, str, str]], dict[str, Any
     return ItemStore(folder).write_chunk(out).name, list(out)
 
 
+def _descriptors(work: Path, fkeys: list[str], where: dict[str, str]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Every image's descriptors (n_i, 128) uint8 and responses (n_i,), one read per feature chunk."""
+    fdir = Path(work) / feature_stage.STORE
+    items: dict[str, dict[str, np.ndarray]] = {}
+    wanted = set(fkeys)
+    for chunk in dict.fromkeys(where[k] for k in fkeys):
+        items.update({k: {"descriptors": v["descriptors"], "responses": v["responses"]}
+                      for k, v in ItemStore.read_chunk(fdir / chunk).items() if k in wanted})
+    return [items[k]["descriptors"] for k in fkeys], [items[k]["responses"] for k in fkeys]
+
+
+def _pair_fingerprint(config: MatchingConfig) -> str:
+    """The options one pair's matches depend on: not which pairs were selected, so that a pair is matched
+    once whichever selector (exhaustive, retrieval, a file) chose it."""
+    opts = {k: v for k, v in config.result_dict().items() if k not in ("pairs", "exhaustive_max_images")}
+    return fingerprint_of("matching-pair", sorted(opts.items()))
+
+
 class MatchingStage(Stage[MatchingConfig]):
     """Descriptor matches of the selected image pairs of a WORK folder."""
 
@@ -138,9 +156,17 @@ class MatchingStage(Stage[MatchingConfig]):
         store = ItemStore(self.folder / STORE)
         if fm.get("database"):  # features from a COLMAP database: its verified inlier matches
             pairs, keys, n_read = self._from_database(fm, store)
-            return self._finish(names, pairs, keys, store, n_read)
+            n = len(names)
+            selection = {"spec": cfg.pairs, "selector": "database", "k": None, "n_images": n, "n_pairs": len(keys),
+                         "n_exhaustive": n * (n - 1) // 2, "fraction": len(keys) / max(n * (n - 1) // 2, 1)}
+            return self._finish(names, pairs, keys, store, n_read, selection)
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
-        pairs = select_pairs(cfg.pairs, names)
+        pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),
+                                        cfg.exhaustive_max_images)
+        logger.info("matching pairs: %s%s: %d of %d pairs (%.1f%%)", selection["selector"],
+                    f" K={selection['k']}" if selection["k"] else "", selection["n_pairs"], selection["n_exhaustive"],
+                    100 * selection["fraction"])
+        fp = _pair_fingerprint(cfg)  # not the selection: another selector reuses the pairs already matched
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
         done = set() if self.overwrite else store.done(keys)
         fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
@@ -153,29 +179,33 @@ class MatchingStage(Stage[MatchingConfig]):
             for name, pair_keys in ex.map(_match_chunk, chunks):
                 store.adopt(name, pair_keys)
                 bar.update(len(pair_keys))
-        return self._finish(names, pairs, keys, store, len(todo))
+        return self._finish(names, pairs, keys, store, len(todo), selection)
 
     def _from_database(self, fm: dict, store: ItemStore) -> tuple[np.ndarray, list[str], int]:
         from pipeline.frontend.database_stage import database_matches  # noqa: PLC0415
 
         fp, fkeys = self.config.fingerprint(), list(fm["keys"])
         kind, _ = parse_selector(self.config.pairs)
-        selected = None if kind == "database" else select_pairs(self.config.pairs, list(fm["names"]))
+        if kind == "retrieval":
+            raise ConfigError(f"[matching] pairs={self.config.pairs!r} with --database: the database's verified pairs "
+                              "are used (pairs: auto or database), or a subset of them (exhaustive, sequential:K or "
+                              "a pairs file)")
+        selected = None if kind in ("database", "auto") else select_pairs(self.config.pairs, list(fm["names"]))
         with tqdm(desc="matches from the database", unit="pair", disable=not self.progress) as bar:
             return database_matches(fm, selected, lambda a, b: item_key(fp, fkeys[a], fkeys[b]), store,
                                     self.overwrite, bar.update)
 
     def _finish(self, names: list[str], pairs: np.ndarray, keys: list[str], store: ItemStore,
-                n_computed: int) -> tuple[list[Path], dict[str, Any]]:
+                n_computed: int, selection: dict[str, Any]) -> tuple[list[Path], dict[str, Any]]:
         files = store.write_index(keys)
         counts = [len(store.get(k)["matches"]) for k in keys] if keys else []
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
             "config": self.config.as_dict(), "n_pairs": len(keys), "n_computed": n_computed,
-            "n_reused": len(keys) - n_computed})
+            "n_reused": len(keys) - n_computed, "selection": selection})
         logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), n_computed,
                     len(keys) - n_computed, int(np.median(counts)) if counts else 0)
-        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed}
+        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed, "pairs": selection}
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)

@@ -6,7 +6,11 @@
   spaces in double quotes); names are matched by :func:`pipeline.core.names.match_names` (exact, then stem);
 - ``database``: the pairs a COLMAP database has verified: with ``run.py --database DB``
   the database's own inlier matches; ``database:DB`` with our features, the pairs
-  ``DB`` verified, matched by us (:mod:`pipeline.frontend.database_stage`).
+  ``DB`` verified, matched by us (:mod:`pipeline.frontend.database_stage`);
+- ``retrieval:K`` (or ``retrieval``: K from the collection size): each image with its K most
+  similar images by a global descriptor of its own SIFT (:mod:`pipeline.frontend.retrieval`);
+- ``auto`` (the default): exhaustive up to ``exhaustive_max_images`` images, retrieval above
+  (:func:`choose_pairs` resolves it and says what it chose).
 
 Every selector returns sorted, unique index pairs ``(a, b)`` with ``a < b``.
 """
@@ -15,13 +19,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
 from pipeline.core.errors import ConfigError, InputFileError
 from pipeline.core.names import match_names, split_fields
 
-__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs"]
+__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs", "choose_pairs"]
 
 MAX_PAIRS_FILE_BYTES = 256 << 20
 
@@ -80,14 +85,37 @@ def read_pairs(path: str | os.PathLike, names: list[str]) -> np.ndarray:
     return np.unique(np.array(out, np.int64), axis=0)
 
 
+def _parse_retrieval(spec: str) -> tuple[str, int | None] | None:
+    """``("auto", None)``, ``("retrieval", K or None)``, or None when ``spec`` is neither."""
+    s = spec.strip()
+    kind, colon, arg = s.partition(":")
+    if s == "auto":
+        return "auto", None
+    if kind != "retrieval":
+        return None
+    if not colon:
+        return "retrieval", None
+    try:
+        k = int(arg)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise ConfigError(f"[matching] pairs={spec!r}: write retrieval:K with K >= 1 neighbours per image "
+                          "(e.g. retrieval:12), or retrieval to choose K from the number of images")
+    return "retrieval", k
+
+
 def parse_selector(spec: str) -> tuple[str, int | Path | None]:
-    """``("exhaustive", None)``, ``("sequential", K)`` or ``("file", path)`` from a ``matching.pairs`` value."""
+    """``("exhaustive", None)``, ``("sequential", K)``, ``("retrieval", K or None)``, ``("auto", None)`` or
+    ``("file", path)`` from a ``matching.pairs`` value."""
     s = spec.strip()
     kind, _, arg = s.partition(":")
     if s == "exhaustive":
         return "exhaustive", None
     if kind == "database":
         return "database", (Path(arg) if arg else None)
+    if (parsed := _parse_retrieval(s)) is not None:
+        return parsed
     if kind == "sequential":
         try:
             k = int(arg)
@@ -98,13 +126,17 @@ def parse_selector(spec: str) -> tuple[str, int | Path | None]:
         return "sequential", k
     if Path(s).is_file():
         return "file", Path(s)
-    raise ConfigError(f"[matching] pairs={spec!r} but expected exhaustive, sequential:K, database[:DB] or an "
+    raise ConfigError(f"[matching] pairs={spec!r} but expected auto, exhaustive, sequential:K, retrieval:K, "
+                      "database[:DB] or an "
                       "existing pairs file")
 
 
 def select_pairs(spec: str, names: list[str]) -> np.ndarray:
-    """The pairs of ``names`` chosen by ``spec`` (see :func:`parse_selector`)."""
+    """The pairs of ``names`` chosen by ``spec`` (see :func:`parse_selector`; not ``retrieval``/``auto``,
+    which need descriptors: :func:`choose_pairs`)."""
     kind, arg = parse_selector(spec)
+    if kind in ("auto", "retrieval"):
+        raise ConfigError(f"[matching] pairs={spec!r} needs the images' descriptors: use choose_pairs")
     if kind == "exhaustive":
         return exhaustive_pairs(len(names))
     if kind == "sequential":
@@ -117,3 +149,40 @@ def select_pairs(spec: str, names: list[str]) -> np.ndarray:
 
         return database_pairs(arg, names)  # type: ignore[arg-type]
     return read_pairs(arg, names)  # type: ignore[arg-type]
+
+
+def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
+                 exhaustive_max_images: int = 40, seed: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
+    """The pairs of ``names`` chosen by ``spec``, and what was chosen.
+
+    Args:
+        spec: a ``matching.pairs`` value (see :func:`parse_selector`).
+        names: the N image names.
+        descriptors: called only when retrieval runs: N descriptor arrays (n_i, 128) uint8 and
+            N response arrays (n_i,).
+        exhaustive_max_images: ``auto`` is exhaustive up to this many images, retrieval above.
+        seed: seed of the retrieval vocabulary.
+    Returns:
+        pairs (P, 2) sorted unique ``a < b``, and ``{"spec", "selector", "k", "n_images", "n_pairs",
+        "n_exhaustive", "fraction"}`` (plus the vocabulary size and time when retrieval ran).
+    """
+    kind, arg = parse_selector(spec)
+    n = len(names)
+    info: dict[str, Any] = {"spec": spec, "selector": kind, "k": None}
+    if kind == "auto":
+        kind = "exhaustive" if n <= exhaustive_max_images else "retrieval"
+        info.update(selector=kind, auto=True, exhaustive_max_images=exhaustive_max_images)
+    if kind == "retrieval":
+        from pipeline.frontend.retrieval import retrieve_pairs  # noqa: PLC0415 - faiss is imported on use
+
+        descs, responses = descriptors()
+        res = retrieve_pairs(descs, None if arg is None else int(arg), responses=responses, seed=seed)  # type: ignore[arg-type]
+        pairs = res["pairs"]
+        info.update(k=res["k"], n_words=res["n_words"], time_s=round(res["time_s"], 3))
+    else:
+        pairs = select_pairs(kind if kind == "exhaustive" else spec, names)
+        info["k"] = int(arg) if kind == "sequential" else None  # type: ignore[arg-type]
+    n_all = n * (n - 1) // 2
+    info.update(n_images=n, n_pairs=int(len(pairs)), n_exhaustive=n_all,
+                fraction=round(len(pairs) / n_all, 6) if n_all else 0.0)
+    return pairs, info
