@@ -69,7 +69,7 @@ def clear_worker_caches() -> None:
     from pipeline.geometry import two_view_stage  # noqa: PLC0415
 
     matching_stage._PREPARED.items.clear()
-    two_view_stage._keypoints.cache_clear()
+    two_view_stage._raw_keypoints.cache_clear()
     two_view_stage._match_chunk.cache_clear()
 
 
