@@ -47,7 +47,7 @@ import scipy.sparse as sp
 from pipeline.core.atomic import atomic_open, atomic_path, save_npz, write_json
 from pipeline.core.errors import InputFileError
 from pipeline.synthetic.large_layouts import LAYOUTS, LargeSceneConfig, make_scene
-from pipeline.synthetic.render import write_cameras_txt
+from pipeline.synthetic.render import supersampled_grid, write_cameras_txt
 from pipeline.synthetic.scene import Plane
 
 __all__ = ["plane_geometry", "render_view_clipped", "visibility", "pair_overlap", "true_pairs", "load_overlap",
@@ -100,13 +100,7 @@ def render_view_clipped(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np
         image (height, width, 3) uint8 RGB, depth (height, width) float32 (inf = nothing).
     """
     s = int(supersample)
-    S = np.diag([s, s, 1.0])
-    S[0, 2] = S[1, 2] = (s - 1) / 2
-    Ks = S @ K
-    W, H = width * s, height * s
-    Kinv = np.linalg.inv(Ks)
-    uu = np.arange(W, dtype=np.float32)[None, :]
-    vv = np.arange(H, dtype=np.float32)[:, None]
+    Ks, W, H, Kinv, uu, vv = supersampled_grid(K, width, height, s)
     best = np.zeros((H, W), np.float32)
     image = np.full((H, W, 3), background, np.uint8)
     corners, normals, origins = plane_geometry(planes) if geometry is None else geometry

@@ -146,6 +146,19 @@ class RenderedScene:
 # --------------------------------------------------------------------- texture
 
 
+def supersampled_grid(K: np.ndarray, width: int, height: int, s: int
+                      ) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray, np.ndarray]:
+    """The camera of an image rendered at ``s`` times the size: ``K_s``, ``W``, ``H``, ``K_s⁻¹`` and the
+    pixel coordinates ``uu`` (1, W), ``vv`` (H, 1) (float32)."""
+    S = np.diag([s, s, 1.0])
+    # pixel centres: x_s = s·(x + 0.5) − 0.5 keeps the principal point consistent
+    S[0, 2] = S[1, 2] = (s - 1) / 2
+    Ks = S @ K
+    W, H = width * s, height * s
+    return (Ks, W, H, np.linalg.inv(Ks), np.arange(W, dtype=np.float32)[None, :],
+            np.arange(H, dtype=np.float32)[:, None])
+
+
 def render_view(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
                 supersample: int = 2, background: int = 90) -> tuple[np.ndarray, np.ndarray]:
     """Render one view of textured planes with a z-buffer.
@@ -159,14 +172,7 @@ def render_view(planes: list[Plane], K: np.ndarray, R: np.ndarray, t: np.ndarray
         image (height, width, 3) uint8 RGB and depth (height, width) float32 (inf = empty).
     """
     s = int(supersample)
-    S = np.diag([s, s, 1.0])
-    # pixel centres: x_s = s·(x + 0.5) − 0.5 keeps the principal point consistent
-    S[0, 2] = S[1, 2] = (s - 1) / 2
-    Ks = S @ K
-    W, H = width * s, height * s
-    Kinv = np.linalg.inv(Ks)
-    uu = np.arange(W, dtype=np.float32)[None, :]
-    vv = np.arange(H, dtype=np.float32)[:, None]
+    Ks, W, H, Kinv, uu, vv = supersampled_grid(K, width, height, s)
     best = np.zeros((H, W), np.float32)  # inverse depth of the nearest surface so far
     image = np.full((H, W, 3), background, np.uint8)
     for pl in planes:
