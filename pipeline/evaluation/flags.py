@@ -105,7 +105,7 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
 def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[str]]:
     msgs = list(ev.get("messages", []))
     if ev.get("n_flagged"):
-        msgs.append(f"{ev['n_flagged']} camera(s) rest on evidence nothing checks (flagged below)")
+        msgs.append(f"{ev['n_flagged']} camera(s) flagged: unconfirmed or disputed evidence (below)")
     items = [f"{n}: {'; '.join(w)}" for n, w in ev.get("flags", {}).items()]
     if limit is not None and len(items) > limit:
         items = items[:limit] + [f"... and {len(items) - limit} more (metrics.json: evidence.flags)"]

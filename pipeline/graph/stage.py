@@ -136,7 +136,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
         for m in messages:
             logger.warning("%s", m)
         if flags:
-            logger.warning("%d camera(s) rest on evidence nothing checks: %s", len(flags),
+            logger.warning("%d camera(s) flagged (unconfirmed or disputed evidence): %s", len(flags),
                            "; ".join(f"{n}: {w[0]}" for n, w in list(flags.items())[:5])
                            + (" ..." if len(flags) > 5 else ""))
 
