@@ -53,7 +53,7 @@ from pipeline.frontend.focal import K_from_focal
 from pipeline.frontend.intrinsics import camera_models_for_names
 from pipeline.stage import Stage, StageRecord, file_fingerprint, fingerprint_of, read_record
 
-__all__ = ["CamerasStage", "CameraSet", "load_cameras", "intrinsics_summary", "main", "main_cli", "MANIFEST",
+__all__ = ["CamerasStage", "CameraSet", "load_cameras", "cameras_for", "given_source", "intrinsics_summary", "main", "main_cli", "MANIFEST",
            "KEYPOINTS", "STORE", "CamerasConfig"]
 
 logger = logging.getLogger(__name__)
@@ -92,14 +92,14 @@ class CameraSet:
     @property
     def known(self) -> np.ndarray:
         """(N,) True where the intrinsics come from a file (never refined)."""
-        return np.array([_given(s) for s in self.K_source], bool)
+        return np.array([given_source(s) for s in self.K_source], bool)
 
     def keypoints_for_geometry(self, raw: Sequence[np.ndarray]) -> list[np.ndarray]:
         """The keypoints the geometry uses: undistorted where there is distortion, else ``raw``."""
         return list(raw) if self.keypoints is None else self.keypoints
 
 
-def _given(source: str) -> bool:
+def given_source(source: str) -> bool:
     """Whether a K source is given by the user (a file, or a COLMAP database's camera: its keypoints are
     undistorted already), not estimated here."""
     return source.startswith(("file", "database:"))
@@ -180,7 +180,7 @@ class CamerasStage(Stage[CamerasConfig]):
                 if cam is not None and sources[k] == f"file:{src}":
                     models[k] = cam
                     dist_src[k] = f"file:{src}" if cam.has_distortion else "none"
-        known = np.array([_given(s) for s in sources], bool)
+        known = np.array([given_source(s) for s in sources], bool)
         from_file = np.array([m is not None for m in models], bool)
         radial_set = ~from_file & (~known if cfg.radial == "auto" else np.ones(n, bool))
         if cfg.radial == "off":
@@ -357,6 +357,21 @@ def _read(work: Path, rec: StageRecord | None) -> CameraSet:
         kps = [xy[off[k]:off[k + 1]] for k in range(n)]
     return CameraSet(list(m["names"]), sizes, K, list(m["K_source"]), models, list(m["distortion_source"]), kps,
                      dict(m.get("estimate") or {}), rec.fingerprint if rec is not None else "")
+
+
+def cameras_for(work: Path, names: Sequence[str]) -> CameraSet | None:
+    """The cameras stage's result in ``work`` for the images ``names``; None when the stage has not run.
+
+    Raises:
+        InputFileError: the result is of other images than ``names`` (the front end changed since).
+    """
+    if read_record(work, NAME) is None:
+        return None
+    cams = load_cameras(work)
+    if cams.names != list(names):
+        raise InputFileError(f"{work}: the cameras were computed for other images than the current features; "
+                             f"re-run `python -m pipeline.cameras --work {work}`")
+    return cams
 
 
 def load_cameras(work: Path) -> CameraSet:

@@ -41,7 +41,7 @@ from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
 from pipeline.frontend.colmap_db import database_fingerprint
 from pipeline.frontend.matching import FlannIndex, MatchingConfig, match_prepared, root_sift
-from pipeline.frontend.pairs import choose_pairs, parse_selector, select_pairs
+from pipeline.frontend.pairs import choose_pairs, parse_selector, select_pairs, selection_summary
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
@@ -156,9 +156,8 @@ class MatchingStage(Stage[MatchingConfig]):
         store = ItemStore(self.folder / STORE)
         if fm.get("database"):  # features from a COLMAP database: its verified inlier matches
             pairs, keys, n_read = self._from_database(fm, store)
-            n = len(names)
-            selection = {"spec": cfg.pairs, "selector": "database", "k": None, "n_images": n, "n_pairs": len(keys),
-                         "n_exhaustive": n * (n - 1) // 2, "fraction": len(keys) / max(n * (n - 1) // 2, 1)}
+            selection = selection_summary({"spec": cfg.pairs, "selector": "database", "k": None}, len(names),
+                                          len(keys))
             return self._finish(names, pairs, keys, store, n_read, selection)
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
         pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),

@@ -26,7 +26,8 @@ import numpy as np
 from pipeline.core.errors import ConfigError, InputFileError
 from pipeline.core.names import match_names, split_fields
 
-__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs", "choose_pairs"]
+__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs", "choose_pairs",
+           "selection_summary"]
 
 MAX_PAIRS_FILE_BYTES = 256 << 20
 
@@ -182,7 +183,12 @@ def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[li
     else:
         pairs = select_pairs(kind if kind == "exhaustive" else spec, names)
         info["k"] = int(arg) if kind == "sequential" else None  # type: ignore[arg-type]
+    return pairs, selection_summary(info, n, len(pairs))
+
+
+def selection_summary(info: dict[str, Any], n: int, n_pairs: int) -> dict[str, Any]:
+    """``info`` with the counts of a selection of ``n_pairs`` pairs among ``n`` images against exhaustive."""
     n_all = n * (n - 1) // 2
-    info.update(n_images=n, n_pairs=int(len(pairs)), n_exhaustive=n_all,
-                fraction=round(len(pairs) / n_all, 6) if n_all else 0.0)
-    return pairs, info
+    info.update(n_images=n, n_pairs=int(n_pairs), n_exhaustive=n_all,
+                fraction=round(n_pairs / n_all, 6) if n_all else 0.0)
+    return info

@@ -40,7 +40,7 @@ from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
-from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras
+from pipeline.frontend.camera_stage import NAME as CAMERAS, cameras_for
 from pipeline.frontend.distortion import CameraModel, undistort_points
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
@@ -74,8 +74,8 @@ def _cameras(work: Path, fm: dict[str, Any]) -> tuple[np.ndarray, list[CameraMod
     The cameras stage's result when it ran, else the features' K as it is (with a warning
     when that loses something: an EXIF or default focal, or a file with distortion).
     """
-    names = list(fm["names"])
-    if read_record(work, CAMERAS) is None:
+    cams = cameras_for(work, fm["names"])
+    if cams is None:
         from pipeline.frontend.distortion import is_camera_model_file  # noqa: PLC0415
 
         sources = [str(s) for s in fm.get("K_source", [])]
@@ -83,11 +83,7 @@ def _cameras(work: Path, fm: dict[str, Any]) -> tuple[np.ndarray, list[CameraMod
         (logger.warning if lossy else logger.info)(
             "two_view: %s has no result of the cameras stage; using the features' K as it is (file, EXIF or default "
             "focal, no distortion): run `python -m pipeline.cameras --work %s` first", work, work)
-        return np.array(fm["K"], float).reshape(-1, 3, 3), [None] * len(names)
-    cams = load_cameras(work)
-    if cams.names != names:
-        raise InputFileError(f"{work}: the cameras were computed for other images than the current features; "
-                             f"re-run `python -m pipeline.cameras --work {work}`")
+        return np.array(fm["K"], float).reshape(-1, 3, 3), [None] * len(fm["names"])
     return cams.K, [m if m.has_distortion else None for m in cams.models]
 
 

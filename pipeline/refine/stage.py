@@ -72,7 +72,9 @@ def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
     """Intrinsics read from a file are known (kept constant); estimated, EXIF and default focals are refined."""
     if len(sources) != n:
         return np.zeros(n, bool)
-    return np.array([str(s).startswith("file") for s in sources], bool)
+    from pipeline.frontend.camera_stage import given_source  # noqa: PLC0415
+
+    return np.array([given_source(str(s)) for s in sources], bool)
 
 
 def _intrinsics(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray], list[str]]:
@@ -82,14 +84,11 @@ def _intrinsics(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray], list
     stage found distortion: the model's cameras are then PINHOLE in undistorted pixels)
     and each K's source.
     """
-    from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras  # noqa: PLC0415
+    from pipeline.frontend.camera_stage import cameras_for  # noqa: PLC0415
 
-    if read_record(work, CAMERAS) is None:
+    cams = cameras_for(work, fs.names)
+    if cams is None:
         return fs.K, list(fs.keypoints), list(fs.K_source)
-    cams = load_cameras(work)
-    if cams.names != list(fs.names):
-        raise CacheError(f"{work}: the cameras were computed for other images than the current features; "
-                         "re-run the front end")
     return cams.K, cams.keypoints_for_geometry(fs.keypoints), list(cams.K_source)
 
 
