@@ -87,6 +87,54 @@ class Item(dict):
         raise CacheError(f"chunk {self.source} is damaged (an item lacks its array {name!r})")
 
 
+_LAYOUT, _DATA = "layout", "data"
+_ALIGN = 16
+
+
+def _pack(items: Iterable[Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """The arrays of a chunk's items as one byte buffer and its layout (JSON: per item, per name, the dtype,
+    shape and offset): a chunk is read with two archive members instead of one per array."""
+    layout: list[dict[str, list[Any]]] = []
+    parts: list[bytes] = []
+    offset = 0
+    for item in items:
+        entry = {}
+        for name, v in item.items():
+            a = np.asarray(v)  # tobytes() is C order whatever the strides
+            if a.dtype.hasobject:
+                raise TypeError(f"array {name!r} holds Python objects")
+            entry[name] = [a.dtype.str, list(a.shape), offset]
+            b = a.tobytes()
+            pad = -len(b) % _ALIGN
+            parts += [b, bytes(pad)]
+            offset += len(b) + pad
+        layout.append(entry)
+    return {_LAYOUT: np.array(json.dumps(layout)), _DATA: np.frombuffer(b"".join(parts), np.uint8)}
+
+
+def _unpack(layout: np.ndarray, data: np.ndarray, n: int) -> list[dict[str, np.ndarray]]:
+    """The items :func:`_pack` wrote (views of ``data``); ValueError if the layout does not fit the buffer."""
+    spec = json.loads(str(layout.item())) if layout.ndim == 0 and layout.dtype.kind == "U" else None
+    if not isinstance(spec, list) or len(spec) != n or data.dtype != np.uint8 or data.ndim != 1:
+        raise ValueError("the layout does not describe the chunk's items")
+    buf = data.data
+    out = []
+    for entry in spec:
+        if not isinstance(entry, dict):
+            raise ValueError("an item's layout is not a mapping")
+        fields = {}
+        for name, (dtype, shape, offset) in entry.items():
+            dt = np.dtype(dtype)
+            if dt.hasobject or not all(isinstance(k, int) and k >= 0 for k in [*shape, offset]):
+                raise ValueError(f"array {name!r} has a bad layout")
+            count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+            if offset + count * dt.itemsize > len(data):
+                raise ValueError(f"array {name!r} runs past the end of the chunk")
+            fields[name] = np.frombuffer(buf, dt, count, offset).reshape(tuple(shape))
+        out.append(fields)
+    return out
+
+
 def _chunk_name(keys: Iterable[str]) -> str:
     return "chunk-" + hashlib.sha1("\n".join(sorted(keys)).encode()).hexdigest()[:16] + ".npz"
 
@@ -107,12 +155,9 @@ class ItemStore:
     def write_chunk(self, results: Mapping[str, Mapping[str, Any]]) -> Path:
         """Write the results ``{key: {name: array}}`` of one finished chunk; returns its path."""
         keys = list(results)
-        arrays: dict[str, np.ndarray] = {"keys": np.array(keys, dtype=str)}
-        for q, k in enumerate(keys):
-            for name, v in results[k].items():
-                arrays[f"{q}{_SEP}{name}"] = np.asarray(v)
         path = self.folder / _chunk_name(keys)
-        save_npz_uncompressed(path, **arrays)  # zlib took most of the stores' write time (descriptors barely compress)
+        # zlib took most of the stores' write time (descriptors barely compress)
+        save_npz_uncompressed(path, keys=np.array(keys, dtype=str), **_pack(results[k] for k in keys))
         if self._where is not None:
             self._where.update({k: path.name for k in keys})
         return path
@@ -134,7 +179,11 @@ class ItemStore:
             out: dict[str, dict[str, np.ndarray]] = {str(k): Item(path) for k in keys}
             if len(out) != len(keys):
                 raise ValueError("a key repeats")
-            for name, v in data.items():
+            if set(data) == {_LAYOUT, _DATA}:
+                for q, fields in enumerate(_unpack(data[_LAYOUT], data[_DATA], len(keys))):
+                    out[str(keys[q])].update(fields)
+                return out
+            for name, v in data.items():  # the one-array-per-field chunks of earlier versions
                 q, _, field = name.partition(_SEP)
                 if not (q.isascii() and q.isdigit() and int(q) < len(keys) and field):
                     raise ValueError(f"stray array {name!r}")

@@ -5,8 +5,14 @@ For a pair ``(i, j)``, ``i < j`` (:func:`estimate_pair`):
 1. Keypoints are normalized with each image's own K (``x̂ = K⁻¹ x``), so images
    with different intrinsics are handled; the pixel threshold becomes
    ``threshold_px / f`` with f the mean focal length of the two cameras.
-2. ``cv2.findEssentialMat`` (5-point solver inside USAC-MAGSAC++ or RANSAC)
-   estimates E with the configured confidence.
+2. E is estimated with the configured confidence by the 5-point solver inside
+   PoseLib's LO-RANSAC (``poselib.estimate_relative_pose``, the default: adaptive
+   stopping, local optimisation, the GIL released so that threads run pairs in
+   parallel) or OpenCV's ``cv2.findEssentialMat`` (USAC-MAGSAC++ or RANSAC).
+   PoseLib's iterations are capped at the number that finds, with the configured
+   confidence, an all-inlier sample of a model with ``min_inliers`` inliers: a pair
+   that could be accepted is found, and a pair of random matches is not sampled
+   2000 times in vain (:func:`iteration_cap`).
 3. The cheirality check picks, of E's four decompositions, the (R, t) that puts
    the most inliers in front of both cameras (as ``cv2.recoverPose`` does, but
    without its 50-baseline depth cut, which rejects every match of a
@@ -45,15 +51,17 @@ from typing import Literal
 
 import cv2
 import numpy as np
+import poselib
 
 from pipeline.core.config import option
 from pipeline.core.parallel import ExecutorOptions
 from pipeline.geometry.epipolar import (normalize, pose_from_essential, refine_pose, rotation_from_bearings,
                                         rotation_only_residual_px, sampson_distance, triangulation_depths)
 
-__all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "METHODS"]
+__all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "iteration_cap", "METHODS"]
 
-METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+METHODS = {"poselib": None, "magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+_UNIT_CAMERA = {"model": "PINHOLE", "width": 2, "height": 2, "params": [1.0, 1.0, 0.0, 0.0]}  # normalized coords
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,11 +70,13 @@ class TwoViewConfig(ExecutorOptions):
 
     SECTION = "two_view"
 
-    method: Literal["magsac", "ransac"] = option(
-        "magsac", "robust estimator around the 5-point solver: USAC-MAGSAC++ or OpenCV's classic RANSAC")
+    method: Literal["poselib", "magsac", "ransac"] = option(
+        "poselib", "robust estimator around the 5-point solver: PoseLib's LO-RANSAC, OpenCV's USAC-MAGSAC++ or "
+                   "OpenCV's classic RANSAC")
     threshold_px: float = option(1.0, "inlier threshold in pixels at the feature-extraction image size", gt=0)
     confidence: float = option(0.999, "RANSAC confidence", gt=0, lt=1)
-    max_iterations: int = option(2000, "RANSAC iteration cap", ge=1)
+    max_iterations: int = option(2000, "RANSAC iteration cap (poselib: lowered to the iterations that find a model "
+                                       "with min_inliers inliers at the configured confidence)", ge=1)
     min_matches: int = option(12, "pairs with fewer matches are rejected without RANSAC (the 5-point solver "
                                   "needs >= 5)", ge=5)
     min_inliers: int = option(12, "pairs with fewer inliers after the cheirality check are rejected; the view "
@@ -159,6 +169,47 @@ def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.nda
     return geom
 
 
+def iteration_cap(n: int, config: TwoViewConfig) -> int:
+    """RANSAC iterations that draw, with probability ``config.confidence``, one all-inlier 5-point sample from
+    ``n`` matches of which ``min_inliers`` are inliers, at most ``max_iterations``.
+
+    A pair with more inliers is found sooner (the adaptive stop); a pair that after this many iterations has not
+    reached ``min_inliers`` inliers is rejected by step 4 anyway, up to the confidence.
+    """
+    w = min(config.min_inliers / max(n, 1), 1.0)
+    if w >= 1.0:
+        return 1
+    miss = np.log1p(-w ** 5)
+    k = np.log1p(-config.confidence) / miss if miss < 0 else np.inf
+    return int(min(config.max_iterations, max(np.ceil(k), 1)))
+
+
+def _essential(y_i: np.ndarray, y_j: np.ndarray, thr: float, config: TwoViewConfig) -> tuple[np.ndarray | None,
+                                                                                              np.ndarray]:
+    """E and its inlier mask from normalized coordinates at threshold ``thr`` (normalized units); E is None when
+    no model was found."""
+    n = len(y_i)
+    if config.method == "poselib":
+        cap = iteration_cap(n, config)
+        pose, info = poselib.estimate_relative_pose(
+            y_i, y_j, _UNIT_CAMERA, _UNIT_CAMERA,
+            {"max_epipolar_error": thr, "max_iterations": cap, "min_iterations": min(50, cap),
+             "success_prob": config.confidence, "seed": config.seed},
+            {"max_iterations": 0})  # the refinement is ours (step 3), on the inliers after cheirality
+        mask = np.asarray(info.get("inliers", []), bool).reshape(-1)
+        if mask.shape != (n,) or not mask.any():
+            return None, np.zeros(n, bool)
+        R, t = np.asarray(pose.R), np.asarray(pose.t)
+        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        return tx @ R, mask
+    cv2.setRNGSeed(config.seed)
+    E, mask = cv2.findEssentialMat(y_i, y_j, np.eye(3), method=METHODS[config.method], prob=config.confidence,
+                                   threshold=thr, maxIters=config.max_iterations)
+    if E is None or mask is None or E.shape[0] < 3:
+        return None, np.zeros(n, bool)
+    return E[:3], mask.ravel().astype(bool)  # several solutions may be stacked; the first is the best scoring
+
+
 def _estimate(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray, config: TwoViewConfig,
               pixel_scale: float) -> PairGeometry:
     """Steps 1–4 and 6 of the module docstring (no zero-motion test)."""
@@ -171,13 +222,9 @@ def _estimate(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray
     y_j = normalize(x_j.astype(np.float64), K_j)
     f = 0.25 * (K_i[0, 0] + K_i[1, 1] + K_j[0, 0] + K_j[1, 1])
     thr_px = config.threshold_px * pixel_scale
-    cv2.setRNGSeed(config.seed)
-    E, mask = cv2.findEssentialMat(y_i, y_j, np.eye(3), method=METHODS[config.method], prob=config.confidence,
-                                   threshold=thr_px / f, maxIters=config.max_iterations)
-    if E is None or mask is None or E.shape[0] < 3:
+    E, mask = _essential(y_i, y_j, thr_px / f, config)
+    if E is None:
         return PairGeometry(False, "essential matrix estimation failed (no model found)", n_matches=n)
-    E = E[:3]  # several solutions may be stacked; the first is the best scoring
-    mask = mask.ravel().astype(bool)
     n_E = int(mask.sum())
     if n_E < config.min_inliers:
         return PairGeometry(False, f"too few RANSAC inliers ({n_E} < min_inliers={config.min_inliers})", n_matches=n,

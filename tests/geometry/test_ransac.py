@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.core import so3
 from pipeline.core.errors import ConfigError
-from pipeline.geometry.ransac import TwoViewConfig, estimate_pair
+from pipeline.geometry.ransac import TwoViewConfig, estimate_pair, iteration_cap
 
 
 def _deg(Ra, Rb):
@@ -34,7 +34,7 @@ def _random_pair(rng, n=300, baseline=1.0, planar=False, K_i=None, K_j=None):
     return x_i, x_j, K_i, K_j, R_j, t_j
 
 
-@pytest.mark.parametrize("method", ["magsac", "ransac"])
+@pytest.mark.parametrize("method", ["poselib", "magsac", "ransac"])
 def test_synthetic_points_accuracy(method):
     rng = np.random.default_rng(0)
     x_i, x_j, K_i, K_j, R_j, t_j = _random_pair(rng)
@@ -42,6 +42,27 @@ def test_synthetic_points_accuracy(method):
     assert g.ok and _deg(g.R, R_j) < 0.2
     assert np.degrees(np.arccos(g.t @ (t_j / np.linalg.norm(t_j)))) < 2.0
     assert not g.small_baseline and not g.planar
+
+
+def test_iteration_cap_finds_a_pair_with_min_inliers_at_the_confidence():
+    cfg = TwoViewConfig()
+    for n in (12, 20, 30, 36, 60):
+        k = iteration_cap(n, cfg)
+        w = cfg.min_inliers / n
+        if k < cfg.max_iterations:  # the chance of never drawing an all-inlier sample is within 1 - confidence
+            assert (1 - w ** 5) ** k <= 1 - cfg.confidence < (1 - w ** 5) ** (k - 1)
+    assert iteration_cap(12, cfg) == 1 and iteration_cap(1000, cfg) == cfg.max_iterations
+    assert [iteration_cap(n, cfg) for n in (20, 30, 40)] == sorted(iteration_cap(n, cfg) for n in (20, 30, 40))
+    # a pair whose only support is min_inliers true matches among random ones is still found (seeds 0-19)
+    rng = np.random.default_rng(7)
+    found = 0
+    for seed in range(20):
+        x_i, x_j, K_i, K_j, R_j, _ = _random_pair(rng, n=30)
+        bad = np.arange(30) >= 14  # 14 true matches, 16 random: just above min_inliers
+        x_j[bad] = rng.uniform([0, 0], [640, 480], (bad.sum(), 2))
+        g = estimate_pair(x_i, x_j, K_i, K_j, TwoViewConfig(seed=seed))
+        found += g.ok and _deg(g.R, R_j) < 1.0
+    assert found >= 19, found
 
 
 def test_different_intrinsics_per_image():

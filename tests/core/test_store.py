@@ -1,0 +1,72 @@
+"""The item store's chunk files: every array comes back as written, old chunks still read, damage is caught."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.core.errors import CacheError
+from pipeline.core.store import ItemStore
+
+
+def _items() -> dict[str, dict[str, np.ndarray]]:
+    rng = np.random.default_rng(0)
+    return {
+        "a" * 20: {"R": rng.normal(size=(3, 3)), "ok": np.array(True), "reason": np.array("too few matches"),
+                   "n": np.array(17), "kp": rng.integers(0, 9, (5, 2)).astype(np.int32),
+                   "desc": rng.random((4, 128)).astype(np.float32), "empty": np.zeros((0, 2), np.int64),
+                   "strided": np.arange(12.0).reshape(3, 4)[:, ::2], "big_endian": np.arange(3, dtype=">f8")},
+        "b" * 20: {"ok": np.array(False), "reason": np.array(""), "x": np.zeros(0, np.float32)},
+    }
+
+
+def test_a_chunk_gives_back_every_array_exactly(tmp_path):
+    items = _items()
+    path = ItemStore(tmp_path).write_chunk(items)
+    back = ItemStore.read_chunk(path)
+    assert set(back) == set(items)
+    for key, fields in items.items():
+        assert set(back[key]) == set(fields)
+        for name, v in fields.items():
+            got = back[key][name]
+            assert got.shape == v.shape and got.dtype == v.dtype, (name, got.shape, got.dtype)
+            assert np.array_equal(got, v), name
+    with pytest.raises(CacheError, match="lacks its array"):
+        back["b" * 20]["R"]
+
+
+def test_a_chunk_of_the_earlier_one_array_per_field_layout_still_reads(tmp_path):
+    items = _items()
+    arrays = {"keys": np.array(list(items), dtype=str)}
+    for q, fields in enumerate(items.values()):
+        arrays.update({f"{q}__{name}": v for name, v in fields.items()})
+    np.savez(tmp_path / "chunk-0123456789abcdef.npz", **arrays)
+    back = ItemStore.read_chunk(tmp_path / "chunk-0123456789abcdef.npz")
+    assert all(np.array_equal(back[k][n], v) for k, f in items.items() for n, v in f.items())
+
+
+@pytest.mark.parametrize("damage", ["past the end", "object dtype", "wrong count", "not json"])
+def test_a_damaged_layout_is_a_cache_error_and_the_scan_removes_the_chunk(tmp_path, damage):
+    path = ItemStore(tmp_path).write_chunk(_items())
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    layout = json.loads(str(arrays["layout"]))
+    if damage == "past the end":
+        layout[0]["R"][2] = len(arrays["data"]) - 8
+    elif damage == "object dtype":
+        layout[0]["R"][0] = "|O"
+    elif damage == "wrong count":
+        layout = layout[:1]
+    arrays["layout"] = np.array("{" if damage == "not json" else json.dumps(layout))
+    np.savez(path, **arrays)
+    with pytest.raises(CacheError, match="is damaged"):
+        ItemStore.read_chunk(path)
+    store = ItemStore(tmp_path)
+    assert store.scan() == {} and not path.exists()
+
+
+def test_python_objects_are_refused_when_written(tmp_path):
+    with pytest.raises(TypeError, match="Python objects"):
+        ItemStore(tmp_path).write_chunk({"k": {"x": np.array([{"a": 1}], dtype=object)}})
