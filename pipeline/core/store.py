@@ -275,6 +275,12 @@ def _write_packed(job: tuple[list[str], list[Any]], folder: str,
     return write_results(folder, job[0], work, job[1])
 
 
+def _timed(write: Callable[[Any], str], job: Any) -> tuple[str, float]:
+    """``write(job)`` and the CPU seconds of the thread that ran it."""
+    t0 = time.thread_time()
+    return write(job), time.thread_time() - t0
+
+
 def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[int], Any],
                     work: Callable[[list[Any]], list[Mapping[str, Any]]], *, workers: int = 1, chunk_size: int = 8,
                     on_chunk: Callable[[int], None] | None = None, backend: str = "processes",
@@ -320,15 +326,23 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             on_chunk(len(chunk_keys))
 
     local = backend != "dask" and scheduler is None
-    n_workers = min(workers, len(jobs) - 1) if local else workers
+    n_workers = min(workers, len(jobs)) if local else workers
     if local and backend == "processes" and n_workers > 1:
-        # the first chunk runs here and times the work: a pool of processes pays off only when the rest
-        # is long beside starting it; otherwise threads, which start at once and run in parallel where
-        # the work releases the GIL (OpenCV, BLAS)
-        t0 = time.thread_time()
-        finish(jobs[0][0], write(jobs[0]))
-        rest = (time.thread_time() - t0) * (len(jobs) - 1)
-        jobs = jobs[1:]
+        # the first chunks, one per worker, run on threads of this process (which start at once and run in
+        # parallel where the work releases the GIL: OpenCV, PoseLib, BLAS) and time the work: a pool of
+        # processes pays off only when the rest is long beside starting it; otherwise threads go on
+        probe = make_executor(n_workers, "threads")
+        try:
+            timed = list(probe.map(functools.partial(_timed, write), jobs[:n_workers]))
+        finally:
+            probe.close()
+        for (chunk_keys, _), (name, _) in zip(jobs, timed):
+            finish(chunk_keys, name)
+        jobs = jobs[n_workers:]
+        rest = float(np.mean([t for _, t in timed])) * len(jobs)
+        n_workers = min(n_workers, len(jobs))
+        if not jobs:
+            return len(todo)
         if not _pool_pays_off(rest, n_workers):
             logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(jobs), rest)
             backend = "threads"
