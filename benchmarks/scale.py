@@ -10,7 +10,7 @@ images) in a child process, and this script reads its ``metrics.json``:
   same scene, where affordable (``--exhaustive-sizes``, default 100 only: N = 300 exhaustive
   means 44,850 pairs);
 - **growth** (acceptance 2): our path (features → matching → two-view → BA → view graph →
-  averaging, ``metrics.json: our_path_s``) per image at each N, the ratio at the largest N
+  averaging, ``metrics.json: our_path_s``; the runs set ``refine: false``) per image at each N, the ratio at the largest N
   against the smallest, and the peak memory of the run (``ru_maxrss`` of the child process
   and its descendants, from ``os.wait4``);
 - **against incremental** (acceptance 3): at ``--reference-sizes`` (default 200) the same run
@@ -71,7 +71,9 @@ def run_pipeline(scene: Path, out: Path, pairs: str, reference: bool, log: Path,
     """
     cfg = out.parent / f"{out.name}.yaml"
     out.parent.mkdir(parents=True, exist_ok=True)
-    cfg.write_text(f"run:\n  plots: false\n  reference: {str(reference).lower()}\nmatching:\n  pairs: {pairs}\n"
+    # the path to the averaged rotations (issue 16): pycolmap's refinement, on by default, is left out
+    cfg.write_text(f"run:\n  plots: false\n  refine: false\n  reference: {str(reference).lower()}\n"
+                   f"matching:\n  pairs: {pairs}\n"
                    f"reference:\n  use_our_matches: {str(our_matches).lower()}\n")
     cmd = [sys.executable, "-m", "pipeline.run", str(scene), "--out", str(out), "--config", str(cfg),
            "--gt", str(scene / "cameras.txt"), "--K", str(scene / "K.txt"), "-q"]

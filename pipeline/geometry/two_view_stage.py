@@ -19,7 +19,7 @@ interrupted run resumes per pair; a changed option recomputes), and writes::
 
 :func:`load_two_view` reads them back. Command line::
 
-    python -m pipeline.two_view --work WORK [--method magsac|ransac] [--threshold-px 1.0] ...
+    python -m pipeline.two_view --work WORK [--method poselib|magsac|ransac] [--threshold-px 1.0] ...
 """
 
 from __future__ import annotations
