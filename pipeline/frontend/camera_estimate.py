@@ -62,6 +62,10 @@ class CamerasConfig(Config):
     radial: Literal["auto", "estimate", "off"] = option(
         "auto", "one radial distortion parameter: auto estimates it for images no camera file describes; estimate "
                 "also for images with a K file that gives no distortion; off never (given distortion is still used)")
+    evidence: Literal["normal", "features"] = option(
+        "normal", "what the focal and distortion are estimated from: normal re-detects the images whose contrast "
+                  "threshold the features stage lowered (low texture) at the normal threshold and matches their "
+                  "pairs again; features: the features stage's keypoints and matches as they are")
     threshold_px: float = option(1.0, "F-RANSAC inlier threshold (px at the feature-extraction size)", gt=0)
     max_trials: int = option(10000, "F-RANSAC iteration cap per pair", ge=100)
     min_inliers: int = option(30, "pairs with fewer F inliers are not used", ge=8)
