@@ -22,7 +22,8 @@ An EXIF focal is a prior, not the truth: the search is first confined to
 disagrees with EXIF, and the whole range is searched instead.
 
 Radial (:func:`estimate_radial`): a loose F-RANSAC on the measured pixels and κ on a
-coarse grid; κ is kept only if a likelihood-ratio test prefers it to κ = 0; then F
+coarse grid; κ is kept only if a quasi-likelihood ratio test (the drop discounted by the
+pairs' disagreement beyond their noise) prefers it to κ = 0; then F
 again on the points undistorted with it and κ on a fine grid around it.
 """
 
@@ -85,8 +86,9 @@ class CamerasConfig(Config):
     radial_grid_points: int = option(33, "points of the coarse κ grid", ge=5)
     radial_refine: tuple[float, ...] = option((0.05, 21), "half-width and points of the fine κ grid")
     radial_loose_px: float = option(3.0, "F-RANSAC threshold before κ is known (px at extraction size)", gt=0)
-    radial_chi2: float = option(10.83, "κ is kept when it lowers the joint cost by more than this (χ²₁ 99.9%)",
-                                ge=0)
+    radial_chi2: float = option(10.83, "κ is kept when its drop of the joint cost, divided by the pairs' "
+                                       "dispersion, passes F(1, pairs − 1) at the level this χ²₁ quantile has "
+                                       "(10.83: 99.9%)", gt=0)
     seed: int = option(0, "RANSAC and subset seed")
     workers: int = option(2, "processes estimating pairs (1 = in this process)", ge=1, runtime=True)
     chunk_size: int = option(4, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
@@ -298,7 +300,9 @@ class RadialEstimate:
 
     Attributes:
         kappa: κ (0 when not significant).  kappa_raw: the minimizer before the test.
-        significant: the likelihood-ratio test kept it.  delta_chi2: its drop of the joint cost.
+        significant: the quasi-likelihood ratio test kept it (:func:`pipeline.frontend.radial.kappa_test`).
+        delta_chi2: its drop of the joint cost.  dispersion: the pairs' disagreement φ the drop is divided by.
+        critical: the threshold ``delta_chi2 / max(φ, 1)`` had to pass.
         s: nominal scale (px).  c: (2,) centre.  n_pairs: pairs used.  note: why no estimate.
     """
 
@@ -310,14 +314,17 @@ class RadialEstimate:
     c: np.ndarray
     n_pairs: int
     note: str = ""
+    dispersion: float = 1.0
+    critical: float = float("nan")
 
     def summary(self) -> dict[str, Any]:
         return {"kappa": self.kappa, "kappa_raw": self.kappa_raw, "significant": self.significant,
-                "delta_chi2": self.delta_chi2, "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs,
+                "delta_chi2": self.delta_chi2, "dispersion": self.dispersion, "critical": self.critical, "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs,
                 "note": self.note}
 
 
-def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple[float, np.ndarray, int]:
+def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag
+                  ) -> tuple[float, np.ndarray, int, np.ndarray, np.ndarray]:
     import functools  # noqa: PLC0415
 
     u1 = [radial_undistort(a, c, s, kappa0)[0] for a in x1s]
@@ -325,7 +332,7 @@ def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple
     ok, res = _verified(u1, u2, thr, config, pmap, f"{tag}-F")
     idx = np.flatnonzero(ok)
     if len(idx) < config.min_pairs:
-        return float("nan"), np.zeros(len(grid)), len(idx)
+        return float("nan"), np.zeros(len(grid)), len(idx), np.zeros((0, len(grid))), np.zeros(0)
     g0 = int(np.argmin(np.abs(grid - kappa0)))
     tasks = []
     for k in idx:
@@ -333,8 +340,9 @@ def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple
         tasks.append((a, b, res[k]["F"], c, s, grid, g0))
     out = pmap(f"{tag}-profile", tasks, functools.partial(radial_profile_chunk, config=config))
     cost = np.array([r["cost"] for r in out]).reshape(-1, len(grid))
-    kappa, J = rk.joint_kappa(grid, cost, np.array([float(r["sigma2"]) for r in out]), config.cap)
-    return kappa, J, len(idx)
+    s2 = np.array([float(r["sigma2"]) for r in out])
+    kappa, J = rk.joint_kappa(grid, cost, s2, config.cap)
+    return kappa, J, len(idx), cost, s2
 
 
 def estimate_radial(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], size: tuple[int, int], scale: np.ndarray,
@@ -353,16 +361,17 @@ def estimate_radial(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], size: 
     x2s = [np.asarray(b, np.float64) for b in x2s]
     r = config.radial_range
     coarse = np.linspace(-r, r, config.radial_grid_points)
-    k0, J0, n0 = _radial_round(x1s, x2s, config.radial_loose_px * scale, c, s, 0.0, coarse, config, pmap,
+    k0, _, n0, cost0, s20 = _radial_round(x1s, x2s, config.radial_loose_px * scale, c, s, 0.0, coarse, config, pmap,
                                f"{tag}-coarse")
     if not np.isfinite(k0):
         return RadialEstimate(0.0, float("nan"), False, 0.0, s, c, n0,
                               f"{n0} usable pairs < min_pairs={config.min_pairs}")
-    drop = float(np.interp(0.0, coarse, J0) - np.interp(k0, coarse, J0))
-    if not rk.kappa_is_significant(coarse, J0, k0, config.radial_chi2):
-        return RadialEstimate(0.0, k0, False, drop, s, c, n0)
+    significant, drop, phi, crit = rk.kappa_test(coarse, cost0, s20, k0, config.radial_chi2, config.cap)
+    if not significant:
+        return RadialEstimate(0.0, k0, False, drop, s, c, n0, dispersion=phi, critical=crit)
     half, n_fine = config.radial_refine
     fine = k0 + np.linspace(-half, half, int(n_fine))
-    k1, _, n1 = _radial_round(x1s, x2s, config.threshold_px * scale, c, s, k0, fine, config, pmap, f"{tag}-fine")
+    k1, _, n1, _, _ = _radial_round(x1s, x2s, config.threshold_px * scale, c, s, k0, fine, config, pmap, f"{tag}-fine")
     kappa = k1 if np.isfinite(k1) else k0
-    return RadialEstimate(kappa, kappa, True, drop, s, c, n1 if np.isfinite(k1) else n0)
+    return RadialEstimate(kappa, kappa, True, drop, s, c, n1 if np.isfinite(k1) else n0, dispersion=phi,
+                          critical=crit)

@@ -212,9 +212,10 @@ class CamerasStage(Stage[CamerasConfig]):
             x1, x2, _, sc = self._pair_data(ev, members, ekp, scale)
             r = estimate_radial(x1, x2, g[:2], sc, cfg, self._pmap, tag=f"radial-{g[0]}x{g[1]}-{g[2]}")
             estimate["groups"].append({"images": [fs.names[k] for k in members], "radial": r.summary()})
-            logger.info("cameras: radial κ = %.4f (raw %.4f, Δχ² %.1f, %s) for %d image(s) of %dx%d from %d pairs",
-                        r.kappa, r.kappa_raw, r.delta_chi2, "kept" if r.significant else "not significant",
-                        len(members), g[0], g[1], r.n_pairs)
+            logger.info("cameras: radial κ = %.4f (raw %.4f, Δχ² %.1f / dispersion %.2f vs %.1f, %s) for %d image(s) "
+                        "of %dx%d from %d pairs", r.kappa, r.kappa_raw, r.delta_chi2, max(r.dispersion, 1.0),
+                        r.critical, "kept" if r.significant else "not significant", len(members), g[0], g[1],
+                        r.n_pairs)
             if r.kappa != 0.0:
                 for k in members:
                     kp[k], undistorted[k] = radial_undistort(kp[k], r.c, r.s, r.kappa)[0], True
