@@ -81,6 +81,9 @@ class CamerasConfig(Config):
     loss_px: float = option(2.0, "Cauchy scale of the Sampson distances (px)", gt=0)
     cap: float = option(25.0, "a pair's Δχ² counts fully up to about this, then logarithmically", gt=0)
     rotation_loss_deg: float = option(2.0, "Cauchy scale of the rotation-consistency residuals (deg)", gt=0)
+    max_focal_sd: float = option(0.01, "an estimated focal whose leave-one-image-out (jackknife) relative sd "
+                                       "exceeds this is flagged as poorly determined (1% costs ~0.3° of rotation)",
+                                 gt=0)
     min_pairs: int = option(3, "fewer usable pairs leave a camera group's focal at its prior", ge=1)
     radial_range: float = option(0.4, "κ searched in [-radial_range, radial_range] (κ at the scale max(w, h))", gt=0)
     radial_grid_points: int = option(33, "points of the coarse κ grid", ge=5)
@@ -182,7 +185,9 @@ class FocalEstimate:
         method: the method used.  prior: ``"exif <f> px"`` or ``""``.
         n_pairs: pairs used.  grid: (G,) focal grid.  cost: (G,) joint cost on it.
         per_pair: (n_pairs,) each pair's own best grid focal.
-        note: why the prior was overruled, or why no estimate was made.
+        note: why the prior was overruled, why no estimate was made, or why it is poorly determined.
+        sd_rel: leave-one-image-out (jackknife) sd of log f (≈ relative sd).
+        determined: False when ``sd_rel`` exceeds ``max_focal_sd`` (a flag for the report).
     """
 
     f: float
@@ -193,9 +198,12 @@ class FocalEstimate:
     cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
     per_pair: np.ndarray = field(default_factory=lambda: np.zeros(0))
     note: str = ""
+    sd_rel: float = float("nan")
+    determined: bool = True
 
     def summary(self) -> dict[str, Any]:
         return {"f": self.f, "method": self.method, "prior": self.prior, "n_pairs": self.n_pairs, "note": self.note,
+                "sd_rel": self.sd_rel, "determined": self.determined,
                 "grid": self.grid.tolist(), "cost": self.cost.tolist(),
                 "per_pair_median": float(np.median(self.per_pair)) if len(self.per_pair) else None}
 
@@ -217,9 +225,29 @@ def _joint(grid, cost, R, s2, edges, n, config, scales=None) -> tuple[float, np.
     return fk.joint_focal(grid, prof, rot, scales)
 
 
-def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost
-    and the pairs' own argmins."""
+def _jackknife_sd(grid, cost, R, s2, edges, n, config, scales) -> float:
+    """Leave-one-image-out (jackknife) standard deviation of log f: how much the focal rests on single images.
+
+    Each image with pairs is left out in turn with all its pairs, and the joint minimum is found again on the
+    same grid and weighting; ``sd = sqrt((m − 1)/m Σ (log f₍ᵢ₎ − mean)²)`` over the m images with pairs (Efron
+    & Stein). A focal fixed by one loop, one pair or a cut vertex moves when it goes, however sharp the full
+    cost's minimum. Infinite when leaving an image out leaves fewer than ``min_pairs`` pairs.
+    """
+    imgs = np.unique(edges)
+    logs = []
+    for i in imgs:  # one joint minimum per image (the averaging inside is vectorized over edges)
+        keep = (edges != i).all(axis=1)
+        if keep.sum() < config.min_pairs:
+            return float("inf")
+        logs.append(np.log(_joint(grid, cost[keep], R[keep], s2[keep], edges[keep], n, config, scales)[0]))
+    m = len(logs)
+    return float(np.sqrt((m - 1) / m * np.sum((np.array(logs) - np.mean(logs)) ** 2))) if m > 1 else float("inf")
+
+
+def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                                                                            float]:
+    """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost,
+    the pairs' own argmins and the jackknife sd of log f."""
     grid = fk.log_grid(lo, hi, config.grid_points)
     cost, R, s2 = _profiles(x1s, x2s, Fs, pp, grid, config, pmap, f"{tag}-coarse")
     f, J, scales = _joint(grid, cost, R, s2, edges, n, config)
@@ -232,7 +260,8 @@ def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[floa
         order = np.argsort(grid, kind="stable")
         grid, cost, R = grid[order], np.concatenate([cost, c2], 1)[:, order], np.concatenate([R, R2], 1)[:, order]
         f, J, _ = _joint(grid, cost, R, s2, edges, n, config, scales)
-    return f, grid, J, grid[np.argmin(cost, axis=1)]
+    sd = _jackknife_sd(grid, cost, R, s2, edges, n, config, scales)
+    return f, grid, J, grid[np.argmin(cost, axis=1)], sd
 
 
 def estimate_focal(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], pairs: np.ndarray, n_images: int,
@@ -266,17 +295,29 @@ def estimate_focal(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], pairs: 
     lo, hi = config.focal_range[0] * s, config.focal_range[1] * s
     note = ""
     if prior:
-        f, grid, J, per = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, prior / config.exif_range,
+        f, grid, J, per, sd = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, prior / config.exif_range,
                                   prior * config.exif_range, config, pmap, f"{tag}-exif")
         at_edge = min(f / grid[0], grid[-1] / f) < 1.0 + 1e-9 or int(np.argmin(J)) in (0, len(J) - 1)
         if not at_edge:
-            return FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per)
+            return _flagged(FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, sd_rel=sd),
+                            config)
         note = (f"the view graph disagrees with the EXIF focal {prior:.1f} px (its minimum is at the edge of "
                 f"[f/{config.exif_range:g}, f·{config.exif_range:g}]); searched {config.focal_range[0]:g}–"
                 f"{config.focal_range[1]:g} × max(w, h)")
         logger.warning("cameras: %s", note)
-    f, grid, J, per = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, lo, hi, config, pmap, tag)
-    return FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, note)
+    f, grid, J, per, sd = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, lo, hi, config, pmap, tag)
+    return _flagged(FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, note, sd), config)
+
+
+def _flagged(est: FocalEstimate, config: CamerasConfig) -> FocalEstimate:
+    """Mark a focal whose jackknife sd exceeds ``max_focal_sd`` as poorly determined, with the reason."""
+    if est.sd_rel > config.max_focal_sd:
+        est.determined = False
+        why = (f"focal poorly determined: leaving one image out moves it by {100 * est.sd_rel:.1f}% (jackknife sd; "
+               f"max_focal_sd {100 * config.max_focal_sd:g}%); the rotations may be off by degrees with no "
+               f"inconsistency to show it; give a K for these images")
+        est.note = f"{est.note}; {why}" if est.note else why
+    return est
 
 
 def _poselib(x1s, x2s, pp, thr, config, pmap, prior_txt, tag) -> FocalEstimate:

@@ -235,6 +235,8 @@ class CamerasStage(Stage[CamerasConfig]):
                 logger.warning("cameras: the focal of %d image(s) of %dx%d cannot be estimated (%s); keeping the %s "
                                "focal %.1f px", len(members), g[0], g[1], est.note, sources[members[0]],
                                K[members[0], 0, 0])
+            if not est.determined:
+                logger.warning("cameras: %d image(s) of %dx%d: %s", len(members), g[0], g[1], est.note)
             self._merge_group(estimate, entry)
             logger.info("cameras: focal %.1f px (%s%s) for %d image(s) of %dx%d from %d pairs", est.f, est.method,
                         f", {est.prior} prior" if est.prior else "", len(members), g[0], g[1], est.n_pairs)
