@@ -22,7 +22,8 @@ An EXIF focal is a prior, not the truth: the search is first confined to
 disagrees with EXIF, and the whole range is searched instead.
 
 Radial (:func:`estimate_radial`): a loose F-RANSAC on the measured pixels and κ on a
-coarse grid; κ is kept only if a likelihood-ratio test prefers it to κ = 0; then F
+coarse grid; κ is kept only if a quasi-likelihood ratio test (the drop discounted by the
+pairs' disagreement beyond their noise) prefers it to κ = 0; then F
 again on the points undistorted with it and κ on a fine grid around it.
 """
 
@@ -62,6 +63,10 @@ class CamerasConfig(Config):
     radial: Literal["auto", "estimate", "off"] = option(
         "auto", "one radial distortion parameter: auto estimates it for images no camera file describes; estimate "
                 "also for images with a K file that gives no distortion; off never (given distortion is still used)")
+    evidence: Literal["normal", "features"] = option(
+        "normal", "what the focal and distortion are estimated from: normal re-detects the images whose contrast "
+                  "threshold the features stage lowered (low texture) at the normal threshold and matches their "
+                  "pairs again; features: the features stage's keypoints and matches as they are")
     threshold_px: float = option(1.0, "F-RANSAC inlier threshold (px at the feature-extraction size)", gt=0)
     max_trials: int = option(10000, "F-RANSAC iteration cap per pair", ge=100)
     min_inliers: int = option(30, "pairs with fewer F inliers are not used", ge=8)
@@ -76,13 +81,17 @@ class CamerasConfig(Config):
     loss_px: float = option(2.0, "Cauchy scale of the Sampson distances (px)", gt=0)
     cap: float = option(25.0, "a pair's Δχ² counts fully up to about this, then logarithmically", gt=0)
     rotation_loss_deg: float = option(2.0, "Cauchy scale of the rotation-consistency residuals (deg)", gt=0)
+    max_focal_sd: float = option(0.05, "an estimated focal whose leave-one-image-out (jackknife) relative sd "
+                                       "exceeds this is flagged as poorly determined (the jackknife is "
+                                       "conservative: 1.6% on a clean 6-view graph whose error is 0.8%)", gt=0)
     min_pairs: int = option(3, "fewer usable pairs leave a camera group's focal at its prior", ge=1)
     radial_range: float = option(0.4, "κ searched in [-radial_range, radial_range] (κ at the scale max(w, h))", gt=0)
     radial_grid_points: int = option(33, "points of the coarse κ grid", ge=5)
     radial_refine: tuple[float, ...] = option((0.05, 21), "half-width and points of the fine κ grid")
     radial_loose_px: float = option(3.0, "F-RANSAC threshold before κ is known (px at extraction size)", gt=0)
-    radial_chi2: float = option(10.83, "κ is kept when it lowers the joint cost by more than this (χ²₁ 99.9%)",
-                                ge=0)
+    radial_chi2: float = option(10.83, "κ is kept when its drop of the joint cost, divided by the pairs' "
+                                       "dispersion, passes F(1, pairs − 1) at the level this χ²₁ quantile has "
+                                       "(10.83: 99.9%)", gt=0)
     seed: int = option(0, "RANSAC and subset seed")
     workers: int = option(2, "processes estimating pairs (1 = in this process)", ge=1, runtime=True)
     chunk_size: int = option(4, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
@@ -176,7 +185,9 @@ class FocalEstimate:
         method: the method used.  prior: ``"exif <f> px"`` or ``""``.
         n_pairs: pairs used.  grid: (G,) focal grid.  cost: (G,) joint cost on it.
         per_pair: (n_pairs,) each pair's own best grid focal.
-        note: why the prior was overruled, or why no estimate was made.
+        note: why the prior was overruled, why no estimate was made, or why it is poorly determined.
+        sd_rel: leave-one-image-out (jackknife) sd of log f (≈ relative sd).
+        determined: False when ``sd_rel`` exceeds ``max_focal_sd`` (a flag for the report).
     """
 
     f: float
@@ -187,9 +198,12 @@ class FocalEstimate:
     cost: np.ndarray = field(default_factory=lambda: np.zeros(0))
     per_pair: np.ndarray = field(default_factory=lambda: np.zeros(0))
     note: str = ""
+    sd_rel: float = float("nan")
+    determined: bool = True
 
     def summary(self) -> dict[str, Any]:
         return {"f": self.f, "method": self.method, "prior": self.prior, "n_pairs": self.n_pairs, "note": self.note,
+                "sd_rel": self.sd_rel, "determined": self.determined,
                 "grid": self.grid.tolist(), "cost": self.cost.tolist(),
                 "per_pair_median": float(np.median(self.per_pair)) if len(self.per_pair) else None}
 
@@ -211,9 +225,29 @@ def _joint(grid, cost, R, s2, edges, n, config, scales=None) -> tuple[float, np.
     return fk.joint_focal(grid, prof, rot, scales)
 
 
-def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost
-    and the pairs' own argmins."""
+def _jackknife_sd(grid, cost, R, s2, edges, n, config, scales) -> float:
+    """Leave-one-image-out (jackknife) standard deviation of log f: how much the focal rests on single images.
+
+    Each image with pairs is left out in turn with all its pairs, and the joint minimum is found again on the
+    same grid and weighting; ``sd = sqrt((m − 1)/m Σ (log f₍ᵢ₎ − mean)²)`` over the m images with pairs (Efron
+    & Stein). A focal fixed by one loop, one pair or a cut vertex moves when it goes, however sharp the full
+    cost's minimum. Infinite when leaving an image out leaves fewer than ``min_pairs`` pairs.
+    """
+    imgs = np.unique(edges)
+    logs = []
+    for i in imgs:  # one joint minimum per image (the averaging inside is vectorized over edges)
+        keep = (edges != i).all(axis=1)
+        if keep.sum() < config.min_pairs:
+            return float("inf")
+        logs.append(np.log(_joint(grid, cost[keep], R[keep], s2[keep], edges[keep], n, config, scales)[0]))
+    m = len(logs)
+    return float(np.sqrt((m - 1) / m * np.sum((np.array(logs) - np.mean(logs)) ** 2))) if m > 1 else float("inf")
+
+
+def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[float, np.ndarray, np.ndarray, np.ndarray,
+                                                                            float]:
+    """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost,
+    the pairs' own argmins and the jackknife sd of log f."""
     grid = fk.log_grid(lo, hi, config.grid_points)
     cost, R, s2 = _profiles(x1s, x2s, Fs, pp, grid, config, pmap, f"{tag}-coarse")
     f, J, scales = _joint(grid, cost, R, s2, edges, n, config)
@@ -226,7 +260,8 @@ def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[floa
         order = np.argsort(grid, kind="stable")
         grid, cost, R = grid[order], np.concatenate([cost, c2], 1)[:, order], np.concatenate([R, R2], 1)[:, order]
         f, J, _ = _joint(grid, cost, R, s2, edges, n, config, scales)
-    return f, grid, J, grid[np.argmin(cost, axis=1)]
+    sd = _jackknife_sd(grid, cost, R, s2, edges, n, config, scales)
+    return f, grid, J, grid[np.argmin(cost, axis=1)], sd
 
 
 def estimate_focal(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], pairs: np.ndarray, n_images: int,
@@ -260,17 +295,29 @@ def estimate_focal(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], pairs: 
     lo, hi = config.focal_range[0] * s, config.focal_range[1] * s
     note = ""
     if prior:
-        f, grid, J, per = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, prior / config.exif_range,
+        f, grid, J, per, sd = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, prior / config.exif_range,
                                   prior * config.exif_range, config, pmap, f"{tag}-exif")
         at_edge = min(f / grid[0], grid[-1] / f) < 1.0 + 1e-9 or int(np.argmin(J)) in (0, len(J) - 1)
         if not at_edge:
-            return FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per)
+            return _flagged(FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, sd_rel=sd),
+                            config)
         note = (f"the view graph disagrees with the EXIF focal {prior:.1f} px (its minimum is at the edge of "
                 f"[f/{config.exif_range:g}, f·{config.exif_range:g}]); searched {config.focal_range[0]:g}–"
                 f"{config.focal_range[1]:g} × max(w, h)")
         logger.warning("cameras: %s", note)
-    f, grid, J, per = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, lo, hi, config, pmap, tag)
-    return FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, note)
+    f, grid, J, per, sd = _search(list(x1u), list(x2u), Fs, edges, n_images, pp, lo, hi, config, pmap, tag)
+    return _flagged(FocalEstimate(f, config.focal_method, prior_txt, len(idx), grid, J, per, note, sd), config)
+
+
+def _flagged(est: FocalEstimate, config: CamerasConfig) -> FocalEstimate:
+    """Mark a focal whose jackknife sd exceeds ``max_focal_sd`` as poorly determined, with the reason."""
+    if est.sd_rel > config.max_focal_sd:
+        est.determined = False
+        why = (f"focal poorly determined: leaving one image out moves it by {100 * est.sd_rel:.1f}% (jackknife sd; "
+               f"max_focal_sd {100 * config.max_focal_sd:g}%); the rotations may be off by degrees with no "
+               f"inconsistency to show it; give a K for these images")
+        est.note = f"{est.note}; {why}" if est.note else why
+    return est
 
 
 def _poselib(x1s, x2s, pp, thr, config, pmap, prior_txt, tag) -> FocalEstimate:
@@ -294,7 +341,9 @@ class RadialEstimate:
 
     Attributes:
         kappa: κ (0 when not significant).  kappa_raw: the minimizer before the test.
-        significant: the likelihood-ratio test kept it.  delta_chi2: its drop of the joint cost.
+        significant: the quasi-likelihood ratio test kept it (:func:`pipeline.frontend.radial.kappa_test`).
+        delta_chi2: its drop of the joint cost.  dispersion: the pairs' disagreement φ the drop is divided by.
+        critical: the threshold ``delta_chi2 / max(φ, 1)`` had to pass.
         s: nominal scale (px).  c: (2,) centre.  n_pairs: pairs used.  note: why no estimate.
     """
 
@@ -306,14 +355,17 @@ class RadialEstimate:
     c: np.ndarray
     n_pairs: int
     note: str = ""
+    dispersion: float = 1.0
+    critical: float = float("nan")
 
     def summary(self) -> dict[str, Any]:
         return {"kappa": self.kappa, "kappa_raw": self.kappa_raw, "significant": self.significant,
-                "delta_chi2": self.delta_chi2, "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs,
+                "delta_chi2": self.delta_chi2, "dispersion": self.dispersion, "critical": self.critical, "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs,
                 "note": self.note}
 
 
-def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple[float, np.ndarray, int]:
+def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag
+                  ) -> tuple[float, np.ndarray, int, np.ndarray, np.ndarray]:
     import functools  # noqa: PLC0415
 
     u1 = [radial_undistort(a, c, s, kappa0)[0] for a in x1s]
@@ -321,7 +373,7 @@ def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple
     ok, res = _verified(u1, u2, thr, config, pmap, f"{tag}-F")
     idx = np.flatnonzero(ok)
     if len(idx) < config.min_pairs:
-        return float("nan"), np.zeros(len(grid)), len(idx)
+        return float("nan"), np.zeros(len(grid)), len(idx), np.zeros((0, len(grid))), np.zeros(0)
     g0 = int(np.argmin(np.abs(grid - kappa0)))
     tasks = []
     for k in idx:
@@ -329,8 +381,9 @@ def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag) -> tuple
         tasks.append((a, b, res[k]["F"], c, s, grid, g0))
     out = pmap(f"{tag}-profile", tasks, functools.partial(radial_profile_chunk, config=config))
     cost = np.array([r["cost"] for r in out]).reshape(-1, len(grid))
-    kappa, J = rk.joint_kappa(grid, cost, np.array([float(r["sigma2"]) for r in out]), config.cap)
-    return kappa, J, len(idx)
+    s2 = np.array([float(r["sigma2"]) for r in out])
+    kappa, J = rk.joint_kappa(grid, cost, s2, config.cap)
+    return kappa, J, len(idx), cost, s2
 
 
 def estimate_radial(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], size: tuple[int, int], scale: np.ndarray,
@@ -349,16 +402,17 @@ def estimate_radial(x1s: Sequence[np.ndarray], x2s: Sequence[np.ndarray], size: 
     x2s = [np.asarray(b, np.float64) for b in x2s]
     r = config.radial_range
     coarse = np.linspace(-r, r, config.radial_grid_points)
-    k0, J0, n0 = _radial_round(x1s, x2s, config.radial_loose_px * scale, c, s, 0.0, coarse, config, pmap,
+    k0, _, n0, cost0, s20 = _radial_round(x1s, x2s, config.radial_loose_px * scale, c, s, 0.0, coarse, config, pmap,
                                f"{tag}-coarse")
     if not np.isfinite(k0):
         return RadialEstimate(0.0, float("nan"), False, 0.0, s, c, n0,
                               f"{n0} usable pairs < min_pairs={config.min_pairs}")
-    drop = float(np.interp(0.0, coarse, J0) - np.interp(k0, coarse, J0))
-    if not rk.kappa_is_significant(coarse, J0, k0, config.radial_chi2):
-        return RadialEstimate(0.0, k0, False, drop, s, c, n0)
+    significant, drop, phi, crit = rk.kappa_test(coarse, cost0, s20, k0, config.radial_chi2, config.cap)
+    if not significant:
+        return RadialEstimate(0.0, k0, False, drop, s, c, n0, dispersion=phi, critical=crit)
     half, n_fine = config.radial_refine
     fine = k0 + np.linspace(-half, half, int(n_fine))
-    k1, _, n1 = _radial_round(x1s, x2s, config.threshold_px * scale, c, s, k0, fine, config, pmap, f"{tag}-fine")
+    k1, _, n1, _, _ = _radial_round(x1s, x2s, config.threshold_px * scale, c, s, k0, fine, config, pmap, f"{tag}-fine")
     kappa = k1 if np.isfinite(k1) else k0
-    return RadialEstimate(kappa, kappa, True, drop, s, c, n1 if np.isfinite(k1) else n0)
+    return RadialEstimate(kappa, kappa, True, drop, s, c, n1 if np.isfinite(k1) else n0, dispersion=phi,
+                          critical=crit)

@@ -47,6 +47,7 @@ from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.frontend.camera_estimate import CamerasConfig, estimate_focal, estimate_radial
+from pipeline.frontend.camera_evidence import Evidence, stage_evidence
 from pipeline.frontend.distortion import (COLMAP_OFFSET, CameraModel, is_camera_model_file, radial_undistort,
                                           undistort_points)
 from pipeline.frontend.focal import K_from_focal
@@ -196,25 +197,32 @@ class CamerasStage(Stage[CamerasConfig]):
             if models[k].has_distortion:  # type: ignore[union-attr]
                 kp[k], undistorted[k] = undistort_points(models[k], kp[k]), True  # type: ignore[arg-type]
         estimate: dict[str, Any] = {"groups": []}
-        ms = load_matches(work) if (radial_set.any() or focal_set.any()) else None
+        ev = None
+        if radial_set.any() or focal_set.any():  # the estimation's own keypoints and matches
+            ev = self._evidence(fs, load_matches(work))
+            estimate["redetected"] = ev.redetected
+        redetected = set(ev.redetected if ev is not None else [])
+        ekp = [ev.keypoints[k] if fs.names[k] in redetected else kp[k] for k in range(n)]
         scale = np.ones(n)
         max_size = fs.config.max_image_size if fs.config is not None else 0
         if max_size > 0:
             scale = np.maximum(fs.sizes.max(axis=1) / max_size, 1.0)
         kappa = np.zeros(n)
         for g, members in _groups(gkey, radial_set).items():
-            x1, x2, _, sc = self._pair_data(ms, members, kp, scale)
+            x1, x2, _, sc = self._pair_data(ev, members, ekp, scale)
             r = estimate_radial(x1, x2, g[:2], sc, cfg, self._pmap, tag=f"radial-{g[0]}x{g[1]}-{g[2]}")
             estimate["groups"].append({"images": [fs.names[k] for k in members], "radial": r.summary()})
-            logger.info("cameras: radial κ = %.4f (raw %.4f, Δχ² %.1f, %s) for %d image(s) of %dx%d from %d pairs",
-                        r.kappa, r.kappa_raw, r.delta_chi2, "kept" if r.significant else "not significant",
-                        len(members), g[0], g[1], r.n_pairs)
+            logger.info("cameras: radial κ = %.4f (raw %.4f, Δχ² %.1f / dispersion %.2f vs %.1f, %s) for %d image(s) "
+                        "of %dx%d from %d pairs", r.kappa, r.kappa_raw, r.delta_chi2, max(r.dispersion, 1.0),
+                        r.critical, "kept" if r.significant else "not significant", len(members), g[0], g[1],
+                        r.n_pairs)
             if r.kappa != 0.0:
                 for k in members:
                     kp[k], undistorted[k] = radial_undistort(kp[k], r.c, r.s, r.kappa)[0], True
+                    ekp[k] = radial_undistort(ekp[k], r.c, r.s, r.kappa)[0] if fs.names[k] in redetected else kp[k]
                     kappa[k], dist_src[k] = r.kappa, "estimated:radial"
         for g, members in _groups(gkey, focal_set).items():
-            x1, x2, pairs, sc = self._pair_data(ms, members, kp, scale)
+            x1, x2, pairs, sc = self._pair_data(ev, members, ekp, scale)
             est = estimate_focal(x1, x2, pairs, len(members), g[:2], cfg.threshold_px * sc, cfg, self._pmap,
                                  prior=g[2], tag=f"focal-{g[0]}x{g[1]}-{g[2]}")
             entry = {"images": [fs.names[k] for k in members], "focal": est.summary()}
@@ -227,11 +235,19 @@ class CamerasStage(Stage[CamerasConfig]):
                 logger.warning("cameras: the focal of %d image(s) of %dx%d cannot be estimated (%s); keeping the %s "
                                "focal %.1f px", len(members), g[0], g[1], est.note, sources[members[0]],
                                K[members[0], 0, 0])
+            if not est.determined:
+                logger.warning("cameras: %d image(s) of %dx%d: %s", len(members), g[0], g[1], est.note)
             self._merge_group(estimate, entry)
             logger.info("cameras: focal %.1f px (%s%s) for %d image(s) of %dx%d from %d pairs", est.f, est.method,
                         f", {est.prior} prior" if est.prior else "", len(members), g[0], g[1], est.n_pairs)
         final = [self._final_model(models[k], K[k], kappa[k], fs.sizes[k]) for k in range(n)]
         return self._write(fs, K, sources, final, dist_src, kp, any(undistorted), estimate)
+
+    def _evidence(self, fs: Any, ms: Any) -> Evidence:
+        """The keypoints and matches the estimation uses (``evidence``, :mod:`pipeline.frontend.camera_evidence`)."""
+        if self.config.evidence == "features":
+            return Evidence([np.asarray(x, np.float64) for x in fs.keypoints], ms.pairs, ms.matches, [])
+        return stage_evidence(self.folder, fs, ms)
 
     @staticmethod
     def _merge_group(estimate: dict[str, Any], entry: dict[str, Any]) -> None:

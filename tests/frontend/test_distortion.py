@@ -135,14 +135,16 @@ def test_resolve_intrinsics_reads_the_pinhole_part(tmp_path: Path) -> None:
     assert src == [f"file:{tmp_path / 'm'}"] * 2
 
 
-def _distorted_pairs(kappa: float, n_pairs: int = 6, seed: int = 0):
+def _distorted_pairs(kappa: float | np.ndarray, n_pairs: int = 6, seed: int = 0):
+    """Pairs of a SIMPLE_RADIAL camera (κ at scale 1024); ``kappa`` (n_pairs,) gives each pair its own lens."""
     rng = np.random.default_rng(seed)
     w, h, f, s = 1024, 768, 800.0, 1024.0
     c = np.array([(w - 1) / 2, (h - 1) / 2])
-    cam = D.simple_radial(s, c, kappa, w, h)
+    kappas = np.broadcast_to(np.asarray(kappa, float), (n_pairs,))
     K = np.array([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1]])
     x1s, x2s = [], []
-    for _ in range(n_pairs):
+    for p in range(n_pairs):
+        cam = D.simple_radial(s, c, float(kappas[p]), w, h)
         R = so3.exp(rng.normal(0, 0.15, 3))
         t = rng.normal(size=3)
         X = np.column_stack([rng.uniform(-4, 4, 400), rng.uniform(-3, 3, 400), rng.uniform(6, 14, 400)])
@@ -165,3 +167,27 @@ def test_radial_estimated_without_the_focal() -> None:
     none = estimate_radial(*_distorted_pairs(0.0, seed=1)[:2], size, np.ones(6), cfg)
     assert not none.significant and none.kappa == 0.0
     assert rk.kappa_to_k1(-0.09, 1024.0, 512.0) == pytest.approx(-0.0225)
+
+
+def test_a_radial_term_the_pairs_disagree_on_is_not_kept() -> None:
+    """Each pair has its own lens: κ = 0.02 + 0.03·z over 12 pairs (z standardized), a mean about two
+    standard errors of the pairs' spread from 0. The plain likelihood-ratio drop calls it significant, the
+    quasi-likelihood test does not; κ = −0.12 + 0.03·z it still keeps."""
+    cfg = CamerasConfig(workers=1, radial_grid_points=17, radial_refine=(0.05, 11), max_points=300)
+    z = np.random.default_rng(7).standard_normal(12)
+    z = (z - z.mean()) / z.std()
+    x1s, x2s, size = _distorted_pairs(0.02 + 0.03 * z, n_pairs=12, seed=2)
+    est = estimate_radial(x1s, x2s, size, np.ones(12), cfg)
+    assert est.delta_chi2 > cfg.radial_chi2, est  # what the plain χ²₁ test would have kept
+    assert est.dispersion > 2.0 and not est.significant and est.kappa == 0.0, est
+    x1s, x2s, size = _distorted_pairs(-0.12 + 0.03 * z, n_pairs=12, seed=2)
+    est = estimate_radial(x1s, x2s, size, np.ones(12), cfg)
+    assert est.significant and abs(est.kappa + 0.12) < 0.03, est
+
+
+def test_kappa_test_dispersion_is_one_under_the_model() -> None:
+    """Pairs that share one lens and whose noise is their σ: φ ≈ 1 (Pearson χ²_{M−1}/(M−1), sd ≈ 0.3 at M = 12)."""
+    cfg = CamerasConfig(workers=1, radial_grid_points=17, radial_refine=(0.05, 11), max_points=300)
+    x1s, x2s, size = _distorted_pairs(-0.09, n_pairs=12, seed=3)
+    est = estimate_radial(x1s, x2s, size, np.ones(12), cfg)
+    assert 0.3 < est.dispersion < 2.0 and est.significant, est

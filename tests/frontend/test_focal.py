@@ -111,3 +111,18 @@ def test_config_checks() -> None:
         CamerasConfig(radial_refine=(0.05,))
     with pytest.raises(ConfigError, match="focal_method"):
         CamerasConfig(focal_method="bougnoux")  # type: ignore[arg-type]
+
+
+def test_focal_jackknife_flags_a_focal_that_rests_on_one_image() -> None:
+    """A complete graph of 6 views fixes f: leave-one-image-out sd under max_focal_sd (5%) and the truth within 2%. The same views
+    seen only through pairs with image 0 (a star): leaving image 0 out leaves no pair, so the focal rests on it and
+    is flagged, with the reason."""
+    x1s, x2s, pairs, _, _ = _views(6, f=900.0, seed=2)
+    cfg = CamerasConfig(grid_points=13, refine_points=5, max_points=200, workers=1)
+    est = estimate_focal(x1s, x2s, pairs, 6, (800, 600), np.full(len(pairs), 2.0), cfg)
+    assert est.determined and 0 < est.sd_rel < cfg.max_focal_sd and abs(est.f / 900 - 1) < 0.02, est.sd_rel
+    star = np.flatnonzero(pairs[:, 0] == 0)
+    est = estimate_focal([x1s[k] for k in star], [x2s[k] for k in star], pairs[star], 6, (800, 600),
+                         np.full(len(star), 2.0), cfg)
+    assert not est.determined and est.sd_rel == np.inf and "poorly determined" in est.note
+    assert est.summary()["determined"] is False
