@@ -47,7 +47,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipeline.core.atomic import write_json  # noqa: E402
-from pipeline.core.dask_executor import DaskExecutor, LocalDaskCluster  # noqa: E402
+from pipeline.core.dask_executor import DaskExecutor, LocalDaskCluster, client_session  # noqa: E402
 from pipeline.frontend.feature_stage import FeaturesStage  # noqa: E402
 from pipeline.frontend.features import FeatureConfig  # noqa: E402
 from pipeline.frontend.matching import MatchingConfig  # noqa: E402
@@ -101,9 +101,10 @@ def _process_cpu() -> float:
 def per_pair_stages(work: Path, chunk_size: int, **executor: object) -> float:
     """Matching, two-view and two-view BA in ``work`` (features already there); wall time."""
     t0 = time.perf_counter()
-    MatchingStage(work, MatchingConfig(chunk_size=chunk_size, **executor), progress=False).run()
-    TwoViewStage(work, TwoViewConfig(chunk_size=chunk_size, progress=False, **executor)).run()
-    TwoViewBAStage(work, BAConfig(chunk_size=chunk_size, progress=False, **executor)).run()
+    with client_session():  # one client of the cluster for the three stages, as run.py has
+        MatchingStage(work, MatchingConfig(chunk_size=chunk_size, **executor), progress=False).run()
+        TwoViewStage(work, TwoViewConfig(chunk_size=chunk_size, progress=False, **executor)).run()
+        TwoViewBAStage(work, BAConfig(chunk_size=chunk_size, progress=False, **executor)).run()
     return time.perf_counter() - t0
 
 

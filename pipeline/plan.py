@@ -105,20 +105,25 @@ class Plan:
     def executors(self) -> Iterator[None]:
         """One local Dask cluster for every per-item stage set to ``executor: dask`` without a scheduler.
 
-        The stages reach it by its address (as ``--scheduler`` would); it is closed, its
-        workers gone, when the block ends, also on Ctrl-C.
+        The stages reach it by its address (as ``--scheduler`` would), through one client shared by the
+        stages (:func:`pipeline.core.dask_executor.client_session`); the cluster is closed, its workers
+        gone, when the block ends, also on Ctrl-C.
         """
-        want = [s for s in PER_ITEM if self.configs[s].executor == "dask" and not self.configs[s].scheduler]
-        if not want:
+        dask = [s for s in PER_ITEM if self.configs[s].executor == "dask" or self.configs[s].scheduler]
+        if not dask:
             yield
             return
-        from pipeline.core.dask_executor import local_cluster  # noqa: PLC0415
+        from pipeline.core.dask_executor import client_session, local_cluster  # noqa: PLC0415
 
+        want = [s for s in dask if not self.configs[s].scheduler]
         saved = {s: self.configs[s] for s in want}
-        with local_cluster(max(self.configs[s].workers for s in want)) as cluster:
-            logger.info("Dask: a local cluster of %d worker(s) at %s", cluster.workers, cluster.address)
-            self.configs.update({s: self.configs[s].replace(scheduler=cluster.address) for s in want})
-            self.features.config = self.configs["features"]
+        with contextlib.ExitStack() as stack:
+            if want:
+                cluster = stack.enter_context(local_cluster(max(self.configs[s].workers for s in want)))
+                logger.info("Dask: a local cluster of %d worker(s) at %s", cluster.workers, cluster.address)
+                self.configs.update({s: self.configs[s].replace(scheduler=cluster.address) for s in want})
+                self.features.config = self.configs["features"]
+            stack.enter_context(client_session())  # closed before the cluster
             try:
                 yield
             finally:

@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterator, Sequence, TypeVar
 from pipeline.core.errors import PipelineError
 from pipeline.core.parallel import die_with_parent
 
-__all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "single_thread",
+__all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "client_session", "single_thread",
            "require_distributed"]
 
 logger = logging.getLogger(__name__)
@@ -145,6 +145,54 @@ def check_scheduler(address: str, timeout: float | None = None) -> int:
     return n
 
 
+_SESSION: dict[str, Any] | None = None
+
+
+@contextlib.contextmanager
+def client_session() -> Iterator[None]:
+    """Within the block, the stages that reach a scheduler by its address share one client of it.
+
+    Each stage used to check the scheduler, connect and set up the workers again: a fifth of a second of
+    work in this process, during which the workers waited. ``run.py`` runs its stages in one session; the
+    clients are closed at its end (nested sessions share the outer one).
+    """
+    global _SESSION
+    if _SESSION is not None:
+        yield
+        return
+    _SESSION = {}
+    try:
+        yield
+    finally:
+        clients, _SESSION = _SESSION, None
+        for client in clients.values():
+            with contextlib.suppress(Exception):
+                client.close()
+
+
+def _connect(address: str) -> Any:
+    """A client of the scheduler at ``address`` whose workers run single-threaded (checked first)."""
+    distributed = require_distributed()
+    check_scheduler(address)
+    client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    try:
+        client.run(single_thread, None)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+def _session_client(address: str) -> Any | None:
+    """The session's client of ``address`` (connected on first use), or None outside a session."""
+    if _SESSION is None:
+        return None
+    client = _SESSION.get(address)
+    if client is None or client.status != "running":
+        client = _SESSION[address] = _connect(address)
+    return client
+
+
 class DaskExecutor:
     """Maps functions over items on ``dask.distributed``, results in order.
 
@@ -158,15 +206,16 @@ class DaskExecutor:
     def __init__(self, workers: int | None = None, scheduler: str | None = None) -> None:
         distributed = require_distributed()
         self._local: LocalDaskCluster | None = None
+        self._shared = False
         try:
             if scheduler is None:
                 self._local = LocalDaskCluster(workers)
-                address, client_pid = self._local.address, os.getpid()
+                self.client = distributed.Client(self._local.address, timeout=CONNECT_TIMEOUT_S,
+                                                 set_as_default=False)
+                self.client.run(single_thread, os.getpid())
             else:
-                check_scheduler(scheduler)
-                address, client_pid = scheduler, None
-            self.client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
-            self.client.run(single_thread, client_pid)
+                shared = _session_client(scheduler)
+                self.client, self._shared = (shared, True) if shared is not None else (_connect(scheduler), False)
             self.workers = max(1, len(self.client.scheduler_info()["workers"]))
         except BaseException:
             if self._local is not None:
@@ -184,6 +233,8 @@ class DaskExecutor:
             self.client.cancel(futures)
 
     def close(self) -> None:
+        if self._shared:  # the session's connection serves the next stage too
+            return
         try:
             self.client.close()
         finally:

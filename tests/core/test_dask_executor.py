@@ -13,6 +13,7 @@ import numpy as np
 import psutil
 import pytest
 
+from pipeline.core.dask_executor import client_session
 from pipeline.core.errors import PipelineError
 from pipeline.core.parallel import make_executor
 from pipeline.core.store import ItemStore
@@ -99,6 +100,20 @@ def test_workers_of_an_existing_cluster_run_single_threaded_and_in_order(cluster
         env = set(ex.map(_worker_env, range(8)))
     assert {(omp, n) for _, omp, n in env} == {("1", 1)}
     assert len(cluster.scheduler_info["workers"]) == 2  # an external cluster outlives the executor
+
+
+def test_stages_of_a_session_share_one_client_closed_at_its_end(cluster):
+    address = cluster.scheduler_address
+    with client_session():
+        with make_executor(2, "processes", address) as a:
+            assert list(a.map(_square, range(6))) == [x * x for x in range(6)]
+        with make_executor(2, "processes", address) as b:  # the next stage: the same, still open, client
+            assert b.client is a.client and b.client.status == "running"
+            assert {(omp, n) for _, omp, n in b.map(_worker_env, range(4))} == {("1", 1)}
+    assert a.client.status == "closed"
+    with make_executor(2, "processes", address) as c:  # outside a session: a client of its own
+        assert c.client is not a.client
+    assert c.client.status == "closed" and len(cluster.scheduler_info["workers"]) == 2
 
 
 def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypatch):
