@@ -5,8 +5,8 @@ degrees after the ℓ2 alignment of ``pipeline.evaluate``, every ratio from this
 
 ``real``
     The view graphs of fountain-P11, castle-P30 and templeSparseRing (``--runs``; by
-    default ``/work/runs/<scene>/viewgraph.npz``, written by ``run.py`` before issue 15,
-    with the truth named in the run's ``metrics.json``). Methods: ``colmap-ra``, ours
+    default ``/work/runs/<scene>/viewgraph.npz``, the checked graph ``run.py --K <true K>
+    --gt <truth> --out RUNS/<scene>`` wrote, with the truth named in the run's ``metrics.json``). Methods: ``colmap-ra``, ours
     (``irls``, ``irls-h``), the robust SDP (default calibrated cost, and ``cost=raw``),
     and the methods as they were before issue 15 (``irls`` with the Talwar polish and the
     ℓ1 start, ``irls-h`` with one global scale), timed in the same run.
@@ -93,7 +93,7 @@ def cert_of(res: Any) -> dict[str, Any]:
 
 # ------------------------------------------------------------------------------------ real
 def real(runs: Path, repeat: int) -> dict[str, Any]:
-    out: dict[str, Any] = {"source": f"{runs}/<scene>/viewgraph.npz (view graphs written by run.py before issue 15)"}
+    out: dict[str, Any] = {"source": f"{runs}/<scene>/viewgraph.npz (the checked view graphs run.py wrote there)"}
     for scene in SCENES:
         d = runs / scene
         vg = ViewGraph.load(d / "viewgraph.npz")
