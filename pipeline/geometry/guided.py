@@ -41,7 +41,7 @@ from scipy.stats import poisson
 from pipeline.core import so3
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 
-__all__ = ["fundamental_from_pose", "epipolar_distances", "guided_matches", "null_poses", "GuidedOutcome",
+__all__ = ["fundamental_from_pose", "epipolar_distances", "guided_matches", "null_poses", "harvest", "GuidedOutcome",
            "estimate_pair_guided"]
 
 _BLOCK_BYTES = 1 << 25
@@ -177,6 +177,22 @@ def _seed(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray, g:
     return estimate_pair(x_i, x_j, K_i, K_j, config.replace(min_inliers=k, min_matches=max(k, 5)), pixel_scale)
 
 
+def harvest(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_j: np.ndarray, R: np.ndarray, t: np.ndarray,
+            K_i: np.ndarray, K_j: np.ndarray, config: TwoViewConfig, pixel_scale: float = 1.0
+            ) -> tuple[np.ndarray, int, float]:
+    """The guided matches of the pose ``(R, t)`` and their significance (module docstring, steps 2–3).
+
+    Returns:
+        (m, 2) int32 matches in the band of ``(R, t)``; the chance level λ (the largest
+        harvest of the :func:`null_poses`, at least 1); ``P(Poisson(λ) ≥ m)``.
+    """
+    found = guided_matches(kp_i, q_i, kp_j, q_j, [(R, t), *null_poses(R, t, config.guided_null_deg)], K_i, K_j,
+                           band_px=config.guided_band_px * pixel_scale, ratio=config.guided_ratio,
+                           nfa_max=config.guided_nfa)
+    lam = max(max(len(x) for x in found[1:]), 1)
+    return found[0], lam, float(poisson.sf(len(found[0]) - 1, lam))
+
+
 def estimate_pair_guided(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_j: np.ndarray, matches: np.ndarray,
                          K_i: np.ndarray, K_j: np.ndarray, config: TwoViewConfig, pixel_scale: float = 1.0
                          ) -> tuple[PairGeometry, np.ndarray, GuidedOutcome]:
@@ -199,18 +215,15 @@ def estimate_pair_guided(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_
     best_g, best_m = g, matches
     for _ in range(config.guided_rounds):
         if not seed.ok or seed.small_baseline or not np.linalg.norm(seed.t) > 0:
-            out.reason = "no seed pose with a baseline" if not out.used else out.reason
+            out.reason = out.reason if out.used else "no seed pose with a baseline"
             break
-        harvests = guided_matches(kp_i, q_i, kp_j, q_j, [(seed.R, seed.t), *null_poses(seed.R, seed.t,
-                                  config.guided_null_deg)], K_i, K_j, band_px=config.guided_band_px * pixel_scale,
-                                  ratio=config.guided_ratio, nfa_max=config.guided_nfa)
-        h, lam = len(harvests[0]), max(max(len(x) for x in harvests[1:]), 1)
-        p = float(poisson.sf(h - 1, lam))
-        out.n_harvest, out.n_null, out.p_value = h, lam, p
-        if p > config.guided_alpha:
-            out.reason = out.reason if out.used else f"harvest {h} not above chance (λ = {lam}, p = {p:.2g})"
+        found, out.n_null, out.p_value = harvest(kp_i, q_i, kp_j, q_j, seed.R, seed.t, K_i, K_j, config, pixel_scale)
+        out.n_harvest = len(found)
+        if out.p_value > config.guided_alpha:
+            out.reason = out.reason if out.used else (f"harvest {len(found)} not above chance (λ = {out.n_null}, "
+                                                      f"p = {out.p_value:.2g})")
             break
-        union = np.unique(np.concatenate([matches, harvests[0]]), axis=0)
+        union = np.unique(np.concatenate([matches, found]), axis=0)
         g2 = estimate_pair(kp_i[union[:, 0]], kp_j[union[:, 1]], K_i, K_j, config, pixel_scale)
         if not g2.ok:
             out.reason = out.reason if out.used else f"re-estimation failed: {g2.reason}"
