@@ -18,8 +18,10 @@ For a pair whose RANSAC found a pose (possibly a weak one, below ``min_inliers``
    those poses turn every epipolar plane about the baseline, so each band moves across
    its line and misses the true matches, but the poses are as plausible as the seed in
    every other respect. Their largest harvest is the chance level λ; the seed's harvest
-   ``h`` must be improbable under it, ``P(Poisson(λ) ≥ h) ≤ guided_alpha``. A wrong seed explains the descriptors no better than its neighbours
-   and is left as it was: guided matching never creates a pair from its own prediction;
+   ``h`` must be improbable under it, ``P(Poisson(λ) ≥ h) ≤ guided_alpha``. A wrong seed
+   explains the descriptors no better than its neighbours and is left as it was: guided
+   matching never creates a pair from its own prediction. (It cannot see a wrong pose
+   that fits *another* real structure, a repeated one: notes/issue-13.md, guided matching);
 4. re-estimates the pair from scratch (:func:`~pipeline.geometry.ransac.estimate_pair`:
    RANSAC, cheirality, refinement, zero-motion test) on its putative matches plus the
    harvest, so the measured rotation comes from the pair's own matches, and the two-view
@@ -41,8 +43,8 @@ from scipy.stats import poisson
 from pipeline.core import so3
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 
-__all__ = ["fundamental_from_pose", "epipolar_distances", "guided_matches", "null_poses", "harvest", "GuidedOutcome",
-           "estimate_pair_guided"]
+__all__ = ["GuidedOutcome", "epipolar_distances", "estimate_pair_guided", "fundamental_from_pose",
+           "guided_matches", "harvest", "null_poses"]
 
 _BLOCK_BYTES = 1 << 25
 
@@ -203,8 +205,12 @@ def estimate_pair_guided(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_
         matches: (m, 2) putative matches (keypoint indices in i, in j).
         K_i, K_j: (3, 3) intrinsics; config: options (``guided_*``); pixel_scale: as for estimate_pair.
     Returns:
-        the geometry, the matches it was estimated from (its ``inlier_mask`` indexes them), and the outcome.
+        the geometry (``n_guided``: matches the harvest added), the matches it was estimated from (its
+        ``inlier_mask`` indexes them), and the outcome.
     """
+    matches = np.asarray(matches)
+    if matches.ndim != 2 or matches.shape[1] != 2 or matches.dtype.kind not in "iu":
+        raise ValueError(f"matches.shape={matches.shape}, dtype={matches.dtype} but expected (m, 2) integer indices")
     g = estimate_pair(kp_i[matches[:, 0]], kp_j[matches[:, 1]], K_i, K_j, config, pixel_scale)
     out = GuidedOutcome(reason="off")
     if not config.guided:
@@ -233,5 +239,6 @@ def estimate_pair_guided(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_
             out.reason = out.reason if out.used else f"re-estimated rotation {change:.1f}° from its seed"
             break
         out.used, out.reason, out.n_added = True, "", len(union) - len(matches)
+        g2.n_guided = out.n_added
         best_g, best_m, seed = g2, union, g2
     return best_g, best_m, out

@@ -239,8 +239,7 @@ def _estimate_chunk(tasks: list[Task], config: TwoViewConfig) -> list[dict[str, 
         m = _match_chunk(cm)[km]["matches"].astype(np.int32).reshape(-1, 2)
         q_a, q_b = (_root_sift(ca, ka), _root_sift(cb, kb)) if config.guided else (None, None)
         if q_a is not None and q_b is not None:
-            g, m, how = estimate_pair_guided(kp_a, q_a, kp_b, q_b, m, K_i, K_j, config, pixel_scale)
-            g.n_guided = how.n_added if how.used else 0
+            g, m, _ = estimate_pair_guided(kp_a, q_a, kp_b, q_b, m, K_i, K_j, config, pixel_scale)
         else:
             g = estimate_pair(kp_a[m[:, 0]], kp_b[m[:, 1]], K_i, K_j, config, pixel_scale=pixel_scale)
         item = {f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)}

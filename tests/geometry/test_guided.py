@@ -1,4 +1,4 @@
-"""Guided matching (pipeline.geometry.guided) against known truth: synthetic bearings and a rendered low-texture pair."""
+"""Guided matching (pipeline.geometry.guided) against known truth: synthetic pairs, a rendered low-texture pair."""
 
 from __future__ import annotations
 
@@ -9,7 +9,13 @@ import pytest
 from pipeline.core import so3
 from pipeline.frontend.features import extract_sift_adaptive
 from pipeline.frontend.matching import match_descriptors, root_sift
-from pipeline.geometry.guided import epipolar_distances, estimate_pair_guided, fundamental_from_pose, guided_matches, harvest
+from pipeline.geometry.guided import (
+    epipolar_distances,
+    estimate_pair_guided,
+    fundamental_from_pose,
+    guided_matches,
+    harvest,
+)
 from pipeline.geometry.ransac import TwoViewConfig, estimate_pair
 from pipeline.synthetic.lowtex import LowTexConfig, render_lowtex
 from pipeline.synthetic.pairs import synthetic_pair
@@ -67,7 +73,8 @@ def rendered():
         """(m,) bool: keypoint a, lifted with view a's depth map and projected into view b, lands within 3 px."""
         x = feats[a].xy[m[:, 0]].astype(float)
         h, w = scene.depths[a].shape
-        z = scene.depths[a][np.clip(np.round(x[:, 1]).astype(int), 0, h - 1), np.clip(np.round(x[:, 0]).astype(int), 0, w - 1)]
+        rows, cols = np.round(x[:, 1]).astype(int), np.round(x[:, 0]).astype(int)
+        z = scene.depths[a][np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)]
         z = np.where(np.isfinite(z), z, 0.0)
         X = (np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(scene.K[a]).T) * z[:, None]
         p = ((X - scene.t[a]) @ scene.R[a] @ scene.R[b].T + scene.t[b]) @ scene.K[b].T
@@ -108,7 +115,8 @@ def test_a_weak_rendered_pair_is_re_estimated_from_its_own_matches_more_precisel
     plain = estimate_pair(d["kp_i"][d["matches"][:, 0]], d["kp_j"][d["matches"][:, 1]], d["K_i"], d["K_j"])
     g, m, how = estimate_pair_guided(d["kp_i"], d["q_i"], d["kp_j"], d["q_j"], d["matches"], d["K_i"], d["K_j"], GUIDED)
     assert plain.ok and plain.n_inliers < GUIDED.guided_max_inliers  # a weak pair
-    assert how.used and g.ok and g.inlier_mask.shape == (len(m),) and how.n_added == len(m) - len(d["matches"])
+    assert how.used and g.ok and g.inlier_mask.shape == (len(m),)
+    assert g.n_guided == how.n_added == len(m) - len(d["matches"])
     assert correct(2, 3, m[g.inlier_mask]).sum() >= 2 * correct(2, 3, d["matches"][plain.inlier_mask]).sum()
     assert _deg(g.R, d["R"]) < 1.5
     off, m_off, how_off = estimate_pair_guided(d["kp_i"], d["q_i"], d["kp_j"], d["q_j"], d["matches"], d["K_i"],
@@ -128,3 +136,11 @@ def test_a_wrong_seed_on_views_that_do_not_overlap_gives_no_accepted_pair(render
     g, _, how = estimate_pair_guided(d["kp_i"], d["q_i"], d["kp_j"], d["q_j"], m.astype(np.int32), d["K_i"], d["K_j"],
                                      cfg)
     assert not g.ok and not how.used, (g.n_inliers, how)
+
+
+def test_matches_of_the_wrong_shape_are_refused(rendered):
+    pair, _ = rendered
+    d = pair(2, 3)
+    with pytest.raises(ValueError, match=r"expected \(m, 2\) integer indices"):
+        estimate_pair_guided(d["kp_i"], d["q_i"], d["kp_j"], d["q_j"], d["matches"][:, :1], d["K_i"], d["K_j"],
+                             GUIDED)
