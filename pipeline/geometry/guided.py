@@ -71,14 +71,14 @@ def epipolar_distances(F: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.nd
 
 
 def _in_front(R: np.ndarray, t: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
-    """(n_i, n_j) bool: the midpoint triangulation of every (a, b) has positive depth in both cameras.
+    """(k,) bool: the midpoint triangulation of each candidate (row k of bi, row k of bj) is in front of both cameras.
 
-    bi: (n_i, 3) rays ``K_i⁻¹ (x, 1)``; bj: (n_j, 3). Same closed form as
-    :func:`pipeline.geometry.epipolar.triangulation_depths`, for all pairs of rows at once.
+    bi, bj: (k, 3) rays ``K⁻¹ (x, 1)`` of the candidates in images i and j; the closed form of
+    :func:`pipeline.geometry.epipolar.triangulation_depths`, on candidate pairs (not on all n_i·n_j).
     """
     ri = bi @ R.T
-    a11, a22, a12 = np.sum(ri * ri, 1)[:, None], np.sum(bj * bj, 1)[None, :], -(ri @ bj.T)
-    r1, r2 = -(ri @ t)[:, None], (bj @ t)[None, :]
+    a11, a22, a12 = np.sum(ri * ri, 1), np.sum(bj * bj, 1), -np.sum(ri * bj, 1)
+    r1, r2 = -(ri @ t), bj @ t
     det = a11 * a22 - a12 * a12
     det = np.where(np.abs(det) < 1e-15, 1e-15, det)
     return ((a22 * r1 - a12 * r2) / det > 0) & ((a11 * r2 - a12 * r1) / det > 0)
@@ -119,7 +119,9 @@ def guided_matches(x_i: np.ndarray, q_i: np.ndarray, x_j: np.ndarray, q_j: np.nd
         S_all = q_i[s:e] @ q_j.T  # (b, n_j) cosine similarities, shared by every pose
         r = np.arange(e - s)
         for p, ((R, t), F) in enumerate(zip(poses, Fs)):  # a handful of poses, not a loop over matches
-            ok = (epipolar_distances(F, x_i[s:e], x_j) <= band_px) & _in_front(R, t, bi[s:e], bj)
+            ok = epipolar_distances(F, x_i[s:e], x_j) <= band_px
+            rr, cc = np.nonzero(ok)  # the band holds ~2·band/height of the pairs: cheirality on those only
+            ok[rr, cc] = _in_front(R, t, bi[s + rr], bj[cc])
             S = np.where(ok, S_all, -np.inf).astype(np.float32)
             a = S.argmax(1)
             best[p, s:e], s1[p, s:e] = a, S[r, a]
