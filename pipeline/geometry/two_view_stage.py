@@ -223,7 +223,7 @@ def _match_chunk(chunk: str) -> dict[str, dict[str, np.ndarray]]:
     return ItemStore.read_chunk(Path(chunk))
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=16)  # 16 images of 8192 keypoints: 64 MB per worker
 def _root_sift(chunk: str, key: str) -> np.ndarray | None:
     """RootSIFT descriptors of one stored image (None when the features carry none, e.g. from a database)."""
     item = ItemStore.read_chunk(Path(chunk))[key]
