@@ -96,13 +96,26 @@ def _truth_pairs(folder: Path) -> tuple[list[str], set[tuple[str, str]], set[tup
     return n, tp, inj
 
 
+OVERRIDES: list[str] = []  # "section.key=value" from --set
+
+
 def _config(spec: dict, out: Path) -> Path | None:
     lines = ["run:", "  plots: false"]
+    sections: dict[str, list[str]] = {}
+    for o in OVERRIDES:
+        key, _, value = o.partition("=")
+        section, _, name = key.partition(".")
+        sections.setdefault(section, []).append(f"  {name}: {value}")
+    for section, opts in sections.items():
+        if section != "matching":
+            lines += [f"{section}:", *opts]
     if "pairs" in spec:
         _, tp, inj = _truth_pairs(spec["images"])
         pf = out.parent / f"{out.name}_pairs.txt"
         pf.write_text("".join(f"{a} {b}\n" for a, b in sorted(tp | inj if spec["pairs"] == "all" else tp)))
-        lines += ["matching:", f"  pairs: {pf}"]
+        lines += ["matching:", f"  pairs: {pf}", *sections.get("matching", [])]
+    elif "matching" in sections:
+        lines += ["matching:", *sections["matching"]]
     p = out.parent / f"{out.name}.yaml"
     p.write_text("\n".join(lines) + "\n")
     return p
@@ -240,9 +253,12 @@ def main() -> int:
     p.add_argument("--json", type=Path, default=None, help="write this run's figures here (before runs)")
     p.add_argument("--before", type=Path, default=None, help="a before run's JSON to put beside the after figures")
     p.add_argument("--render-only", action="store_true")
+    p.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+                   help="config options for every run, e.g. two_view.guided=true (use another --label)")
     p.add_argument("--sizes", nargs="*", type=int, default=[], help="scaling table sizes (e.g. 1000 3000 10000)")
     a = p.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    OVERRIDES[:] = a.set
     if a.render_only:
         render(a.work)
         return 0

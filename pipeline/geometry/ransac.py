@@ -96,6 +96,24 @@ class TwoViewConfig(ExecutorOptions):
     refine: bool = option(True, "polish (R, t) on the inliers by minimizing the robust (soft-ℓ1) Sampson error; "
                                 "RANSAC's best minimal-sample model is off by tenths of a degree")
     seed: int = option(0, "RANSAC random seed (set before each pair: reproducible results)")
+    guided: bool = option(False, "guided matching (pipeline.geometry.guided): a weak pair is matched again inside "
+                                 "the epipolar band of its own pose and re-estimated, when that harvest is above "
+                                 "the chance level of nearby wrong poses")
+    guided_max_inliers: int = option(50, "guided matching: pairs with fewer inliers (or rejected) are weak", ge=0)
+    guided_seed_min_inliers: int = option(8, "guided matching: a rejected pair's RANSAC model seeds the band when "
+                                             "it has this many inliers", ge=5)
+    guided_band_px: float = option(2.0, "guided matching: half-width of the epipolar band (px at extraction size)",
+                                   gt=0)
+    guided_ratio: float = option(0.8, "guided matching: ratio test among the candidates in the band", gt=0, le=1)
+    guided_nfa: float = option(0.03, "guided matching: a-contrario gate per match, candidates · global rank / "
+                                     "keypoints of the other image", gt=0)
+    guided_null_deg: float = option(3.0, "guided matching: the null poses turn the seed about its baseline by "
+                                         "this and twice this, degrees", gt=0)
+    guided_alpha: float = option(1e-6, "guided matching: the harvest is used when P(Poisson(chance level) >= "
+                                       "harvest) is at most this", gt=0, lt=1)
+    guided_rounds: int = option(2, "guided matching: harvest and re-estimate this many times", ge=1)
+    guided_max_change_deg: float = option(5.0, "guided matching: the re-estimated rotation must be within this of "
+                                               "its seed's, degrees", gt=0)
     workers: int = option(2, "processes estimating pairs (1 = in this process)", ge=1, runtime=True)
     chunk_size: int = option(8, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
     progress: bool = option(True, "show a progress bar", runtime=True)
@@ -118,6 +136,7 @@ class PairGeometry:
         small_baseline, planar: degeneracy flags.
         n_static: matches removed by the zero-motion test (0: it did not act); ``n_matches``
             then counts the other matches, the ones the pose was estimated from.
+        n_guided: matches guided matching added to the putative ones (0: not used).
     """
 
     ok: bool
@@ -134,6 +153,7 @@ class PairGeometry:
     small_baseline: bool = False
     planar: bool = False
     n_static: int = 0
+    n_guided: int = 0
 
 
 def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray,

@@ -10,7 +10,8 @@ interrupted run resumes per pair; a changed option recomputes), and writes::
                                inliers, stats "t" (M, 3) unit translation (x_j = R_ij x_i + t),
                                "n_matches", "n_inliers_E", "n_inliers_H", "h_ratio",
                                "median_triangulation_deg", "median_parallax_px", "n_static" (matches
-                               the zero-motion test removed), "small_baseline", "planar", "degenerate" (M,) bool
+                               the zero-motion test removed), "n_guided" (matches guided matching added),
+                               "small_baseline", "planar", "degenerate" (M,) bool
     WORK/two_view_corr.npz     K (N, 3, 3) of the cameras stage, sizes (N, 2), offsets (M+1,), inlier (undistorted) pixel
                                coordinates x_i (total, 2), x_j (total, 2), keypoint indices kp_i, kp_j (total,)
     WORK/two_view.record.json  the stage record; its summary lists the rejected pairs
@@ -42,6 +43,8 @@ from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import NAME as CAMERAS, cameras_for
 from pipeline.frontend.distortion import CameraModel, undistort_points
+from pipeline.frontend.matching import root_sift
+from pipeline.geometry.guided import estimate_pair_guided
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 from pipeline.geometry.stage_io import PairStage, read_npz, read_viewgraph, recorded_output, rerun_hint, stage_cli
 from pipeline.stage import StageRecord, read_record
@@ -220,6 +223,13 @@ def _match_chunk(chunk: str) -> dict[str, dict[str, np.ndarray]]:
     return ItemStore.read_chunk(Path(chunk))
 
 
+@functools.lru_cache(maxsize=16)  # 16 images of 8192 keypoints: 64 MB per worker
+def _root_sift(chunk: str, key: str) -> np.ndarray | None:
+    """RootSIFT descriptors of one stored image (None when the features carry none, e.g. from a database)."""
+    item = ItemStore.read_chunk(Path(chunk))[key]
+    return root_sift(item["descriptors"]) if "descriptors" in item and len(item["descriptors"]) else None
+
+
 def _estimate_chunk(tasks: list[Task], config: TwoViewConfig) -> list[dict[str, Any]]:
     """Worker: estimate a chunk of pairs read from disk; each result as arrays (see :func:`_geometry_from_item`),
     with the inliers' keypoint indices ``kp_i``, ``kp_j`` and pixels ``x_i``, ``x_j``."""
@@ -227,7 +237,11 @@ def _estimate_chunk(tasks: list[Task], config: TwoViewConfig) -> list[dict[str, 
     for ca, ka, cb, kb, cm, km, K_i, K_j, pixel_scale, cam_a, cam_b in tasks:
         kp_a, kp_b = _keypoints(ca, ka, cam_a), _keypoints(cb, kb, cam_b)
         m = _match_chunk(cm)[km]["matches"].astype(np.int32).reshape(-1, 2)
-        g = estimate_pair(kp_a[m[:, 0]], kp_b[m[:, 1]], K_i, K_j, config, pixel_scale=pixel_scale)
+        q_a, q_b = (_root_sift(ca, ka), _root_sift(cb, kb)) if config.guided else (None, None)
+        if q_a is not None and q_b is not None:
+            g, m, _ = estimate_pair_guided(kp_a, q_a, kp_b, q_b, m, K_i, K_j, config, pixel_scale)
+        else:
+            g = estimate_pair(kp_a[m[:, 0]], kp_b[m[:, 1]], K_i, K_j, config, pixel_scale=pixel_scale)
         item = {f.name: np.asarray(getattr(g, f.name)) for f in dataclasses.fields(PairGeometry)}
         inl = m[g.inlier_mask] if g.ok else m[:0]
         item.update(kp_i=inl[:, 0], kp_j=inl[:, 1], x_i=kp_a[inl[:, 0]], x_j=kp_b[inl[:, 1]])
@@ -336,6 +350,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "median_triangulation_deg": np.array([g.median_triangulation_deg for g in G], float),
             "median_parallax_px": np.array([g.median_parallax_px for g in G], float),
             "n_static": np.array([g.n_static for g in G], np.int64),
+            "n_guided": np.array([g.n_guided for g in G], np.int64),
             "small_baseline": np.array([g.small_baseline for g in G], bool),
             "planar": np.array([g.planar for g in G], bool),
         }
@@ -367,6 +382,7 @@ class TwoViewStage(PairStage[TwoViewConfig]):
             "n_small_baseline": int(stats["small_baseline"].sum()),
             "n_planar": int(stats["planar"].sum()),
             "n_static_removed": int((stats["n_static"] > 0).sum()),
+            "n_guided": int((stats["n_guided"] > 0).sum()),
             "isolated": [names[k] for k in np.flatnonzero(vg.degrees() == 0)],
             "rejected_reasons": reasons,
             "rejected": rejected,

@@ -237,7 +237,8 @@ class LowTexConfig:
 
 @dataclass
 class LowTexScene:
-    """A rendered scene and its truth: cameras (cam_from_world), pair ``overlap`` (N, N), ``true_pairs`` (P, 2)."""
+    """A rendered scene and its truth: cameras (cam_from_world), pair ``overlap`` (N, N), ``true_pairs`` (P, 2),
+    and each view's depth map ``depths`` (h, w), inf where nothing is seen."""
 
     names: list[str]
     images: list[np.ndarray]
@@ -247,6 +248,7 @@ class LowTexScene:
     overlap: np.ndarray
     true_pairs: np.ndarray
     info: dict = field(default_factory=dict)
+    depths: list[np.ndarray] = field(default_factory=list)
 
 
 def render_lowtex(config: LowTexConfig | None = None, seed: int = 0) -> LowTexScene:
@@ -266,7 +268,7 @@ def render_lowtex(config: LowTexConfig | None = None, seed: int = 0) -> LowTexSc
     ov = covisibility(X, visibility(X, normals, K, R, t, depths), -np.einsum("nji,nj->ni", R, t), cfg.max_ray_deg)
     tp = true_pairs(ov, cfg.overlap_threshold)
     info = {"scene": "lowtex", "config": dataclasses.asdict(cfg), "seed": seed, "n_true_pairs": int(len(tp))}
-    return LowTexScene([f"lowtex_{k:03d}.png" for k in range(cfg.n_views)], images, K, R, t, ov, tp, info)
+    return LowTexScene([f"lowtex_{k:03d}.png" for k in range(cfg.n_views)], images, K, R, t, ov, tp, info, depths)
 
 
 def write_scene(scene: LowTexScene, out: str | Path) -> Path:

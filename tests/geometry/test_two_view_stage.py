@@ -117,6 +117,26 @@ def test_resume_skips_finished_work(work):
     assert not rec4.reused and rec4.fingerprint == rec1.fingerprint
 
 
+def test_guided_option_re_estimates_weak_pairs_resumably_and_keeps_them_true(work_copy):
+    """Every pair counts as weak (guided_max_inliers above any count): each is matched again in its own band; the
+    stage records what guided matching added, stays within 1° of the truth, and resumes per pair."""
+    scene = render_scene(n_views=4, seed=5, config=CFG)  # the module's scene: same seed, same cameras
+    plain = load_two_view(work_copy)
+    cfg = TwoViewConfig(guided=True, guided_max_inliers=100_000, progress=False)
+    rec = TwoViewStage(work_copy, cfg).run()
+    assert rec.summary["n_computed"] == 6 and rec.summary["n_guided"] >= 1
+    d = load_two_view(work_copy)
+    vg = d.vg
+    assert vg.stats["n_guided"].shape == (6,) and np.all(vg.stats["n_guided"] >= 0)
+    assert np.all(vg.inliers >= plain.vg.inliers - 3) and vg.inliers.sum() > plain.vg.inliers.sum()
+    R_true = np.einsum("mij,mkj->mik", scene.R[vg.edges[:, 1]], scene.R[vg.edges[:, 0]])
+    err, err_plain = (np.degrees(so3.angle_between(R, R_true)) for R in (vg.R_rel, plain.vg.R_rel))
+    print("errors (deg), guided:", err.round(2), "plain:", err_plain.round(2))
+    assert err.max() < 1.5 and np.median(err) < 0.5
+    assert TwoViewStage(work_copy, cfg).run().reused
+    assert TwoViewStage(work_copy, cfg.replace(guided_band_px=3.0)).fingerprint() != rec.fingerprint
+
+
 def test_workers_recompute_nothing_and_change_no_result(work_copy):
     before = _snapshot(work_copy)
     assert TwoViewStage(work_copy, TwoViewConfig(workers=1, chunk_size=1, progress=False)).run().reused
