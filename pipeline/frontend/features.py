@@ -23,10 +23,18 @@ rendered low-texture scene (research r13-lowtex). Every other image keeps exactl
 features of one detection at ``contrast_threshold``. No local contrast equalization
 (CLAHE): its tone curve follows the content, which moves between views, and it gave
 fewer correct matches than the lowered threshold at the same keypoint count.
+
+**Speed.** On an image that will be lowered, describing the normal detection is wasted
+work (half of a SIFT pass). Once most images seen by this process were lowered
+(:class:`_LowTextureOdds`), the normal pass detects only, and describes its keypoints
+(``compute``) only when there are enough of them: the same keypoints and descriptors
+bit for bit (tested), a third less time on low-texture collections, a quarter more on
+the rare textured image among them.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import cv2
@@ -168,12 +176,20 @@ def extract_sift_adaptive(gray: np.ndarray, config: FeatureConfig | None = None)
         scale = config.max_image_size / max(h, w)
         new_w, new_h = max(1, round(w * scale)), max(1, round(h * scale))
         img = cv2.resize(gray, (new_w, new_h), interpolation=cv2.INTER_AREA)
-    kps, desc = _sift(config).detectAndCompute(img, None)
     target = keypoint_target(config, img.shape[1], img.shape[0]) if config.min_keypoints > 0 else 0
+    sift = _sift(config)
+    if target > 0 and LOW_TEXTURE_ODDS.likely():  # detect first: describe only if the image is not lowered
+        kps = sift.detect(img, None)
+        kps, desc = sift.compute(img, kps) if len(kps) >= target else (kps, None)
+    else:
+        kps, desc = sift.detectAndCompute(img, None)
     info = Extraction(n_normal=len(kps), contrast_used=config.contrast_threshold, target=target)
-    xy, size, ori, resp, desc = _arrays(kps, desc)
     if len(kps) < target:
         xy, size, ori, resp, desc = _lowered(img, config, target, info)
+    else:
+        xy, size, ori, resp, desc = _arrays(kps, desc)
+    if target > 0:
+        LOW_TEXTURE_ODDS.record(info.lowered)
     if scale != 1.0:
         # per-axis factors of the integer-rounded resize; pixel centres at integers
         sx, sy = w / img.shape[1], h / img.shape[0]
@@ -184,6 +200,27 @@ def extract_sift_adaptive(gray: np.ndarray, config: FeatureConfig | None = None)
         keep = np.argsort(-resp, kind="stable")[: config.max_keypoints]
         xy, size, ori, resp, desc = xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
     return Keypoints(xy, size, ori, resp, desc), info
+
+
+class _LowTextureOdds:
+    """How many of the images this process extracted were lowered: the choice of the faster order of work
+    (module docstring, *Speed*); it never changes the features."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.seen = self.lowered = 0
+
+    def record(self, lowered: bool) -> None:
+        with self._lock:
+            self.seen += 1
+            self.lowered += bool(lowered)
+
+    def likely(self) -> bool:
+        with self._lock:
+            return self.seen >= 2 and 2 * self.lowered > self.seen
+
+
+LOW_TEXTURE_ODDS = _LowTextureOdds()
 
 
 def _lowered(img: np.ndarray, config: FeatureConfig, target: int, info: Extraction) -> tuple[np.ndarray, ...]:

@@ -58,7 +58,7 @@ from pipeline.core.parallel import ExecutorOptions
 from pipeline.geometry.epipolar import (normalize, pose_from_essential, refine_pose, rotation_from_bearings,
                                         rotation_only_residual_px, sampson_distance, triangulation_depths)
 
-__all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "iteration_cap", "METHODS"]
+__all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "iteration_cap", "trials", "METHODS"]
 
 METHODS = {"poselib": None, "magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 _UNIT_CAMERA = {"model": "PINHOLE", "width": 2, "height": 2, "params": [1.0, 1.0, 0.0, 0.0]}  # normalized coords
@@ -129,7 +129,8 @@ class PairGeometry:
         R: (3, 3) ``R_ij`` (cam2_from_cam1) with ``x_j = R_ij x_i + t_ij``.
         t: (3,) unit ``t_ij``.
         inlier_mask: (n,) bool over the input matches (RANSAC inlier and in front of both cameras).
-        n_matches, n_inliers_E (RANSAC inliers), n_inliers (after cheirality), n_inliers_H: counts.
+        n_matches, n_inliers_E (RANSAC inliers), n_inliers (after cheirality): counts; n_inliers_H: the
+            homography inliers found in the iterations that decide the planar flag (a lower bound when it is off).
         median_triangulation_deg: median angle between the two rays of the inliers.
         median_parallax_px: median distance, in image j, between x_j and x_i mapped by the
             rotation-only homography ``K_j R_ij K_i⁻¹`` (pixels at extraction size).
@@ -189,6 +190,17 @@ def estimate_pair(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.nda
     return geom
 
 
+def trials(inlier_share: float, sample_size: int, confidence: float, cap: int) -> int:
+    """RANSAC iterations that draw, with probability ``confidence``, one all-inlier sample of ``sample_size``
+    when ``inlier_share`` of the points are inliers; at least 1, at most ``cap``."""
+    w = min(max(inlier_share, 0.0), 1.0)
+    if w >= 1.0:
+        return 1
+    miss = np.log1p(-w ** sample_size)
+    k = np.log1p(-confidence) / miss if miss < 0 else np.inf
+    return int(min(cap, max(np.ceil(k), 1)))
+
+
 def iteration_cap(n: int, config: TwoViewConfig) -> int:
     """RANSAC iterations that draw, with probability ``config.confidence``, one all-inlier 5-point sample from
     ``n`` matches of which ``min_inliers`` are inliers, at most ``max_iterations``.
@@ -196,12 +208,7 @@ def iteration_cap(n: int, config: TwoViewConfig) -> int:
     A pair with more inliers is found sooner (the adaptive stop); a pair that after this many iterations has not
     reached ``min_inliers`` inliers is rejected by step 4 anyway, up to the confidence.
     """
-    w = min(config.min_inliers / max(n, 1), 1.0)
-    if w >= 1.0:
-        return 1
-    miss = np.log1p(-w ** 5)
-    k = np.log1p(-config.confidence) / miss if miss < 0 else np.inf
-    return int(min(config.max_iterations, max(np.ceil(k), 1)))
+    return trials(config.min_inliers / max(n, 1), 5, config.confidence, config.max_iterations)
 
 
 def _essential(y_i: np.ndarray, y_j: np.ndarray, thr: float, config: TwoViewConfig) -> tuple[np.ndarray | None,
@@ -291,8 +298,11 @@ def _estimate(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray
     if n_E >= 4:
         # the transfer error |x_j − H x_i| carries the noise of both images in 2-D,
         # about twice the Sampson distance E is judged by: threshold 2·thr
+        # the planar flag needs planar_ratio of the E inliers on one homography: the iterations that find such a
+        # homography at the confidence suffice (n_H is then a lower bound when the flag is off)
+        h_iters = trials(config.planar_ratio, 4, config.confidence, 2000)
         Hm, hmask = cv2.findHomography(x_i[mask].astype(np.float64), x_j[mask].astype(np.float64), cv2.RANSAC,
-                                       2.0 * thr_px, maxIters=2000, confidence=0.999)
+                                       2.0 * thr_px, maxIters=h_iters, confidence=config.confidence)
         n_H = int(hmask.sum()) if hmask is not None else 0
     geom = PairGeometry(True, "", R, t, inl, n, n_E, n_in, n_H, tri, parallax,
                         small_baseline=bool(tri < config.min_triangulation_deg),

@@ -13,6 +13,7 @@ import pytest
 from pipeline import features
 from pipeline.core.errors import InputFileError
 from pipeline.frontend.feature_stage import load_features
+from pipeline.frontend import features as features_kernel
 from pipeline.frontend.features import FeatureConfig, extract_sift, extract_sift_adaptive
 from pipeline.frontend.intrinsics import parse_intrinsics_file
 from pipeline.frontend.matching import match_descriptors
@@ -88,6 +89,33 @@ def test_dark_image_is_lowered_and_its_matches_hold(scene):
     assert (err < 1.0).sum() > 2 * (err_plain < 1.0).sum()  # more correct matches (true geometry, px)
     with pytest.raises(ValueError, match="contrast_floor"):
         FeatureConfig(contrast_floor=0.05)
+
+
+@pytest.mark.parametrize("dark", [False, True], ids=["textured", "dark"])
+def test_detecting_first_gives_the_same_features_bit_for_bit(scene, monkeypatch, dark):
+    # the order of work chosen from the odds of low texture (detect only, describe if not lowered) changes
+    # nothing but the time
+    gray = cv2.cvtColor(scene.images[1], cv2.COLOR_RGB2GRAY)
+    gray = (gray // 12).astype(np.uint8) if dark else gray
+    out = {}
+    for likely in (False, True):
+        monkeypatch.setattr(features_kernel.LOW_TEXTURE_ODDS, "likely", lambda likely=likely: likely)
+        out[likely] = extract_sift_adaptive(gray)
+    (k0, i0), (k1, i1) = out[False], out[True]
+    assert i0 == i1 and i0.lowered == dark
+    for f in ("xy", "scales", "orientations", "responses", "descriptors"):
+        np.testing.assert_array_equal(getattr(k0, f), getattr(k1, f), err_msg=f)
+
+
+def test_low_texture_odds_follow_the_images_seen():
+    odds = features_kernel._LowTextureOdds()
+    assert not odds.likely()
+    odds.record(True)
+    assert not odds.likely()  # one image is no evidence
+    odds.record(True)
+    assert odds.likely()
+    odds.record(False), odds.record(False)
+    assert not odds.likely()
 
 
 def test_stage_records_the_lowered_images(scene, tmp_path):
