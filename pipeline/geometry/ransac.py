@@ -18,7 +18,9 @@ For a pair ``(i, j)``, ``i < j`` (:func:`estimate_pair`):
    without its 50-baseline depth cut, which rejects every match of a
    small-baseline pair). ``x_j = R_ij x_i + t_ij``, i.e. ``R_ij = R_j R_iᵀ``
    (pycolmap's ``cam2_from_cam1``), the view graph's convention. (R, t) is then
-   polished on the inliers by minimizing the robust Sampson error (``refine``).
+   polished on the inliers by minimizing the robust Sampson error (``refine``): PoseLib's own
+   refinement (Cauchy loss at the threshold), or soft-ℓ1 least squares after OpenCV's estimators;
+   the inliers are then selected again under the polished model.
 4. Pairs are rejected, with the reason and counts recorded, when they have too
    few matches, when E cannot be estimated, or when fewer than ``min_inliers``
    inliers survive the cheirality check.
@@ -93,8 +95,9 @@ class TwoViewConfig(ExecutorOptions):
     rotation_only_ratio: float = option(
         0.9, "when a pure rotation K_j R K_i⁻¹ explains this fraction of the E inliers, the pair has zero "
              "baseline: R from the rotation-only fit, t stored as zeros, flagged small_baseline", ge=0)
-    refine: bool = option(True, "polish (R, t) on the inliers by minimizing the robust (soft-ℓ1) Sampson error; "
-                                "RANSAC's best minimal-sample model is off by tenths of a degree")
+    refine: bool = option(True, "polish (R, t) on the inliers by minimizing a robust Sampson error (PoseLib's "
+                                "Cauchy; soft-ℓ1 after OpenCV's); RANSAC's best minimal-sample model is off by "
+                                "tenths of a degree")
     seed: int = option(0, "RANSAC random seed (set before each pair: reproducible results)")
     guided: bool = option(False, "guided matching (pipeline.geometry.guided): a weak pair is matched again inside "
                                  "the epipolar band of its own pose and re-estimated, when that harvest is above "
@@ -222,7 +225,9 @@ def _essential(y_i: np.ndarray, y_j: np.ndarray, thr: float, config: TwoViewConf
             y_i, y_j, _UNIT_CAMERA, _UNIT_CAMERA,
             {"max_epipolar_error": thr, "max_iterations": cap, "min_iterations": min(50, cap),
              "success_prob": config.confidence, "seed": config.seed},
-            {"max_iterations": 0})  # the refinement is ours (step 3), on the inliers after cheirality
+            # step 3's polish: PoseLib's own robust Sampson refinement (Cauchy at the threshold) on its inliers
+            {"max_iterations": 100, "loss_type": "CAUCHY", "loss_scale": thr} if config.refine else
+            {"max_iterations": 0})
         mask = np.asarray(info.get("inliers", []), bool).reshape(-1)
         if mask.shape != (n,) or not mask.any():
             return None, np.zeros(n, bool)
@@ -275,7 +280,8 @@ def _estimate(x_i: np.ndarray, x_j: np.ndarray, K_i: np.ndarray, K_j: np.ndarray
         return geom
     R, t, inl = pose_from_essential(E, y_i, y_j, mask)
     if config.refine and inl.sum() >= 5:
-        R_r, t_r = refine_pose(R, t, y_i[inl], y_j[inl], thr_px / f)
+        # PoseLib's pose is refined already; OpenCV's is RANSAC's best minimal-sample model
+        R_r, t_r = (R, t) if config.method == "poselib" else refine_pose(R, t, y_i[inl], y_j[inl], thr_px / f)
         # re-select the inliers under the refined model, then re-check cheirality
         in_r = mask & (np.abs(sampson_distance(R_r, t_r, y_i, y_j)) * f < thr_px)
         zi, zj = triangulation_depths(R_r, t_r, y_i, y_j)
