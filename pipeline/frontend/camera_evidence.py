@@ -31,7 +31,7 @@ from pipeline.frontend.features import FeatureConfig, extract_sift_adaptive
 from pipeline.frontend.images import read_gray
 from pipeline.frontend.matching import MatchingConfig, match_descriptors
 
-__all__ = ["normal_detection", "reliable_matches", "Evidence"]
+__all__ = ["normal_detection", "reliable_matches", "features_evidence", "stage_evidence", "Evidence"]
 
 logger = logging.getLogger(__name__)
 
@@ -99,13 +99,18 @@ def reliable_matches(names: Sequence[str], images: Path, lowered: Sequence[str],
     return Evidence(kp, pairs, out, [names[k] for k in low])
 
 
+def features_evidence(fs: Any, ms: Any) -> Evidence:
+    """The features stage's own keypoints and matches ``fs``, ``ms``, as they are."""
+    return Evidence([np.asarray(x, np.float64) for x in fs.keypoints], ms.pairs, ms.matches, [])
+
+
 def stage_evidence(work: Path, fs: Any, ms: Any) -> Evidence:
     """:func:`reliable_matches` for a WORK folder's features ``fs`` and matches ``ms``."""
     from pipeline.features import load_features  # noqa: PLC0415
     from pipeline.frontend.matching_stage import load_manifest  # noqa: PLC0415
 
     if not fs.lowered or fs.images is None or fs.config is None:
-        return Evidence([np.asarray(x, np.float64) for x in fs.keypoints], ms.pairs, ms.matches, [])
+        return features_evidence(fs, ms)
     descriptors = load_features(work, descriptors=True).descriptors
     mcfg = MatchingConfig.from_dict(load_manifest(work)["config"])
     return reliable_matches(fs.names, fs.images, list(fs.lowered), fs.keypoints, descriptors, ms.pairs, ms.matches,

@@ -47,7 +47,7 @@ from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.frontend.camera_estimate import CamerasConfig, estimate_focal, estimate_radial
-from pipeline.frontend.camera_evidence import Evidence, stage_evidence
+from pipeline.frontend.camera_evidence import Evidence, features_evidence, stage_evidence
 from pipeline.frontend.distortion import (COLMAP_OFFSET, CameraModel, is_camera_model_file, radial_undistort,
                                           undistort_points)
 from pipeline.frontend.focal import K_from_focal
@@ -246,7 +246,7 @@ class CamerasStage(Stage[CamerasConfig]):
     def _evidence(self, fs: Any, ms: Any) -> Evidence:
         """The keypoints and matches the estimation uses (``evidence``, :mod:`pipeline.frontend.camera_evidence`)."""
         if self.config.evidence == "features":
-            return Evidence([np.asarray(x, np.float64) for x in fs.keypoints], ms.pairs, ms.matches, [])
+            return features_evidence(fs, ms)
         return stage_evidence(self.folder, fs, ms)
 
     @staticmethod

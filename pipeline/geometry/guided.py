@@ -41,6 +41,7 @@ import numpy as np
 from scipy.stats import poisson
 
 from pipeline.core import so3
+from pipeline.geometry.epipolar import essential_from_Rt, normalize, triangulation_depths
 from pipeline.geometry.ransac import PairGeometry, TwoViewConfig, estimate_pair
 
 __all__ = ["GuidedOutcome", "epipolar_distances", "estimate_pair_guided", "fundamental_from_pose",
@@ -51,8 +52,7 @@ _BLOCK_BYTES = 1 << 25
 
 def fundamental_from_pose(R: np.ndarray, t: np.ndarray, K_i: np.ndarray, K_j: np.ndarray) -> np.ndarray:
     """``F = K_j⁻ᵀ [t]× R K_i⁻¹`` (3, 3), with ``x_jᵀ F x_i = 0`` for pixels (``x_j = R x_i + t``)."""
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]], float)
-    return np.linalg.inv(K_j).T @ tx @ R @ np.linalg.inv(K_i)
+    return np.linalg.inv(K_j).T @ essential_from_Rt(R, np.asarray(t, float)) @ np.linalg.inv(K_i)
 
 
 def epipolar_distances(F: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
@@ -68,20 +68,6 @@ def epipolar_distances(F: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.nd
     ni = np.maximum(np.hypot(li[:, 0], li[:, 1]), 1e-12)[:, None]
     nj = np.maximum(np.hypot(lj[:, 0], lj[:, 1]), 1e-12)[None, :]
     return a / np.minimum(ni, nj)
-
-
-def _in_front(R: np.ndarray, t: np.ndarray, bi: np.ndarray, bj: np.ndarray) -> np.ndarray:
-    """(k,) bool: the midpoint triangulation of each candidate (row k of bi, row k of bj) is in front of both cameras.
-
-    bi, bj: (k, 3) rays ``K⁻¹ (x, 1)`` of the candidates in images i and j; the closed form of
-    :func:`pipeline.geometry.epipolar.triangulation_depths`, on candidate pairs (not on all n_i·n_j).
-    """
-    ri = bi @ R.T
-    a11, a22, a12 = np.sum(ri * ri, 1), np.sum(bj * bj, 1), -np.sum(ri * bj, 1)
-    r1, r2 = -(ri @ t), bj @ t
-    det = a11 * a22 - a12 * a12
-    det = np.where(np.abs(det) < 1e-15, 1e-15, det)
-    return ((a22 * r1 - a12 * r2) / det > 0) & ((a11 * r2 - a12 * r1) / det > 0)
 
 
 def guided_matches(x_i: np.ndarray, q_i: np.ndarray, x_j: np.ndarray, q_j: np.ndarray,
@@ -106,8 +92,7 @@ def guided_matches(x_i: np.ndarray, q_i: np.ndarray, x_j: np.ndarray, q_j: np.nd
     if n_i == 0 or n_j == 0:
         return [np.zeros((0, 2), np.int32) for _ in range(P)]
     Fs = [fundamental_from_pose(R, t / np.linalg.norm(t), K_i, K_j) for R, t in poses]
-    bi = np.column_stack([x_i, np.ones(n_i)]) @ np.linalg.inv(K_i).T
-    bj = np.column_stack([x_j, np.ones(n_j)]) @ np.linalg.inv(K_j).T
+    y_i, y_j = normalize(x_i, K_i), normalize(x_j, K_j)
     block = max(64, _BLOCK_BYTES // (8 * n_j))
     best = np.full((P, n_i), 0, np.int64)
     s1 = np.full((P, n_i), -np.inf, np.float32)
@@ -121,7 +106,8 @@ def guided_matches(x_i: np.ndarray, q_i: np.ndarray, x_j: np.ndarray, q_j: np.nd
         for p, ((R, t), F) in enumerate(zip(poses, Fs)):  # a handful of poses, not a loop over matches
             ok = epipolar_distances(F, x_i[s:e], x_j) <= band_px
             rr, cc = np.nonzero(ok)  # the band holds ~2·band/height of the pairs: cheirality on those only
-            ok[rr, cc] = _in_front(R, t, bi[s + rr], bj[cc])
+            zi, zj = triangulation_depths(R, t, y_i[s + rr], y_j[cc])
+            ok[rr, cc] = (zi > 0) & (zj > 0)
             S = np.where(ok, S_all, -np.inf).astype(np.float32)
             a = S.argmax(1)
             best[p, s:e], s1[p, s:e] = a, S[r, a]

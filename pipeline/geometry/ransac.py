@@ -57,8 +57,9 @@ import poselib
 
 from pipeline.core.config import option
 from pipeline.core.parallel import ExecutorOptions
-from pipeline.geometry.epipolar import (normalize, pose_from_essential, refine_pose, rotation_from_bearings,
-                                        rotation_only_residual_px, sampson_distance, triangulation_depths)
+from pipeline.geometry.epipolar import (essential_from_Rt, normalize, pose_from_essential, refine_pose,
+                                        rotation_from_bearings, rotation_only_residual_px, sampson_distance,
+                                        triangulation_depths)
 
 __all__ = ["TwoViewConfig", "PairGeometry", "estimate_pair", "iteration_cap", "trials", "METHODS"]
 
@@ -231,9 +232,7 @@ def _essential(y_i: np.ndarray, y_j: np.ndarray, thr: float, config: TwoViewConf
         mask = np.asarray(info.get("inliers", []), bool).reshape(-1)
         if mask.shape != (n,) or not mask.any():
             return None, np.zeros(n, bool)
-        R, t = np.asarray(pose.R), np.asarray(pose.t)
-        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-        return tx @ R, mask
+        return essential_from_Rt(np.asarray(pose.R), np.asarray(pose.t)), mask
     cv2.setRNGSeed(config.seed)
     E, mask = cv2.findEssentialMat(y_i, y_j, np.eye(3), method=METHODS[config.method], prob=config.confidence,
                                    threshold=thr, maxIters=config.max_iterations)

@@ -87,3 +87,19 @@ def aligned_residuals(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="session")
 def problem0() -> tuple[dict, np.ndarray]:
     return synthetic_problem(0)
+
+
+@pytest.fixture
+def points_removed_after_positioning(monkeypatch):
+    """Every 3D point deleted right after global positioning: bundle adjustment has nothing to run on."""
+    from pipeline.refine import mapper
+
+    original = mapper.global_positioning
+
+    def drop_all_points(pc, rec, pose_graph, cfg):
+        ok = original(pc, rec, pose_graph, cfg)
+        for pid in list(rec.point3D_ids()):
+            rec.delete_point3D(pid)
+        return ok
+
+    monkeypatch.setattr(mapper, "global_positioning", drop_all_points)

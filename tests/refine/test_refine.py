@@ -50,18 +50,9 @@ def test_no_matches_fails_and_keeps_the_averaged(problem0):
     assert any("nothing to refine" in w for w in res.warnings) and all("0 track observations" in w for w in res.why)
 
 
-def test_bundle_adjustment_failure_is_reported_and_the_averaged_kept(problem0, monkeypatch):
+def test_bundle_adjustment_failure_is_reported_and_the_averaged_kept(problem0, points_removed_after_positioning):
     """Every point removed after positioning: bundle adjustment cannot run; the averaged rotations stay."""
     inp, R_true = problem0
-    original = mapper.global_positioning
-
-    def drop_all_points(pc, rec, pose_graph, cfg):
-        ok = original(pc, rec, pose_graph, cfg)
-        for pid in list(rec.point3D_ids()):
-            rec.delete_point3D(pid)
-        return ok
-
-    monkeypatch.setattr(mapper, "global_positioning", drop_all_points)
     R0 = perturbed(R_true, 0.3, np.random.default_rng(2))
     res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD)
     assert res.status == "failed" and np.array_equal(res.R, R0) and res.reconstruction is None

@@ -13,7 +13,6 @@ import pytest
 
 from pipeline.core.errors import InputFileError, PipelineError
 from pipeline.io.rotations import read_rotations
-from pipeline.refine import mapper
 from pipeline.refine.refine import RefineConfig
 from pipeline.refine.stage import RefineStage, recommended_start, refine_notes, run_refine
 
@@ -83,18 +82,9 @@ def test_reused_when_intact_recomputed_when_damaged(rendered_run, tmp_path, monk
 
 
 @pytest.mark.slow
-def test_bundle_adjustment_made_to_fail_is_reported_and_the_averaged_rotations_kept(rendered_run, tmp_path,
-                                                                                   monkeypatch):
+def test_bundle_adjustment_made_to_fail_is_reported_and_the_averaged_rotations_kept(
+        rendered_run, tmp_path, points_removed_after_positioning):
     out = _copy(rendered_run, tmp_path / "out")
-    original = mapper.global_positioning
-
-    def drop_all_points(pc, rec, pose_graph, cfg):
-        ok = original(pc, rec, pose_graph, cfg)
-        for pid in list(rec.point3D_ids()):
-            rec.delete_point3D(pid)
-        return ok
-
-    monkeypatch.setattr(mapper, "global_positioning", drop_all_points)
     res = run_refine(out, RefineConfig(preset="fast"), ["irls-h-l0.5"], overwrite=True)
     s = res["irls-h-l0.5+refine"]["stats"]
     assert s["status"] == "failed" and s["n_refined"] == 0 and s["model"] is None
