@@ -29,7 +29,9 @@ work (half of a SIFT pass). Once most images seen by this process were lowered
 (:class:`_LowTextureOdds`), the normal pass detects only, and describes its keypoints
 (``compute``) only when there are enough of them: the same keypoints and descriptors
 bit for bit (tested), a third less time on low-texture collections, a quarter more on
-the rare textured image among them.
+the rare textured image among them. The lowered detection lets OpenCV cut at the target
+before describing (``nfeatures``): a fifth fewer descriptors on the temple, the same
+features in the same order (tested).
 """
 
 from __future__ import annotations
@@ -227,9 +229,16 @@ def _lowered(img: np.ndarray, config: FeatureConfig, target: int, info: Extracti
     """The detection of a low-texture image: blurred, at the floor, cut at its ``target``-th response."""
     if config.preblur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), config.preblur_sigma)
-    kps, desc = _sift(config, config.contrast_floor, 0).detectAndCompute(img, None)
-    xy, size, ori, resp, desc = _arrays(kps, desc)
     L = config.n_octave_layers
+    # OpenCV cuts at the target-th response before describing (its retainBest keeps ties, as `keep` below does)
+    kps, desc = _sift(config, config.contrast_floor, target).detectAndCompute(img, None)
+    if len(kps) >= target and min(k.response for k in kps) > config.contrast_threshold / L:
+        # more than target keypoints reach the normal threshold: all of them stay (below), none may be cut
+        kps, desc = _sift(config, config.contrast_floor, 0).detectAndCompute(img, None)
+    xy, size, ori, resp, desc = _arrays(kps, desc)
+    # OpenCV's own order of an uncut detection (its KeyPoint_LessThan): x, y, larger size, angle, response
+    order = np.lexsort((-resp, ori, -size, xy[:, 1], xy[:, 0]))
+    xy, size, ori, resp, desc = xy[order], size[order], ori[order], resp[order], desc[order]
     thr = config.contrast_floor / L
     if len(resp) >= target:
         thr = max(thr, float(np.sort(resp)[::-1][target - 1]))

@@ -107,6 +107,38 @@ def test_detecting_first_gives_the_same_features_bit_for_bit(scene, monkeypatch,
         np.testing.assert_array_equal(getattr(k0, f), getattr(k1, f), err_msg=f)
 
 
+def _lowered_uncut(img, cfg, target):
+    """The lowered detection as first written: everything at the floor described, then cut at the target."""
+    blurred = cv2.GaussianBlur(img, (0, 0), cfg.preblur_sigma)
+    kps, desc = cv2.SIFT_create(nfeatures=0, contrastThreshold=cfg.contrast_floor, enable_precise_upscale=True,
+                                sigma=cfg.sigma, edgeThreshold=cfg.edge_threshold).detectAndCompute(blurred, None)
+    xy, size, ori, resp, desc = features_kernel._arrays(kps, desc)
+    L = cfg.n_octave_layers
+    thr = max(cfg.contrast_floor / L, np.sort(resp)[::-1][target - 1]) if len(resp) >= target else cfg.contrast_floor / L
+    keep = resp >= min(thr, cfg.contrast_threshold / L)
+    return xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
+
+
+@pytest.mark.parametrize("dark, target", [(True, 500), (True, 100000), (False, 50)],
+                         ids=["cut-at-target", "fewer-than-target", "normal-threshold-keeps-more"])
+def test_lowered_detection_cut_by_opencv_is_the_uncut_one(scene, dark, target):
+    # OpenCV cuts at the target before describing: the same keypoints, descriptors and order as describing
+    # everything and cutting after; when more than the target reach the normal threshold, all of them stay
+    gray = cv2.cvtColor(scene.images[1], cv2.COLOR_RGB2GRAY)
+    gray = (gray // 12).astype(np.uint8) if dark else gray
+    cfg = FeatureConfig()
+    info = features_kernel.Extraction(n_normal=0)
+    got = features_kernel._lowered(gray, cfg, target, info)
+    want = _lowered_uncut(gray, cfg, target)
+    assert info.lowered and len(want[0]) > 0
+    if target == 50:
+        assert len(want[0]) > 2 * target and np.all(want[3] >= cfg.contrast_threshold / cfg.n_octave_layers)
+    elif target == 500:
+        assert target <= len(want[0]) < target + 10  # cut at the target (ties: a point's orientations)
+    for name, a, b in zip(("xy", "scales", "orientations", "responses", "descriptors"), got, want):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
 def test_low_texture_odds_follow_the_images_seen():
     odds = features_kernel._LowTextureOdds()
     assert not odds.likely()
