@@ -23,7 +23,8 @@ import numpy as np
 
 from pipeline.refine.mapper import ba_config
 
-__all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance"]
+__all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance",
+           "principal_point_sd"]
 
 
 def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
@@ -49,6 +50,41 @@ def gauge_fixed_rotation_covariance(joint: np.ndarray, cam_from_world: np.ndarra
     return S.reshape(n, 3, n, 3)[idx, :, idx, :]
 
 
+def _final_problem(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> tuple[Any, float]:
+    """A ceres bundle adjuster of the final problem, solved again (at its optimum: a few iterations), and the
+    residual variance ``σ²`` (px²) its covariance is scaled by."""
+    adjuster = pc.create_default_ceres_bundle_adjuster(ba, ba_config(pc, rec, known), rec)
+    cs = adjuster.solve().ceres_summary
+    dof = max(int(cs.num_residuals_reduced) - int(cs.num_effective_parameters_reduced), 1)
+    return adjuster, 2.0 * float(cs.final_cost) / dof
+
+
+def principal_point_sd(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> dict[int, float]:
+    """Camera id → the standard deviation (px, along its worst direction) of each refined camera's principal point.
+
+    From pycolmap's BA covariance of the camera parameters (every variable block, points
+    eliminated), scaled by the residual variance as the rotations' is; ``inf`` where
+    pycolmap cannot estimate it (a singular problem: the point is not determined).
+    """
+    adjuster, sigma2 = _final_problem(pc, rec, ba, known)
+    opts = pc.BACovarianceOptions()
+    opts.params = pc.BACovarianceOptionsParams.ALL
+    bacov = pc.estimate_ba_covariance(opts, rec, adjuster)
+    known_ids = {int(rec.image(i).camera_id) for i in rec.reg_image_ids() if known[i - 1]}
+    out: dict[int, float] = {}
+    for cid in sorted({int(rec.image(i).camera_id) for i in rec.reg_image_ids()} - known_ids):  # per camera: few
+        cam = rec.camera(cid)
+        C = bacov.get_other_params_cov(cam.params) if bacov is not None else None
+        idx = list(cam.principal_point_idxs())
+        if C is None or C.shape != (len(cam.params), len(cam.params)):
+            out[cid] = float("inf")
+            continue
+        S = sigma2 * C[np.ix_(idx, idx)]
+        out[cid] = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S + S.T))[-1], 0.0))) if np.all(np.isfinite(S)) \
+            else float("inf")
+    return out
+
+
 def rotation_covariance(pc: Any, rec: Any, ba: Any, known: np.ndarray, n: int) -> tuple[np.ndarray | None, dict]:
     """(n, 3, 3) rotation covariance of image ``k`` = COLMAP image ``k + 1`` (rad²; NaN if not registered).
 
@@ -58,10 +94,7 @@ def rotation_covariance(pc: Any, rec: Any, ba: Any, known: np.ndarray, n: int) -
     Returns:
         the covariances (None if pycolmap's estimation failed) and ``{"sigma_px": σ}``.
     """
-    adjuster = pc.create_default_ceres_bundle_adjuster(ba, ba_config(pc, rec, known), rec)
-    cs = adjuster.solve().ceres_summary
-    dof = max(int(cs.num_residuals_reduced) - int(cs.num_effective_parameters_reduced), 1)
-    sigma2 = 2.0 * float(cs.final_cost) / dof
+    adjuster, sigma2 = _final_problem(pc, rec, ba, known)
     info = {"sigma_px": float(np.sqrt(sigma2))}
     opts = pc.BACovarianceOptions()
     opts.params = pc.BACovarianceOptionsParams.POSES

@@ -14,7 +14,8 @@ registered and track establishment fails), so the steps are called one by one:
    ``iterative_global_refinement``, a filter and the final bundle adjustment.
 
 Known intrinsics stay constant (``set_constant_cam_intrinsics`` and
-``constant_cameras``); unknown ones get their focal length refined. No step raises
+``constant_cameras``); unknown ones get their focal length refined, and their principal
+point where :mod:`pipeline.refine.refine` asks for it. No step raises
 on a numerical failure: each returns ``(ok, why)``.
 """
 
@@ -28,11 +29,12 @@ __all__ = ["ba_options", "ba_config", "run_bundle_adjustment", "global_positioni
            "retriangulate"]
 
 
-def ba_options(pc: Any, cfg: Any, known: np.ndarray) -> Any:
-    """GLOMAP's bundle-adjustment options (Huber loss), focal refined only when some K is unknown."""
+def ba_options(pc: Any, cfg: Any, known: np.ndarray, principal_point: bool = False) -> Any:
+    """GLOMAP's bundle-adjustment options (Huber loss), focal (and, with ``principal_point``, the principal point)
+    refined only when some K is unknown; known cameras are constant in :func:`ba_config`."""
     ba = pc.GlobalMapperOptions().get_bundle_adjustment()
     ba.print_summary = False
-    ba.refine_principal_point = False
+    ba.refine_principal_point = bool(principal_point) and not bool(np.all(known))
     ba.refine_extra_params = False
     ba.refine_focal_length = not bool(np.all(known))
     ba.ceres.loss_function_type = pc.LossFunctionType.HUBER

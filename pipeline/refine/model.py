@@ -34,7 +34,7 @@ __all__ = ["camera_groups", "correspondence_cache", "write_binary_model", "start
            "model_rotations", "INVALID_POINT3D_ID"]
 
 INVALID_POINT3D_ID = np.iinfo(np.uint64).max  # COLMAP's kInvalidPoint3DId
-_PINHOLE = 1  # COLMAP's model id of PINHOLE
+_SIMPLE_PINHOLE, _PINHOLE = 0, 1  # COLMAP's model ids
 
 
 def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -45,9 +45,24 @@ def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray) -> tuple[
     return inverse.reshape(-1) + 1, first
 
 
+def colmap_camera(K: np.ndarray, known: bool) -> tuple[int, list[float]]:
+    """COLMAP's model id and parameters of our K: PINHOLE where known; where refined, SIMPLE_PINHOLE (one focal
+    length, as COLMAP's mappers model an uncalibrated camera) when K has one focal length.
+
+    Refined separately, fx and fy let the bundle adjustment trade one against the rotations: on the
+    templeSparseRing without K (a turntable ring, a critical motion for the focal length), fx drifted by 80%
+    (standard deviation 770 px) while fy stayed within 1% (21 px), and the rotations went 3.6° wrong.
+    """
+    p = pinhole_params(K)
+    if not known and K[0, 0] == K[1, 1]:
+        return _SIMPLE_PINHOLE, [p[0], p[2], p[3]]
+    return _PINHOLE, p
+
+
 def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: bool) -> Any:
-    cam = pc.Camera(model="PINHOLE", width=int(size[0]), height=int(size[1]), params=pinhole_params(K),
-                    camera_id=int(camera_id))
+    model, params = colmap_camera(K, known)
+    cam = pc.Camera(model="SIMPLE_PINHOLE" if model == _SIMPLE_PINHOLE else "PINHOLE", width=int(size[0]),
+                    height=int(size[1]), params=params, camera_id=int(camera_id))
     cam.has_prior_focal_length = bool(known)
     return cam
 
@@ -110,7 +125,8 @@ def _fill(buf: np.ndarray, starts: np.ndarray, records: np.ndarray) -> None:
         buf[starts + c] = raw[:, c]
 
 
-def write_binary_model(folder: Path, *, camera_ids: np.ndarray, camera_params: np.ndarray, camera_sizes: np.ndarray,
+def write_binary_model(folder: Path, *, camera_ids: np.ndarray, camera_models: np.ndarray,
+                       camera_params: Sequence[Sequence[float]], camera_sizes: np.ndarray,
                        image_ids: np.ndarray, image_camera_ids: np.ndarray, image_names: Sequence[str],
                        cam_from_world: np.ndarray, points2D: Sequence[np.ndarray], tracks: Tracks,
                        track_image_ids: np.ndarray) -> None:
@@ -122,18 +138,19 @@ def write_binary_model(folder: Path, *, camera_ids: np.ndarray, camera_params: n
     with numpy; only the per-image header is written per image.
 
     Args:
-        camera_ids (C,), camera_params (C, 4) PINHOLE in COLMAP's convention, camera_sizes (C, 2).
+        camera_ids (C,), camera_models (C,) COLMAP model ids, camera_params: C parameter lists in COLMAP's
+            convention, camera_sizes (C, 2).
         image_ids (N,), image_camera_ids (N,), image_names (N,), cam_from_world (N, 3, 3).
         points2D: N arrays (n_i, 2) in COLMAP's pixel convention.
         tracks: the tracks, with ``tracks.image`` indexing ``image_ids``.
         track_image_ids: (Q,) COLMAP image id of each observation.
     """
     folder = Path(folder)
-    cam = np.zeros(len(camera_ids), np.dtype([("id", "<u4"), ("model", "<i4"), ("w", "<u8"), ("h", "<u8"),
-                                              ("params", "<f8", (4,))]))
-    cam["id"], cam["model"], cam["params"] = camera_ids, _PINHOLE, camera_params
+    cam = np.zeros(len(camera_ids), np.dtype([("id", "<u4"), ("model", "<i4"), ("w", "<u8"), ("h", "<u8")]))
+    cam["id"], cam["model"] = camera_ids, camera_models
     cam["w"], cam["h"] = np.asarray(camera_sizes)[:, 0], np.asarray(camera_sizes)[:, 1]
-    (folder / "cameras.bin").write_bytes(np.uint64(len(cam)).tobytes() + cam.tobytes())
+    (folder / "cameras.bin").write_bytes(np.uint64(len(cam)).tobytes() + b"".join(  # per camera (C): few
+        c.tobytes() + np.asarray(p, "<f8").tobytes() for c, p in zip(cam, camera_params)))
 
     # each observation's point id, per image: track p is point p + 1
     n2d = np.array([len(p) for p in points2D], np.int64)
@@ -184,7 +201,7 @@ def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes:
     cam_id, first = camera_groups(K, sizes, known)
     used = np.unique(cam_id[images])
     rep = first[used - 1]  # one image of each used camera
-    params = np.array([pinhole_params(K[k]) for k in rep]).reshape(-1, 4)
+    models, params = zip(*(colmap_camera(K[k], bool(known[k])) for k in rep)) if len(rep) else ((), ())
     pos = np.full(len(names), -1, np.int64)
     pos[images] = np.arange(len(images))
     local = Tracks(tracks.offsets, pos[tracks.image], tracks.keypoint)
@@ -194,7 +211,8 @@ def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes:
     if scratch is not None:
         Path(scratch).mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix=f".model{TMP_TAG}", dir=scratch) as tmp:
-        write_binary_model(Path(tmp), camera_ids=used, camera_params=params, camera_sizes=np.asarray(sizes)[rep],
+        write_binary_model(Path(tmp), camera_ids=used, camera_models=np.asarray(models, np.int64),
+                           camera_params=list(params), camera_sizes=np.asarray(sizes)[rep],
                            image_ids=images + 1, image_camera_ids=cam_id[images], image_names=[names[k] for k in images],
                            cam_from_world=np.asarray(cam_from_world)[images], points2D=kp, tracks=local,
                            track_image_ids=tracks.image + 1)

@@ -114,6 +114,55 @@ def test_bad_inputs(problem0):
         refine_rotations(**dict(inp, edges=inp["edges"][:, ::-1]), R_init=R_true)
 
 
+def _shifted_intrinsics(inp: dict) -> np.ndarray:
+    """The true K with the focal 3% off and the principal point 20 px right and 15 px up: a K estimated without one
+    (principal point at a wrong place such as the image centre)."""
+    K = inp["K"].copy()
+    K[:, 0, 0] *= 1.03
+    K[:, 1, 1] *= 1.03
+    K[:, 0, 2] += 20.0
+    K[:, 1, 2] -= 15.0
+    return K
+
+
+def test_unknown_principal_point_is_refined_where_the_model_determines_it(problem0):
+    """Unknown K: one focal length (SIMPLE_PINHOLE) and the principal point refined back to the truth, kept because
+    its standard deviation is small; fixed at the given one, the rotations are worse."""
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    err = lambda res: np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1)).max()  # noqa: E731
+    auto = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    fixed = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
+                             config=RefineConfig(num_threads=1, min_image_observations=10, principal_point="fixed"))
+    assert auto.status == fixed.status == "ok" and not auto.warnings, auto.warnings
+    (cam,) = auto.reconstruction.cameras.values()
+    assert cam.model.name == "SIMPLE_PINHOLE"  # one focal length: fx and fy cannot trade against the rotations
+    pp = auto.stats["principal_point"]["1"]
+    true_pp = inp["K"][0, :2, 2]
+    assert np.abs(np.array(pp["px"]) - true_pp).max() < 2.0, pp  # 20 and 15 px off at the start
+    assert 0 < pp["sd_px"] < pp["max_sd_px"] == pytest.approx(0.01 * 1024)
+    (cam_fixed,) = fixed.reconstruction.cameras.values()
+    np.testing.assert_allclose([cam_fixed.principal_point_x - 0.5, cam_fixed.principal_point_y - 0.5], K[0, :2, 2])
+    assert "principal_point" not in fixed.stats
+    assert err(auto) < 0.5 * err(fixed)
+
+
+def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
+    """A principal point whose standard deviation exceeds the limit is not kept: the refinement runs again with it
+    fixed, says so, and records what was rejected."""
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    res = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
+                           config=RefineConfig(num_threads=1, min_image_observations=10, max_principal_point_sd=1e-6))
+    assert res.status == "ok" and res.refined.all()
+    assert any("not determined by the model" in w for w in res.warnings), res.warnings
+    (cam,) = res.reconstruction.cameras.values()
+    np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
+    assert res.stats["principal_point_rejected"]["1"]["sd_px"] > res.stats["principal_point_rejected"]["1"]["max_sd_px"]
+    with pytest.raises(ValueError, match="principal_point"):
+        RefineConfig(principal_point="free")
+
+
 def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
     """A focal 3% off: kept constant when 'known', refined toward the truth when not."""
     inp, R_true = problem0
@@ -124,5 +173,7 @@ def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
     free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
     f = lambda res: np.array([c.params[0] for c in res.reconstruction.cameras.values()])  # noqa: E731
     np.testing.assert_allclose(f(kept), 1280.0 * 1.03)
+    (cam,) = kept.reconstruction.cameras.values()  # known: PINHOLE, every parameter constant
+    assert cam.model.name == "PINHOLE" and "principal_point" not in kept.stats
     assert np.all(np.abs(f(free) - 1280.0) < 0.3 * 1280.0 * 0.03)
     assert free.status == "ok" and free.stats["mean_reprojection_error_px"] < kept.stats["mean_reprojection_error_px"]
