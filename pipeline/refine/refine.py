@@ -295,7 +295,11 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             return result("failed")
     rec = state["rec"]
     if refine_pp:
-        sd = principal_point_sd(pc, rec, ba, known)
+        try:
+            sd = principal_point_sd(pc, rec, ba, known)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
+            logger.warning("refine: the principal points' covariance failed (%s)", " ".join(str(exc).split())[:100])
+            sd = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not known[i - 1]}
         limit = {cid: cfg.max_principal_point_sd * max(rec.camera(cid).width, rec.camera(cid).height) for cid in sd}
         stats["principal_point"] = {str(cid): {"px": [rec.camera(cid).principal_point_x - 0.5, rec.camera(cid).principal_point_y - 0.5],
                                                "sd_px": sd[cid], "max_sd_px": limit[cid]} for cid in sd}

@@ -163,6 +163,23 @@ def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
         RefineConfig(principal_point="free")
 
 
+def test_principal_point_whose_covariance_fails_is_kept_at_the_given_one(problem0, monkeypatch):
+    """pycolmap's covariance raising is no proof that the principal point is determined: it is fixed, not a crash."""
+    from pipeline.refine import refine as refine_module
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("Ceres: the problem is rank deficient")
+
+    monkeypatch.setattr(refine_module, "principal_point_sd", failing)
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    res = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    assert res.status == "ok" and res.refined.all()
+    assert any("not determined by the model" in w for w in res.warnings), res.warnings
+    (cam,) = res.reconstruction.cameras.values()
+    np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
+
+
 def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
     """A focal 3% off: kept constant when 'known', refined toward the truth when not."""
     inp, R_true = problem0
