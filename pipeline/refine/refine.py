@@ -17,7 +17,9 @@ as GLOMAP does after its own rotation averaging (:mod:`pipeline.refine.mapper`):
 **Unknown intrinsics** (estimated, EXIF or default focal lengths; a K read from a file is
 constant). Each such camera has one focal length (COLMAP's SIMPLE_PINHOLE, as its own
 mappers model an uncalibrated camera) and, with ``principal_point: auto``, its principal
-point refined too; the principal point is kept only where the final model determines it
+point refined too when every such camera has ``min_principal_point_images`` images (one
+image cannot tell its principal point from its pose); the principal point is kept only
+where the final model determines it
 (its standard deviation, from pycolmap's BA covariance, at most ``max_principal_point_sd``
 of the image's longest side); otherwise the refinement runs again with it fixed at the
 image centre, and the warnings say so. Measured with the true rotations known
@@ -47,7 +49,7 @@ from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
 from pipeline.refine.covariance import principal_point_sd, rotation_covariance
-from pipeline.refine.model import correspondence_cache, model_rotations, starting_reconstruction
+from pipeline.refine.model import camera_groups, correspondence_cache, model_rotations, starting_reconstruction
 from pipeline.refine.tracks import build_tracks, filter_edges, restrict_tracks, select_matches, select_tracks, \
     subset_tracks
 
@@ -94,6 +96,8 @@ class RefineConfig(Config):
     principal_point: Literal["auto", "refined", "fixed"] = option(
         "auto", "principal points of cameras without a K file: auto (refined, kept where the model determines "
                 "them, else fixed at the image centre), refined, or fixed")
+    min_principal_point_images: int = option(3, "principal_point auto: refined only when every camera without a K "
+                                                "file has at least this many images", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
     covariance: bool = option(True, "estimate each camera's rotation covariance")
@@ -274,6 +278,14 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         return True, ""
 
     refine_pp = cfg.principal_point != "fixed" and not known.all()
+    if refine_pp and cfg.principal_point == "auto":  # one image cannot separate its principal point from its pose
+        cam_id, _ = camera_groups(K, sizes, known)
+        per_camera = np.bincount(cam_id[active & ~known])
+        few = int(per_camera[per_camera > 0].min())
+        if few < cfg.min_principal_point_images:
+            refine_pp = False
+            stats["principal_point_fixed_why"] = (f"a camera without a K file has {few} image(s) "
+                                                  f"(< min_principal_point_images = {cfg.min_principal_point_images})")
     ba = mapper.ba_options(pc, cfg, known, principal_point=refine_pp)
     steps = [("setup", setup),
              ("global_positioning", lambda: mapper.global_positioning(pc, state["rec"], state["pose_graph"], cfg)),

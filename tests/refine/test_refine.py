@@ -163,6 +163,24 @@ def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
         RefineConfig(principal_point="free")
 
 
+def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
+    """Every image its own camera (a K each, as internet photos without EXIF): one image cannot separate its
+    principal point from its pose, so 'auto' keeps every principal point; 'refined' still refines them."""
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    K[:, 0, 0] += np.arange(len(K))  # a different focal per image: one camera each
+    K[:, 1, 1] = K[:, 0, 0]
+    auto = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    assert auto.status == "ok" and "principal_point" not in auto.stats
+    assert "1 image(s)" in auto.stats["principal_point_fixed_why"]
+    for cid, cam in auto.reconstruction.cameras.items():
+        assert cam.model.name == "SIMPLE_PINHOLE"
+        np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
+    forced = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
+                              config=RefineConfig(num_threads=1, min_image_observations=10, principal_point="refined"))
+    assert len(forced.stats["principal_point"]) == len(K)
+
+
 def test_principal_point_whose_covariance_fails_is_kept_at_the_given_one(problem0, monkeypatch):
     """pycolmap's covariance raising is no proof that the principal point is determined: it is fixed, not a crash."""
     from pipeline.refine import refine as refine_module
