@@ -312,9 +312,11 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
             logger.warning("refine: the principal points' covariance failed (%s)", " ".join(str(exc).split())[:100])
             sd = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not known[i - 1]}
-        limit = {cid: cfg.max_principal_point_sd * max(rec.camera(cid).width, rec.camera(cid).height) for cid in sd}
-        stats["principal_point"] = {str(cid): {"px": [rec.camera(cid).principal_point_x - 0.5, rec.camera(cid).principal_point_y - 0.5],
-                                               "sd_px": sd[cid], "max_sd_px": limit[cid]} for cid in sd}
+        cams = {cid: rec.camera(cid) for cid in sd}
+        limit = {cid: cfg.max_principal_point_sd * max(c.width, c.height) for cid, c in cams.items()}
+        stats["principal_point"] = {  # our pixel convention (centres at integers)
+            str(cid): {"px": [c.principal_point_x - 0.5, c.principal_point_y - 0.5], "sd_px": sd[cid],
+                       "max_sd_px": limit[cid]} for cid, c in cams.items()}
         loose = [cid for cid in sd if not sd[cid] <= limit[cid]]
         if loose and cfg.principal_point == "auto":  # not determined: again, with every principal point fixed
             again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
@@ -327,6 +329,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             again.stats["principal_point_rejected"] = stats["principal_point"]
             again.stats["times"]["total"] = time.perf_counter() - t_all
             return again
+    rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))
     return _checked(pc, rec, ba, known, cfg, names, R_init, has_R, active, why, warnings, stats, times, result)
