@@ -170,13 +170,19 @@ def client_session() -> Iterator[None]:
                 client.close()
 
 
-def _connect(address: str) -> Any:
-    """A client of the scheduler at ``address`` whose workers run single-threaded (checked first)."""
+def _connect(address: str, client_pid: int | None = None) -> Any:
+    """A client of the scheduler at ``address`` whose workers run single-threaded.
+
+    Args:
+        client_pid: this process's pid when it started the cluster (its workers then die with it); None for an
+            external scheduler, which is checked first.
+    """
     distributed = require_distributed()
-    check_scheduler(address)
+    if client_pid is None:
+        check_scheduler(address)
     client = distributed.Client(address, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     try:
-        client.run(single_thread, None)
+        client.run(single_thread, client_pid)
     except BaseException:
         client.close()
         raise
@@ -210,9 +216,7 @@ class DaskExecutor:
         try:
             if scheduler is None:
                 self._local = LocalDaskCluster(workers)
-                self.client = distributed.Client(self._local.address, timeout=CONNECT_TIMEOUT_S,
-                                                 set_as_default=False)
-                self.client.run(single_thread, os.getpid())
+                self.client = _connect(self._local.address, os.getpid())
             else:
                 shared = _session_client(scheduler)
                 self.client, self._shared = (shared, True) if shared is not None else (_connect(scheduler), False)

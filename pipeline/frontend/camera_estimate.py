@@ -360,8 +360,8 @@ class RadialEstimate:
 
     def summary(self) -> dict[str, Any]:
         return {"kappa": self.kappa, "kappa_raw": self.kappa_raw, "significant": self.significant,
-                "delta_chi2": self.delta_chi2, "dispersion": self.dispersion, "critical": self.critical, "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs,
-                "note": self.note}
+                "delta_chi2": self.delta_chi2, "dispersion": self.dispersion, "critical": self.critical,
+                "scale_px": self.s, "centre": self.c.tolist(), "n_pairs": self.n_pairs, "note": self.note}
 
 
 def _radial_round(x1s, x2s, thr, c, s, kappa0, grid, config, pmap, tag

@@ -231,11 +231,10 @@ def _lowered(img: np.ndarray, config: FeatureConfig, target: int, info: Extracti
         img = cv2.GaussianBlur(img, (0, 0), config.preblur_sigma)
     L = config.n_octave_layers
     # OpenCV cuts at the target-th response before describing (its retainBest keeps ties, as `keep` below does)
-    kps, desc = _sift(config, config.contrast_floor, target).detectAndCompute(img, None)
-    if len(kps) >= target and min(k.response for k in kps) > config.contrast_threshold / L:
+    xy, size, ori, resp, desc = _arrays(*_sift(config, config.contrast_floor, target).detectAndCompute(img, None))
+    if len(resp) >= target and resp.min() > config.contrast_threshold / L:
         # more than target keypoints reach the normal threshold: all of them stay (below), none may be cut
-        kps, desc = _sift(config, config.contrast_floor, 0).detectAndCompute(img, None)
-    xy, size, ori, resp, desc = _arrays(kps, desc)
+        xy, size, ori, resp, desc = _arrays(*_sift(config, config.contrast_floor, 0).detectAndCompute(img, None))
     # OpenCV's own order of an uncut detection (its KeyPoint_LessThan): x, y, larger size, angle, response
     order = np.lexsort((-resp, ori, -size, xy[:, 1], xy[:, 0]))
     xy, size, ori, resp, desc = xy[order], size[order], ori[order], resp[order], desc[order]

@@ -110,9 +110,7 @@ def joint_kappa(kappa: np.ndarray, cost: np.ndarray, sigma2: np.ndarray, cap: fl
 def _own_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(M,) each row's minimum between grid points: the vertex of the parabola through its lowest point and
     the two beside it (the lowest point itself at the grid's ends or where the parabola is not convex)."""
-    g = np.clip(np.argmin(y, axis=1), 1, len(x) - 2) if len(x) >= 3 else np.zeros(len(y), int)
-    if len(x) < 3:
-        return y.min(axis=1)
+    g = np.clip(np.argmin(y, axis=1), 1, len(x) - 2)  # x has >= 3 points (kappa_test)
     rows = np.arange(len(y))
     xs = np.stack([x[g - 1], x[g], x[g + 1]], 1)
     ys = np.stack([y[rows, g - 1], y[rows, g], y[rows, g + 1]], 1)
@@ -131,9 +129,8 @@ def _quadratic_at(x: np.ndarray, y: np.ndarray, x0: float) -> np.ndarray:
     """
     k = int(np.clip(np.searchsorted(x, x0), 1, len(x) - 2))
     k = k - 1 if k > 1 and abs(x[k - 2] - x0) < abs(x[k + 1] - x0) else k
-    nodes = x[k - 1:k + 2]
-    coef = np.linalg.solve(np.vander(nodes, 3), y[:, k - 1:k + 2].T)  # (3, M), one shared 3×3 system
-    return np.vander([x0], 3) @ coef if len(x) >= 3 else np.interp(x0, x, y[0])[None]
+    coef = np.linalg.solve(np.vander(x[k - 1:k + 2], 3), y[:, k - 1:k + 2].T)  # (3, M), one shared 3×3 system
+    return (np.vander([x0], 3) @ coef)[0]
 
 
 def kappa_test(kappa: np.ndarray, cost: np.ndarray, sigma2: np.ndarray, kappa_hat: float, chi2: float,
@@ -160,6 +157,8 @@ def kappa_test(kappa: np.ndarray, cost: np.ndarray, sigma2: np.ndarray, kappa_ha
     """
     from scipy import stats  # noqa: PLC0415
 
+    if len(kappa) < 3:
+        raise ValueError(f"kappa has {len(kappa)} grid points but the test needs at least 3 (a parabola through them)")
     d = (cost - _own_minimum(kappa, cost)[:, None]) / sigma2[:, None]
     rho = cap * np.log1p(np.maximum(d, 0.0) / cap)
     per_pair = np.maximum(_quadratic_at(kappa, rho, kappa_hat), 0.0)

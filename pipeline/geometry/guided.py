@@ -206,27 +206,27 @@ def estimate_pair_guided(kp_i: np.ndarray, q_i: np.ndarray, kp_j: np.ndarray, q_
     if g.ok and g.n_inliers >= config.guided_max_inliers:
         return g, matches, GuidedOutcome(reason=f"not weak ({g.n_inliers} >= guided_max_inliers inliers)")
     seed = _seed(kp_i[matches[:, 0]], kp_j[matches[:, 1]], K_i, K_j, g, config, pixel_scale)
-    best_g, best_m = g, matches
+    best_g, best_m, why = g, matches, ""
     for _ in range(config.guided_rounds):
         if not seed.ok or seed.small_baseline or not np.linalg.norm(seed.t) > 0:
-            out.reason = out.reason if out.used else "no seed pose with a baseline"
+            why = "no seed pose with a baseline"
             break
         found, out.n_null, out.p_value = harvest(kp_i, q_i, kp_j, q_j, seed.R, seed.t, K_i, K_j, config, pixel_scale)
         out.n_harvest = len(found)
         if out.p_value > config.guided_alpha:
-            out.reason = out.reason if out.used else (f"harvest {len(found)} not above chance (λ = {out.n_null}, "
-                                                      f"p = {out.p_value:.2g})")
+            why = f"harvest {len(found)} not above chance (λ = {out.n_null}, p = {out.p_value:.2g})"
             break
         union = np.unique(np.concatenate([matches, found]), axis=0)
         g2 = estimate_pair(kp_i[union[:, 0]], kp_j[union[:, 1]], K_i, K_j, config, pixel_scale)
         if not g2.ok:
-            out.reason = out.reason if out.used else f"re-estimation failed: {g2.reason}"
+            why = f"re-estimation failed: {g2.reason}"
             break
         change = float(np.degrees(so3.angle_between(g2.R, seed.R)))
         if change > config.guided_max_change_deg:  # E's twisted pair shares the band: the pose must agree too
-            out.reason = out.reason if out.used else f"re-estimated rotation {change:.1f}° from its seed"
+            why = f"re-estimated rotation {change:.1f}° from its seed"
             break
-        out.used, out.reason, out.n_added = True, "", len(union) - len(matches)
+        out.used, out.n_added = True, len(union) - len(matches)
         g2.n_guided = out.n_added
         best_g, best_m, seed = g2, union, g2
+    out.reason = "" if out.used else why  # a later round's stop does not undo an earlier round's use
     return best_g, best_m, out
