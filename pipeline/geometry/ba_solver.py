@@ -22,6 +22,10 @@ its Gauss–Newton Hessian into the precision of the relative rotation
   denominator is ``n − 5``; it is divided by 0.988, the mean of χ²₁ truncated
   at the inlier threshold, so the cut tail does not bias it. When the final
   refit is switched off, IRLS weights are used: ``Σ w r² / (Σ w − 5)``.
+  With σ² estimated from ν residual degrees of freedom the rotation's error
+  is a Student-t with ν dof, not a Gaussian: its covariance is ``ν/(ν − 2)``
+  times ``σ̂² S⁻¹``, so H (and ``H_pose``, the focal sd) carry that factor and
+  the mean NEES is 3 at any ν (without it, ``3ν/(ν − 2)``: 3.6 at 16 points).
 * **Pure rotation.** The translation block is eliminated with a
   pseudo-inverse, so a zero-baseline pair still gets a finite H; a zero ``t0``
   (as a front end may report there) is replaced by the epipolar least-squares t.
@@ -93,8 +97,12 @@ class PairBAResult:
         residuals: (n, 4) pixel residuals (image i x, y, image j x, y) at the optimum.
         sigma2: pixel noise variance used for ``H`` (px²): known or estimated.
         sigma2_estimated: True when ``sigma2`` was estimated from the residuals.
-        H: (3, 3) precision of ``Δω`` (1/rad²), ``R_true = exp([Δω]×) R``.
-        H_pose: (5, 5) precision of (δ, δt) with the points marginalized.
+        variance_inflation: ``ν/(ν − 2)`` for σ² estimated from ν residual degrees of
+            freedom (the Student-t covariance), 1 for a known σ: ``H = S_rot / (σ² ·
+            variance_inflation)``.
+        H: (3, 3) precision of ``Δω`` (1/rad²), ``R_true = exp([Δω]×) R``; with ``sigma2``
+            estimated, the inverse covariance of the Student-t error, ``(ν − 2)/ν · S_rot/σ̂²``.
+        H_pose: (5, 5) precision of (δ, δt) with the points marginalized (same factor).
         iterations: LM linearizations over all fits (robust + refit).
         inlier_mask: (n,) points kept for the final fit and for ``H``.
         cost_history: robust cost (½ Σ ρ(‖r_k‖²), px²) after each accepted step,
@@ -118,6 +126,7 @@ class PairBAResult:
     inlier_mask: np.ndarray
     cost_history: list[float] = field(default_factory=list)
     converged: bool = True
+    variance_inflation: float = 1.0
     t_basis: np.ndarray | None = None
     K_i: np.ndarray | None = None
     K_j: np.ndarray | None = None
@@ -134,12 +143,37 @@ class PairBAResult:
         return float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
 
 
-def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None, focal=None) -> np.ndarray:
-    """Inlier points (n,) at the current fit: leave-one-out residual test and cheirality.
+#: Relative efficiency of σ² from the median of n χ²₁ draws against the mean-square estimate
+#: (asymptotic variance 1/(4 n f(m)²) of the median m = 0.455 of χ²₁, f its density there):
+#: the median-based σ² has the precision of a mean square with 0.369·n degrees of freedom.
+MEDIAN_SIGMA2_EFFICIENCY = 0.369
 
-    A point that pulled the pose towards itself hides its error; its
-    leave-one-out residual does not. With ``h_k = w_k j_kᵀ S⁻¹ j_k`` its leverage
-    in the reduced pose system, ``e_k² / (1 − h_k)`` is ≈ σ²·χ²₁ for an inlier.
+
+def studentized_threshold(chi2: float, dof: float) -> float:
+    """The inlier threshold on ``stat/σ̂²`` when σ̂² has ``dof`` degrees of freedom.
+
+    An inlier's leave-one-out statistic over an independent σ̂² is F(1, ν), not χ²₁:
+    keep the false-rejection rate of ``chi2`` as a χ²₁ threshold (0.1% at 10.83).
+    With a median-based σ̂² over 16 points (ν ≈ 6) the χ²₁ threshold drops 2.4% of the
+    inliers instead of 0.1%, which biases σ̂² low and H overconfident.
+    """
+    from scipy.special import chdtrc, fdtri  # noqa: PLC0415
+
+    if not math.isfinite(dof) or dof > 1e6:
+        return float(chi2)
+    return float(fdtri(1.0, max(dof, 1.0), 1.0 - chdtrc(1.0, chi2)))
+
+
+def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None, focal=None) -> tuple[np.ndarray, float, float]:
+    """Inlier points (n,) at the current fit, and the σ and threshold used.
+
+    Leave-one-out residual test and cheirality. A point that pulled the pose
+    towards itself hides its error; its leave-one-out residual does not. With
+    ``h_k = w_k j_kᵀ S⁻¹ j_k`` its leverage in the reduced pose system,
+    ``e_k² / (1 − h_k)`` is ≈ σ²·χ²₁ for an inlier. ``sigma=None`` estimates σ from
+    the median of those statistics (the residuals themselves are shrunk by
+    ``1 − h_k``: 5/n on average, 31% at 16 points) and then tests against
+    :func:`studentized_threshold` for that median's precision; a known σ uses ``chi2``.
     A point more than 3 sd behind camera i (ρ < −3σ_ρ) is rejected too: a false
     match that happens to lie near its epipolar line often triangulates there.
     """
@@ -151,9 +185,12 @@ def _classify(R, t, P, state, w, sigma, chi2, Ki, Kj, cache=None, focal=None) ->
     h = w * (j * (pinv_sym(S) @ j)).sum(axis=0)
     np.minimum(np.maximum(h, 0.0, out=h), 0.99, out=h)  # np.clip, without its overhead
     stat = point_s2(r) / (1.0 - h)
+    if sigma is None:
+        sigma = robust_sigma(stat[valid])
+        chi2 = studentized_threshold(chi2, MEDIAN_SIGMA2_EFFICIENCY * int(valid.sum()))
     g = np.sqrt((J[:, 7] * J[:, 7]).sum(axis=0))  # |d r_j / d ρ| (px per unit ρ)
     behind = P[2] * g < -3.0 * sigma
-    return valid & ~behind & (stat <= chi2 * sigma**2)
+    return valid & ~behind & (stat <= chi2 * sigma**2), sigma, chi2
 
 
 def _check_inputs(xi, xj, Ki, Kj, R0, t0):
@@ -264,8 +301,7 @@ def refine_pair(
     adapt = cfg.loss_scale_sigmas if (cfg.loss != "none" and cfg.loss_scale_px is None and cfg.sigma_px is None) else None
     tol_robust = max(cfg.tol, 1e-4) if cfg.refit_inliers else cfg.tol
     r, valid, w, c = run(cfg.loss, c, all_pts, tol_robust, adapt)
-    sigma_cls = cfg.sigma_px if cfg.sigma_px is not None else robust_sigma(point_s2(r)[valid])
-    inliers = _classify(R, t, P, state, w, sigma_cls, cfg.inlier_chi2, Ki, Kj, cache, fu)
+    inliers, sigma_cls, chi2_cls = _classify(R, t, P, state, w, cfg.sigma_px, cfg.inlier_chi2, Ki, Kj, cache, fu)
     # 2. Drop the outliers and refine again by least squares (unit weights). If
     #    outliers were dropped, check every point once more at the new pose
     #    (the dropped points first re-triangulated there) and refit if the set changed.
@@ -273,7 +309,7 @@ def refine_pair(
         for round_ in range(2):
             if inliers.sum() < cfg.min_points:
                 raise TwoViewBAError(
-                    f"only {int(inliers.sum())} of {n} points are inliers (threshold {np.sqrt(cfg.inlier_chi2) * sigma_cls:.3g} px) "
+                    f"only {int(inliers.sum())} of {n} points are inliers (threshold {np.sqrt(chi2_cls) * sigma_cls:.3g} px) "
                     f"but min_points={cfg.min_points}; the pose is unreliable: drop the pair or raise inlier_chi2"
                 )
             r, valid, w, _ = run("none", c, inliers, cfg.tol)
@@ -285,7 +321,7 @@ def refine_pair(
             P = P.copy()
             P[:, out] = P_out
             state = project(R, t, P, xi, xj, Ki, Kj)
-            new = _classify(R, t, P, state, inliers.astype(np.float64), sigma_cls, cfg.inlier_chi2, Ki, Kj, cache, fu)
+            new = _classify(R, t, P, state, inliers.astype(np.float64), sigma_cls, chi2_cls, Ki, Kj, cache, fu)[0]
             # Any point of the fit that now fails forces another fit (a hidden
             # outlier biases H); a few (≤ 0.5%) dropped points coming back do not.
             if not np.any(inliers & ~new) and int((new & ~inliers).sum()) <= max(1, int(0.005 * n)):
@@ -295,6 +331,7 @@ def refine_pair(
         w = inliers.astype(np.float64)
     s2 = point_s2(r)
     wsum = float(w.sum())
+    variance_inflation = 1.0
     if cfg.sigma_px is not None:
         sigma2, estimated = float(cfg.sigma_px) ** 2, False
     else:
@@ -305,17 +342,23 @@ def refine_pair(
         if cfg.refit_inliers:
             # The inlier test cut the tail of each point's σ²·χ²₁: divide by the
             # mean of a χ²₁ truncated at inlier_chi2 (0.988 at 10.83) to stay unbiased.
-            q = np.sqrt(cfg.inlier_chi2)
+            q = np.sqrt(chi2_cls)
             sigma2 /= 1.0 - 2.0 * q * np.exp(-0.5 * cfg.inlier_chi2) / np.sqrt(2.0 * np.pi) / math.erf(q / np.sqrt(2.0))
         # A noise-free pair would give H = ∞; floor σ at 1e-6 px.
         sigma2, estimated = max(sigma2, 1e-12), True
+        # σ² estimated from ν = dof residual degrees of freedom makes the error a Student-t
+        # with ν dof (scale σ̂²·S⁻¹), whose covariance is ν/(ν − 2) times larger.
+        if dof <= 2.0:
+            raise TwoViewBAError(f"{wsum:.1f} effective points leave {dof:.1f} ≤ 2 degrees of freedom: the rotation's "
+                                 "error has no finite variance; pass sigma_px or raise min_points")
+        variance_inflation = dof / (dof - 2.0)
     # 3. H_full = JᵀWJ/σ² at the optimum; points, then translation, marginalized.
     B, J, nv, j, _ = linearize(R, t, P, Kj, Ki, state[2], cache)
     if fu is not None:  # the focal rows: marginalized with the translation below
         j = np.vstack([j, fu.reduced(nv, fu.jacobian(P, Ki, Kj, state[2]))])
     S_pose, _ = reduced_system(r, w, J, nv, j)
     H_rot, S = marginalize_translation(S_pose)
-    H = H_rot / sigma2
+    H = H_rot / (sigma2 * variance_inflation)
     lam = np.linalg.eigvalsh(H)
     if not (np.all(np.isfinite(lam)) and lam[0] > 1e-12 * max(lam[-1], 1e-300) and lam[0] > 0):
         raise TwoViewBAError(f"the rotation Hessian is singular (eigenvalues {lam.tolist()}); the pair does not constrain the rotation")
@@ -328,8 +371,9 @@ def refine_pair(
     X = X.T
     return PairBAResult(
         R=R, t=t, points=X, point_params=P.T.copy(), residuals=r.T.copy(), sigma2=sigma2, sigma2_estimated=estimated,
-        H=H, H_pose=S / sigma2, iterations=iterations, inlier_mask=inliers, cost_history=history,
-        converged=bool(converged), t_basis=B, K_i=Ki, K_j=Kj, focal_log_sd=_focal_sd(S, sigma2, m),
+        H=H, H_pose=S / (sigma2 * variance_inflation), iterations=iterations, inlier_mask=inliers, cost_history=history,
+        converged=bool(converged), t_basis=B, K_i=Ki, K_j=Kj, focal_log_sd=_focal_sd(S, sigma2 * variance_inflation, m),
+        variance_inflation=variance_inflation,
     )
 
 

@@ -22,8 +22,10 @@ def test_closed_form_schur_equals_block_schur(pair200: SyntheticPair, make_skewe
     J = J[res.inlier_mask]  # H is built from the inliers (unit weights)
     U, V, Wm = normal_equation_blocks(J)
     H_block, S_block = rotation_hessian(U, V, Wm)
-    np.testing.assert_allclose(H_block / res.sigma2, res.H, rtol=1e-8)
-    np.testing.assert_allclose(S_block / res.sigma2, res.H_pose, rtol=1e-7, atol=1e-9 * np.abs(res.H_pose).max())
+    s2 = res.sigma2 * res.variance_inflation  # σ̂² with the Student-t factor (estimated σ)
+    assert res.sigma2_estimated and 1.0 < res.variance_inflation < 1.02
+    np.testing.assert_allclose(H_block / s2, res.H, rtol=1e-8)
+    np.testing.assert_allclose(S_block / s2, res.H_pose, rtol=1e-7, atol=1e-9 * np.abs(res.H_pose).max())
     # Also against a dense inverse of the full (3n+5) information: the rotation block of its inverse.
     Jf = np.zeros((4 * len(J), 5 + 3 * len(J)))
     for k in range(len(J)):
@@ -31,4 +33,4 @@ def test_closed_form_schur_equals_block_schur(pair200: SyntheticPair, make_skewe
         Jf[4 * k : 4 * k + 4, 5 + 3 * k : 8 + 3 * k] = J[k, :, 5:]
     info = Jf.T @ Jf
     cov = np.linalg.inv(info)
-    np.testing.assert_allclose(np.linalg.inv(cov[:3, :3]) / res.sigma2, res.H, rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.inv(cov[:3, :3]) / s2, res.H, rtol=1e-5)

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.core import so3
 from pipeline.core.errors import ConfigError
-from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair
+from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair, studentized_threshold
 from pipeline.synthetic.pairs import SyntheticPair, synthetic_pair
 
 
@@ -100,6 +100,41 @@ def test_calibration_small_monte_carlo() -> None:
         lam, Q = np.linalg.eigh(np.linalg.inv(Hs.mean(0)))
         ratios = np.einsum("ik,ij,jk->k", Q, C, Q) / lam
         assert np.all((ratios > 0.6) & (ratios < 1.5)), (sigma_known, ratios)
+
+
+def test_calibration_with_few_points() -> None:
+    """20 points, σ estimated: mean NEES ≈ 3 over 300 draws, and ≈ 0.1% of the inliers dropped.
+
+    Two effects that vanish at 200 points decide this case. σ̂² has only ν = 15 degrees
+    of freedom, so the error is a Student-t whose covariance is ν/(ν − 2) = 1.15× that of
+    the Gaussian (``variance_inflation``); and the inlier test's σ comes from a median of
+    20 residuals that the fit has shrunk by 1 − 5/20, which (before the leave-one-out
+    median and the studentized threshold) dropped ~2.4% of the inliers, biased σ̂² low
+    and gave a mean NEES of ≈ 5. Bounds: the sd of the mean is 0.16 here (measured), so
+    [2.5, 3.55] is ≈ ±3 sd; the t factor left out gives ≈ 3.5, the old inlier test ≈ 5.
+    """
+    nees, dropped = [], 0
+    for d in range(300):
+        sp = synthetic_pair(20, sigma_px=1.0, seed=2000 + d, scene_seed=42)
+        res = refine_pair(sp.x_i, sp.x_j, sp.K_i, sp.K_j, sp.R0, sp.t0)
+        nu = res.n_inliers - 5.0
+        assert res.sigma2_estimated and res.variance_inflation == pytest.approx(nu / (nu - 2.0), rel=1e-12)
+        dw = so3.log(sp.R @ res.R.T)
+        nees.append(dw @ res.H @ dw)
+        dropped += 20 - res.n_inliers
+    assert 2.5 < np.mean(nees) < 3.55, np.mean(nees)
+    assert dropped / (300 * 20) < 0.004, dropped  # 0.1% expected (the χ²₁ tail at 10.83)
+
+
+def test_studentized_threshold_keeps_the_false_rejection_rate() -> None:
+    """stat/σ̂² with σ̂² on ν dof exceeds the threshold with the χ²₁ tail probability of ``chi2``."""
+    rng = np.random.default_rng(3)
+    for nu in (4.0, 12.0, 60.0):
+        thr = studentized_threshold(10.83, nu)
+        x = rng.chisquare(1, 2_000_000) / (rng.chisquare(nu, 2_000_000) / nu)
+        assert abs(np.mean(x > thr) - 0.001) < 1e-4, (nu, thr, np.mean(x > thr))
+    assert studentized_threshold(10.83, 4.0) > studentized_threshold(10.83, 60.0) > 10.83
+    assert studentized_threshold(10.83, float("inf")) == 10.83
 
 
 def test_least_certain_direction_is_the_weak_one() -> None:
