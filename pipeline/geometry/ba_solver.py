@@ -341,9 +341,9 @@ def refine_pair(
         sigma2 = float((w * s2).sum() / dof)
         if cfg.refit_inliers:
             # The inlier test cut the tail of each point's σ²·χ²₁: divide by the
-            # mean of a χ²₁ truncated at inlier_chi2 (0.988 at 10.83) to stay unbiased.
+            # mean of a χ²₁ truncated at the threshold used (0.988 at 10.83) to stay unbiased.
             q = np.sqrt(chi2_cls)
-            sigma2 /= 1.0 - 2.0 * q * np.exp(-0.5 * cfg.inlier_chi2) / np.sqrt(2.0 * np.pi) / math.erf(q / np.sqrt(2.0))
+            sigma2 /= 1.0 - 2.0 * q * np.exp(-0.5 * chi2_cls) / np.sqrt(2.0 * np.pi) / math.erf(q / np.sqrt(2.0))
         # A noise-free pair would give H = ∞; floor σ at 1e-6 px.
         sigma2, estimated = max(sigma2, 1e-12), True
         # σ² estimated from ν = dof residual degrees of freedom makes the error a Student-t
