@@ -7,7 +7,9 @@ its Gauss–Newton Hessian into the precision of the relative rotation
 
 * **Outliers.** After the robust fit, points whose leave-one-out squared
   residual ``‖r_k‖² / (1 − h_k)`` (``h_k`` the point's leverage) exceeds
-  ``inlier_chi2 · σ²``, or that lie more than 3 sd behind camera i, are dropped
+  ``inlier_chi2 · σ²`` (σ known) or, with σ estimated from the median of those
+  statistics, the F(1, 0.369·n) quantile of the same tail probability
+  (:func:`studentized_threshold`), or that lie more than 3 sd behind camera i, are dropped
   and the pose is refined again by plain least squares on the inliers
   (DESIGN.md: "drop points with large error and refine again"); the dropped
   points are checked once more at the new pose. ``H`` is then the Gauss–Newton
@@ -70,8 +72,9 @@ class BAConfig(ExecutorOptions):
     loss_scale_sigmas: float = option(3.0, "robust loss scale in units of σ (see loss_scale_px)", gt=0)
     refit_inliers: bool = option(True, "after the robust fit, drop the points beyond the inlier threshold and "
                                        "refine again by least squares; H and σ² then come from the inliers")
-    inlier_chi2: float = option(10.83, "a point is an inlier when ‖r_k‖² ≤ inlier_chi2·σ² (10.83: the 99.9% "
-                                       "quantile of χ²₁, one redundant residual per point)", gt=0)
+    inlier_chi2: float = option(10.83, "a point is an inlier when ‖r_k‖²/(1 − h_k) ≤ inlier_chi2·σ² for a known σ "
+                                       "(10.83: the 99.9% quantile of χ²₁, one redundant residual per point); with σ "
+                                       "estimated, the studentized threshold of the same tail probability", gt=0)
     max_iterations: int = option(50, "LM iterations (linearizations) per fit", ge=1)
     tol: float = option(1e-6, "stop when the relative cost decrease falls below this", ge=0)
     min_points: int = option(12, "pairs with fewer (inlier) points are rejected (5 pose unknowns + σ² need "
