@@ -59,8 +59,10 @@ floor makes the bound exceed the target the verdict is "could not decide".
 "not verified" requires an explicit eigenvector with Rayleigh quotient below
 ``−max(η, ‖S Y‖_F/√N)``: by a Schur-complement argument (with ``Q = Y/√N``, ``QᵀSQ = 0``,
 ``‖P⊥SQ‖ ≤ ‖SY‖_F/√N``), S restricted to ``span(Y)⊥`` then has a negative direction, so
-the failure is not an artefact of an inexact stationary point. Everything in between is
-"could not decide".
+the failure is not an artefact of an inexact stationary point. What that proves is that the
+relaxation goes lower than Y; that a lower-cost set of rotations exists follows only where the
+relaxation is tight, so the statement names both possibilities (a local minimum, or a relaxation
+that is not tight for this cost). Everything in between is "could not decide".
 
 What a "verified" answer proves for IRLS: the polished rotations are
 the global minimizer, over all of SO(3)^N (indeed O(3)^N and the SDP), of the fixed-weight

@@ -281,8 +281,12 @@ def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarra
         if move > 0:
             head += f"; certified after a Newton polish that moved the rotations by ≤ {move:.2g}°"
     elif cert.verdict == NOT_VERIFIED:
-        head = (f"NOT verified: not the global minimum of {what} {edges} (λ_min(S) = {cert.lambda_min:.3g} < 0; "
-                f"a lower cost exists, led by cameras {[vg.names[k] for k in cert.witness_cameras[:5]]})")
+        # A negative direction of S off span(Y) proves that the convex relaxation goes lower than this
+        # point; on SO(3)^N it proves nothing more unless the relaxation is tight for this cost.
+        head = (f"NOT verified: not shown to be the global minimum of {what} {edges}: its convex relaxation "
+                f"has a lower value (λ_min(S) = {cert.lambda_min:.3g} < 0, direction led by cameras "
+                f"{[vg.names[k] for k in cert.witness_cameras[:5]]}), so either this point is a local minimum "
+                "or the relaxation is not tight for this cost")
     else:
         head = f"could not decide whether this is the global minimum of {what} {edges}: {cert.message}"
     return {**cert.to_dict(), "statement": head + "; it proves optimality for that cost on that edge set, "
