@@ -209,6 +209,31 @@ def test_twisted_ring_local_minimum_not_verified():
     assert "relaxation has a lower value" in stmt and "a lower cost exists" not in stmt
 
 
+def test_anisotropic_failure_is_undecided_not_a_refutation():
+    """A negative direction refutes the point only where every multiplier is fixed by stationarity.
+
+    The twisted ring is a local minimum. With an isotropic metric (given as M = 1.5·I) the
+    certificate refutes it; with an anisotropic one the conv(SO(3)) multipliers are the
+    certificate's own choice, so the same failure says "could not decide" (on
+    templeSparseRing the SDP-cSO(3) certifies the very point this test failed on).
+    """
+    from pipeline.averaging.irls import irls
+
+    vg, R_true, twisted = _planar_ring(12, 0.0, seed=0)
+    res = irls(vg, loss="l2", init=twisted, l1_iterations=0, refine=False, tol_rad=1e-9)
+    R = res.R
+    w = np.ones(vg.n_edges)
+    iso = metric_from_H(np.broadcast_to(3.0 * np.eye(3), (vg.n_edges, 3, 3)).copy())
+    aniso = metric_from_H(np.broadcast_to(np.diag([1.0, 2.0, 5.0]), (vg.n_edges, 3, 3)).copy())
+    c_iso, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, R, w, iso)
+    c_aniso, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, R, w, aniso)
+    assert c_iso.verdict == NOT_VERIFIED and c_iso.witness_cameras, c_iso.summary()
+    assert c_aniso.verdict == UNDECIDED and c_aniso.lambda_min < -0.1, c_aniso.summary()
+    assert "refutes nothing" in c_aniso.message and not c_aniso.witness_cameras
+    for M in (iso, aniso):  # the truth is verified under both metrics (the test can pass both ways)
+        assert certify(vg.n_cameras, vg.edges, vg.R_rel, R_true, w, M)[0].verdict == VERIFIED
+
+
 def test_could_not_decide_when_far_from_stationary():
     from pipeline.synthetic.graphs import paper1_graph
 

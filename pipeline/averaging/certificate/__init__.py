@@ -62,7 +62,12 @@ floor makes the bound exceed the target the verdict is "could not decide".
 the failure is not an artefact of an inexact stationary point. What that proves is that the
 relaxation goes lower than Y; that a lower-cost set of rotations exists follows only where the
 relaxation is tight, so the statement names both possibilities (a local minimum, or a relaxation
-that is not tight for this cost). Everything in between is "could not decide".
+that is not tight for this cost). That holds only where every multiplier is fixed by
+stationarity, i.e. for isotropic metrics. For anisotropic ones the conv(SO(3)) multipliers
+``V_e`` are this certificate's choice, and a failure refutes the choice, not the point: the
+verdict is then "could not decide" (SDP-cSO(3), which optimizes them, decides that cost; on
+templeSparseRing it certifies a point this test fails on). Everything in between is "could
+not decide".
 
 What a "verified" answer proves for IRLS: the polished rotations are
 the global minimizer, over all of SO(3)^N (indeed O(3)^N and the SDP), of the fixed-weight

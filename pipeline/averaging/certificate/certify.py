@@ -144,6 +144,9 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         Mk = sym(np.asarray(M, float)[keep])
         if use_lmi is None:
             use_lmi = True
+    # Isotropic edge metrics (M_e ∝ I): the certificate's multipliers are all fixed by stationarity.
+    iso_part = np.trace(Mk, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
+    isotropic = bool(np.all(np.abs(Mk - iso_part) <= 1e-9 * np.maximum(np.abs(iso_part).max(), 1e-300)))
     WM = ww[:, None, None] * Mk
     C = WM @ Rt
     D = diag_blocks(n, e, WM)
@@ -193,7 +196,15 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
     else:
         lam_lo = eig.lambda_min
         gap = min(max(cost, 0.0), 3 * n * max(0.0, -eig.lambda_min))
-        if eig.lambda_min < -max(eta, stat_bound):
+        if eig.lambda_min < -max(eta, stat_bound) and not isotropic:
+            # The Lagrange multipliers of R_iR_iᵀ = I are fixed by stationarity, but those of the
+            # conv(SO(3)) LMIs are this certificate's own choice (lmi_adjusted_C): a negative
+            # direction refutes that choice, not the point. SDP-cSO(3) optimizes them.
+            verdict = UNDECIDED
+            msg = (f"λ_min(S) = {eig.lambda_min:.3g} < 0 with this certificate's choice of the conv(SO(3)) "
+                   "multipliers; for an anisotropic cost that refutes nothing (SDP-cSO(3), which optimizes "
+                   "them, decides this cost)")
+        elif eig.lambda_min < -max(eta, stat_bound):
             verdict = NOT_VERIFIED
             v = eig.witness.reshape(n, 3)
             mass = np.square(v).sum(axis=1)
