@@ -11,7 +11,7 @@ WORK folder layout::
     WORK/features.json            manifest: image folder, names, sizes (w, h), K per image
                                   and its source, skipped images and why, item keys, and the
                                   images whose contrast threshold was lowered (``lowered``:
-                                  {name: {n_normal, n_keypoints, contrast_used, preblur_sigma}})
+                                  {name: {n_normal, n_keypoints, contrast_used, preblur_sigma, affine}})
     WORK/features/chunk-*.npz     one image each: keypoints (n, 2) float32 px, scales,
                                   orientations (deg), responses, descriptors (n, 128) uint8,
                                   size (w, h), n_normal, lowered, contrast_used, preblur_sigma
@@ -68,7 +68,7 @@ class FeatureSet:
         descriptors: N arrays (n_i, 128) uint8.
         images: image folder.
         K_source: N strings: ``file:<path>``, ``exif`` or ``default``.
-        lowered: ``{name: {n_normal, n_keypoints, contrast_used, preblur_sigma}}`` of the images
+        lowered: ``{name: {n_normal, n_keypoints, contrast_used, preblur_sigma, affine}}`` of the images
             whose contrast threshold was lowered (low texture).
         digest: the features stage's fingerprint (downstream cache input).
         config: the extraction config.
@@ -102,7 +102,8 @@ def _extract_task(args: tuple[str, str, str, dict[str, Any], str]) -> tuple[str,
         "keypoints": kp.xy, "scales": kp.scales, "orientations": kp.orientations, "responses": kp.responses,
         "descriptors": kp.descriptors, "size": np.array([gray.shape[1], gray.shape[0]]),
         "n_normal": np.array(info.n_normal), "lowered": np.array(info.lowered),
-        "contrast_used": np.array(info.contrast_used), "preblur_sigma": np.array(info.preblur_sigma)}})
+        "contrast_used": np.array(info.contrast_used), "preblur_sigma": np.array(info.preblur_sigma),
+        "affine": np.array(info.affine)}})
     return key, name, len(kp.xy), chunk.name
 
 
@@ -111,7 +112,8 @@ def _lowered_record(item: dict[str, np.ndarray]) -> dict[str, Any] | None:
     if "lowered" not in item or not bool(item["lowered"]):
         return None
     return {"n_normal": int(item["n_normal"]), "n_keypoints": int(len(item["keypoints"])),
-            "contrast_used": round(float(item["contrast_used"]), 6), "preblur_sigma": float(item["preblur_sigma"])}
+            "contrast_used": round(float(item["contrast_used"]), 6), "preblur_sigma": float(item["preblur_sigma"]),
+            "affine": bool(item.get("affine", False))}
 
 
 class FeaturesStage(Stage[FeatureConfig]):
@@ -234,8 +236,12 @@ class FeaturesStage(Stage[FeatureConfig]):
             logger.info("features: low texture, contrast threshold lowered for %d image(s): %s", len(lowered),
                         ", ".join(f"{n} ({r['n_normal']} -> {r['n_keypoints']} keypoints)"
                                   for n, r in list(lowered.items())[:5]) + (" ..." if len(lowered) > 5 else ""))
+        n_affine = sum(bool(r["affine"]) for r in lowered.values())
+        if n_affine:
+            logger.info("features: texture-starved, detected over simulated viewpoints (affine) in %d image(s)",
+                        n_affine)
         return [path, *files], {"n_images": len(usable), "n_extracted": len(n_kp), "n_skipped": len(skipped),
-                                "n_lowered": len(lowered)}
+                                "n_lowered": len(lowered), "n_affine": n_affine}
 
     def verify(self, record: StageRecord) -> None:
         m = load_manifest(self.folder)
