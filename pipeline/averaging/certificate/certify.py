@@ -146,7 +146,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
             use_lmi = True
     # Isotropic edge metrics (M_e ∝ I): the certificate's multipliers are all fixed by stationarity.
     iso_part = np.trace(Mk, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
-    isotropic = bool(np.all(np.abs(Mk - iso_part) <= 1e-9 * np.maximum(np.abs(iso_part).max(), 1e-300)))
+    isotropic = M is None or not len(Mk) or bool(np.all(np.abs(Mk - iso_part) <= 1e-9 * np.abs(iso_part).max()))
     WM = ww[:, None, None] * Mk
     C = WM @ Rt
     D = diag_blocks(n, e, WM)
