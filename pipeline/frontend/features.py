@@ -29,7 +29,7 @@ fewer than half its target is detected again over simulated viewpoints (ASIFT, :
 tilts up to ``√2^affine_max_tilt``, our own warps with pixel centres at integers). On the
 rendered low-texture turntables (8 scenes) it raised the truly overlapping pairs kept from
 50–72% to 81–97% and solved every image (7–8 of 16 before on four of them); it costs about
-1.8 s per 640×480 image, and only such images pay it (templeSparseRing's lowered images reach
+1 s per 640×480 image, and only such images pay it (templeSparseRing's lowered images reach
 83–100% of their target at the floor and are not affected).
 
 **Speed.** On an image that will be lowered, describing the normal detection is wasted
@@ -261,13 +261,16 @@ def _lowered(img: np.ndarray, config: FeatureConfig, target: int, info: Extracti
     info.lowered = True
     info.contrast_used = float(thr * L)
     info.preblur_sigma = float(config.preblur_sigma)
-    if len(keep) < config.affine_below * target:
-        return _affine(img, config, info)
-    return xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
+    out = xy[keep], size[keep], ori[keep], resp[keep], desc[keep]
+    if len(keep) < config.affine_below * target:  # uncut (fewer than target): the floor detection itself
+        return _affine(img, config, info, out)
+    return out
 
 
-def _affine(img: np.ndarray, config: FeatureConfig, info: Extraction) -> tuple[np.ndarray, ...]:
-    """The floor detection over simulated viewpoints (ASIFT; ``img`` already blurred).
+def _affine(img: np.ndarray, config: FeatureConfig, info: Extraction,
+            identity: tuple[np.ndarray, ...] | None = None) -> tuple[np.ndarray, ...]:
+    """The floor detection over simulated viewpoints (ASIFT; ``img`` already blurred; ``identity``: the
+    floor detection of ``img`` when already made).
 
     Even at ``contrast_floor`` a texture-starved image has too few keypoints for a wide
     baseline: on the rendered low-texture turntable SIFT finds 0–5 correct matches on a
@@ -280,12 +283,12 @@ def _affine(img: np.ndarray, config: FeatureConfig, info: Extraction) -> tuple[n
     half-integers and moved keypoints by a median 0.16 px on Gaussian blobs of known centre
     (tested: < 0.05 px). A 45° pair of the same scene: 46 correct matches of 81 where the floor
     detection had 0 of 14 (``affine_max_tilt`` 2: 11 views, 0.8 s per 640×480 image; the whole
-    extraction of such an image about 1.8 s). Keypoint sizes and angles are those of the
+    extraction of such an image about 1 s). Keypoint sizes and angles are those of the
     simulated view.
     """
     sift = _sift(config, config.contrast_floor, 0)
     h, w = img.shape
-    parts = [_arrays(*sift.detectAndCompute(img, None))]
+    parts = [identity if identity is not None else _arrays(*sift.detectAndCompute(img, None))]
     corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], np.float64)
     for k in range(1, config.affine_max_tilt + 1):
         t = float(np.sqrt(2.0) ** k)

@@ -167,6 +167,11 @@ def test_texture_starved_image_is_detected_over_simulated_viewpoints():
         if below > 0:
             again = extract_sift_adaptive(gray[0], FeatureConfig(affine_below=below))[0]
             np.testing.assert_array_equal(again.descriptors, ka.descriptors)  # deterministic
+            # the identity view reuses the floor detection: the same as detecting it afresh
+            fresh = features_kernel._affine(cv2.GaussianBlur(gray[0], (0, 0), FeatureConfig().preblur_sigma),
+                                            FeatureConfig(), features_kernel.Extraction(n_normal=0))
+            np.testing.assert_array_equal(fresh[0], ka.xy)
+            np.testing.assert_array_equal(fresh[4], ka.descriptors)
             assert ia.contrast_used == FeatureConfig().contrast_floor
     plain, affine = n_correct[0.0], n_correct[FeatureConfig().affine_below]
     assert affine >= 20 and affine >= 3 * plain, n_correct
