@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
+import atexit  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -167,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline import run  # noqa: PLC0415
 
     work_root = a.keep or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
+    if a.keep is None:  # a temp folder of runs is removed at exit (--keep keeps them)
+        atexit.register(shutil.rmtree, work_root, True)
     prev = json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
     rows: dict[str, dict] = {r["case"]: r for r in prev.get("cases", [])} if a.only else {}
     if "default" in only:

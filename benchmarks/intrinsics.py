@@ -35,6 +35,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
+import atexit  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import shutil  # noqa: E402
@@ -207,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     only = set(filter(None, a.only.split(","))) or {"fountain", "castle", "temple", "nees", "lens"}
     root = a.keep or Path(tempfile.mkdtemp(prefix="bench_intrinsics_"))
+    if a.keep is None:  # a temp folder of runs is removed at exit (--keep keeps them)
+        atexit.register(shutil.rmtree, root, True)
     res = json.loads(a.results.read_text()) if a.results.exists() else {}
     res.setdefault("scenes", {})
     for name, (images, gt, K) in _scenes(a.data).items():
@@ -221,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
     if "lens" in only:
         res["lens"] = lens_rows(root / "lens")
         write_json(a.results, res)
-    print(f"results: {a.results}  (runs in {root})")
+    print(f"results: {a.results}" + (f"  (runs in {root})" if a.keep else ""))
     return 0
 
 

@@ -38,6 +38,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
+import atexit  # noqa: E402
 import resource  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -218,6 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: unknown scene(s) {unknown}; choose from {', '.join(SCENES)}", file=sys.stderr)
         return 2
     root = a.keep or Path(tempfile.mkdtemp(prefix="bench_refine_"))
+    if a.keep is None:  # a temp folder of runs is removed at exit (--keep keeps them)
+        atexit.register(shutil.rmtree, root, True)
     yaml_data = yaml.safe_load((REPO / "configs" / "default.yaml").read_text())
     yaml_data.setdefault("run", {})["plots"] = False  # no plots in the run (the report is not timed anyway)
     config = root / "bench.yaml"

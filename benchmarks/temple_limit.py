@@ -41,6 +41,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import argparse  # noqa: E402
+import atexit  # noqa: E402
+import shutil  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -227,6 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown case(s) {unknown}; choose from {sorted(CASES)}")
     root = a.keep or Path(tempfile.mkdtemp(prefix="bench_temple_limit_"))
+    if a.keep is None:  # a temp folder of runs is removed at exit (--keep keeps them)
+        atexit.register(shutil.rmtree, root, True)
     folder = {"temple": "temple", "fountain": "fountain-P11"}
     rows = [analyse(n, ensure_run(n, root / folder[n]), a.draws) for n in names]
     print(table(rows))
