@@ -74,6 +74,7 @@ def test_robust_sdp_runs_on_the_kept_edges_and_says_so():
     assert f"on {st['n_kept']} of {vg.n_edges} edges; {st['n_rejected']} rejected by irls-h" in stmt
     assert st["certified"] and stmt.startswith("globally optimal (proven by ")
     assert "for the anisotropic cost with irls-h-l0.5+calibrated's final precisions" in stmt
+    assert f"irls-h-l0.5+calibrated's own rotations are within {st['agreement_deg']:.2g}° of this optimum" in stmt
     assert stmt.endswith("not accuracy")
     assert np.median(rotation_errors_deg(res.R, g.R_true)) < 1.5 * np.median(
         rotation_errors_deg(average(vg, "irls-h").R, g.R_true))

@@ -135,7 +135,11 @@ def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
     gap = f"proven suboptimality ≤ {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
     if st["certified"] and st["gap_vs_resolution"] > cfg.cert_kappa:
         gap += f" (the data are fitted exactly: within the cost's rounding {st['cost_rounding']:.3g})"
-    statement = f"{head} for {cost_desc}{text}; {gap}" + (
+    # On the calibrated cost the SDP solves the robust stage's own final problem: its optimum within a
+    # hair of the robust rotations certifies those too (where the IRLS certificate's fixed multipliers cannot).
+    same = (f"; {robust.method}'s own rotations are within {agree:.2g}° of this optimum"
+            if st["certified"] and aniso and cfg.cost == "calibrated" else "")
+    statement = f"{head} for {cost_desc}{text}; {gap}{same}" + (
         "; it proves optimality for that cost on that edge set, not accuracy" if st["certified"] else "")
     logger.info("sdp-%s (robust edges): %s", cfg.variant, statement)
     residuals = so3.angle_between(so3.relative(res.R, vg.edges), vg.R_rel)
