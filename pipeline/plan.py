@@ -130,12 +130,23 @@ class Plan:
                 self.configs.update(saved)
                 self.features.config = self.configs["features"]
 
-    def note_skipped(self, manifest: dict[str, Any]) -> None:
-        """A note for each image the features stage left out (those it could not decode, too)."""
-        for d in manifest.get("skipped", []):
-            note = f"image {d['name']} left out: it {d['reason']}"
-            if note not in self.notes:
-                self.notes.append(note)
+    def note_features(self, manifest: dict[str, Any]) -> None:
+        """Notes from the features stage: each image it left out (those it could not decode, too), and
+        the images whose detection was changed for low texture (lowered threshold, simulated viewpoints)."""
+        notes = [f"image {d['name']} left out: it {d['reason']}" for d in manifest.get("skipped", [])]
+        lowered = manifest.get("lowered") or {}
+        affine = [n for n, r in lowered.items() if r.get("affine")]
+
+        def some(names: list[str]) -> str:
+            return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+        if lowered:
+            notes.append(f"low texture: the contrast threshold was lowered for {len(lowered)} of "
+                         f"{len(manifest.get('names', []))} images ({some(list(lowered))})")
+        if affine:
+            notes.append(f"texture-starved: {len(affine)} image(s) detected over simulated viewpoints (ASIFT): "
+                         f"{some(affine)}; expect fewer, less certain pairs there")
+        self.notes.extend(n for n in notes if n not in self.notes)
 
     def config(self, section: str, **runtime: Any) -> Any:
         """The typed config of ``section``, with runtime options (progress) applied where it has them."""

@@ -153,7 +153,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         runner = Runner(plan)
         work, progress = plan.work, {"progress": plan.progress}
         runner.stage(plan.features)
-        plan.note_skipped(load_manifest(work))
+        plan.note_features(load_manifest(work))
         runner.stage(MatchingStage(work, plan.config("matching"), progress=plan.progress))
         runner.stage(CamerasStage(work, plan.config("cameras", **progress)))
         runner.stage(TwoViewStage(work, plan.config("two_view", **progress)))

@@ -173,3 +173,24 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
     assert m["methods"]["irls-l0.5"]["n_cameras"] == 5
     assert "not connected" in r.stderr and all(n in r.stderr for n in b_names)
     assert any(all(n in note for n in b_names) for note in m["notes"])
+
+
+def test_feature_notes_name_the_low_texture_images():
+    """The report's notes say which images were detected differently for low texture (and once only)."""
+    from types import SimpleNamespace
+
+    from pipeline.plan import Plan
+
+    plan = SimpleNamespace(notes=[])
+    manifest = {"names": [f"v{i}.png" for i in range(8)], "skipped": [{"name": "x.png", "reason": "is empty"}],
+                "lowered": {"v1.png": {"affine": False}, "v2.png": {"affine": True}}}
+    Plan.note_features(plan, manifest)
+    Plan.note_features(plan, manifest)  # a resumed run adds nothing twice
+    assert plan.notes == [
+        "image x.png left out: it is empty",
+        "low texture: the contrast threshold was lowered for 2 of 8 images (v1.png, v2.png)",
+        "texture-starved: 1 image(s) detected over simulated viewpoints (ASIFT): v2.png; expect fewer, less "
+        "certain pairs there"]
+    Plan.note_features(plan := SimpleNamespace(notes=[]), {"names": ["a.png"], "skipped": [], "lowered": {}})
+    assert plan.notes == []
+

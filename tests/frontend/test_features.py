@@ -199,6 +199,7 @@ def test_stage_records_the_lowered_images(scene, tmp_path):
     assert list(m["lowered"]) == [scene.names[1]]
     r = m["lowered"][scene.names[1]]
     assert r["n_normal"] < 500 <= r["n_keypoints"] and r["preblur_sigma"] == 1.0
+    assert r["affine"] is False  # dark, but it reaches its target at the floor: no simulated views
     assert load_features(tmp_path / "work").lowered == m["lowered"]
     (tmp_path / "work" / "features.record.json").unlink()  # the manifest again, every image from the store
     m = json.loads(features.main(images, tmp_path / "work", progress=False).read_text())
