@@ -294,13 +294,14 @@ def _affine(img: np.ndarray, config: FeatureConfig, info: Extraction,
         t = float(np.sqrt(2.0) ** k)
         for phi in np.arange(0.0, 180.0, 72.0 / t):  # a handful of views per tilt (not a loop over points)
             c, s_ = np.cos(np.deg2rad(phi)), np.sin(np.deg2rad(phi))
-            A = np.array([[c / t, -s_ / t], [s_, c]])  # rotate by φ, then compress x by 1/t (pixel centres at integers)
+            rotation = np.array([[c, -s_], [s_, c]])
+            A = rotation / np.array([[t], [1.0]])  # rotate by φ, then compress x by 1/t (pixel centres at integers)
             q = corners @ A.T
             b = -q.min(axis=0)
             size = tuple(int(v) for v in np.ceil(q.max(axis=0) + b) + 1)
             M = np.hstack([A, b[:, None]])
             # the blur along the compressed axis happens before the compression: rotate, blur, compress
-            Rm = np.hstack([A * np.array([[t], [1.0]]), (b * np.array([t, 1.0]))[:, None]])
+            Rm = np.hstack([rotation, (b * np.array([t, 1.0]))[:, None]])
             rot = cv2.warpAffine(img, Rm, (int(np.ceil(size[0] * t)), size[1]), flags=cv2.INTER_LINEAR)
             rot = cv2.GaussianBlur(rot, (0, 0), sigmaX=0.8 * np.sqrt(t * t - 1.0), sigmaY=0.01)
             warped = cv2.warpAffine(rot, np.array([[1.0 / t, 0.0, 0.0], [0.0, 1.0, 0.0]]), size, flags=cv2.INTER_LINEAR)

@@ -250,6 +250,18 @@ class LowTexScene:
     info: dict = field(default_factory=dict)
     depths: list[np.ndarray] = field(default_factory=list)
 
+    def transfer_error_px(self, a: int, b: int, x_a: np.ndarray, x_b: np.ndarray) -> np.ndarray:
+        """(m,) distance (px) from ``x_b`` (m, 2) to ``x_a`` (m, 2) of view a lifted with a's depth map and
+        projected into view b: the truth of a match; inf where view a sees nothing at ``x_a``."""
+        x = np.asarray(x_a, dtype=np.float64)
+        h, w = self.depths[a].shape
+        z = self.depths[a][np.clip(np.round(x[:, 1]).astype(int), 0, h - 1), np.clip(np.round(x[:, 0]).astype(int), 0, w - 1)]
+        seen = np.isfinite(z) & (z > 0)
+        X = (np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(self.K[a]).T) * np.where(seen, z, 0.0)[:, None]
+        p = ((X - self.t[a]) @ self.R[a] @ self.R[b].T + self.t[b]) @ self.K[b].T
+        p = p[:, :2] / np.where(np.abs(p[:, 2:]) > 1e-9, p[:, 2:], 1e-9)
+        return np.where(seen, np.linalg.norm(p - np.asarray(x_b, dtype=np.float64), axis=1), np.inf)
+
 
 def render_lowtex(config: LowTexConfig | None = None, seed: int = 0) -> LowTexScene:
     """The low-texture turntable scene (module docstring)."""

@@ -150,14 +150,7 @@ def test_texture_starved_image_is_detected_over_simulated_viewpoints():
     gray = [cv2.cvtColor(im, cv2.COLOR_RGB2GRAY) if im.ndim == 3 else im for im in scene.images[2:4]]
 
     def correct(ka, kb, m):
-        x = ka.xy[m[:, 0]].astype(float)
-        h, w = scene.depths[2].shape
-        z = scene.depths[2][np.clip(np.round(x[:, 1]).astype(int), 0, h - 1), np.clip(np.round(x[:, 0]).astype(int), 0, w - 1)]
-        z = np.where(np.isfinite(z), z, 0.0)
-        X = (np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(scene.K[2]).T) * z[:, None]
-        p = ((X - scene.t[2]) @ scene.R[2] @ scene.R[3].T + scene.t[3]) @ scene.K[3].T
-        p = p[:, :2] / np.where(np.abs(p[:, 2:]) > 1e-9, p[:, 2:], 1e-9)
-        return int(((z > 0) & (np.linalg.norm(p - kb.xy[m[:, 1]], axis=1) < 3.0)).sum())
+        return int((scene.transfer_error_px(2, 3, ka.xy[m[:, 0]], kb.xy[m[:, 1]]) < 3.0).sum())
 
     n_correct = {}
     for below in (0.0, FeatureConfig().affine_below):

@@ -72,15 +72,7 @@ def rendered():
 
     def correct(a: int, b: int, m: np.ndarray) -> np.ndarray:
         """(m,) bool: keypoint a, lifted with view a's depth map and projected into view b, lands within 3 px."""
-        x = feats[a].xy[m[:, 0]].astype(float)
-        h, w = scene.depths[a].shape
-        rows, cols = np.round(x[:, 1]).astype(int), np.round(x[:, 0]).astype(int)
-        z = scene.depths[a][np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)]
-        z = np.where(np.isfinite(z), z, 0.0)
-        X = (np.column_stack([x, np.ones(len(x))]) @ np.linalg.inv(scene.K[a]).T) * z[:, None]
-        p = ((X - scene.t[a]) @ scene.R[a] @ scene.R[b].T + scene.t[b]) @ scene.K[b].T
-        p = p[:, :2] / np.where(np.abs(p[:, 2:]) > 1e-9, p[:, 2:], 1e-9)
-        return (z > 0) & (np.linalg.norm(p - feats[b].xy[m[:, 1]], axis=1) < 3.0)
+        return scene.transfer_error_px(a, b, feats[a].xy[m[:, 0]], feats[b].xy[m[:, 1]]) < 3.0
 
     def pair(a: int, b: int) -> dict:
         R = scene.R[b] @ scene.R[a].T
