@@ -27,6 +27,7 @@ from pipeline.evaluation.compare import EvaluationConfig
 from pipeline.frontend.camera_estimate import CamerasConfig
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
+from pipeline.frontend.loop_stage import LoopClosureConfig
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.pairs import parse_selector, select_pairs
 from pipeline.geometry.ba_solver import BAConfig
@@ -68,7 +69,7 @@ class RunConfig(Config):
 PER_ITEM = ("features", "matching", "two_view", "two_view_ba")  # the sections whose work runs on an executor
 STAGE_CONFIGS: dict[str, type[Config]] = {
     c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, CamerasConfig, TwoViewConfig, BAConfig,
-                           ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
+                           LoopClosureConfig, ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
 
 
 @dataclass

@@ -17,6 +17,8 @@ recomputed), each also a command of its own:
 3. cameras       ``python -m pipeline.cameras``      → OUT/work/cameras.json (K, distortion, their sources)
 4. two-view      ``python -m pipeline.two_view``     → OUT/work/two_view.npz (RANSAC view graph)
 5. two-view BA   ``python -m pipeline.two_view_ba``  → OUT/work/viewgraph.npz (with H)
+   loop closure  ``python -m pipeline.loop_closure`` → OUT/work/loop_closure.json; with retrieval pairs, matching,
+                 two-view and two-view BA run again with the pairs that close the first round's loops
 6. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
                  (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras)
 7. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
@@ -53,11 +55,8 @@ from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
-from pipeline.frontend.camera_stage import CamerasStage  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
-from pipeline.frontend.matching_stage import MatchingStage  # noqa: E402
-from pipeline.geometry.ba_stage import TwoViewBAStage  # noqa: E402
-from pipeline.geometry.two_view_stage import TwoViewStage  # noqa: E402
+from pipeline.frontend.loop_stage import FrontEnd, run_front_end  # noqa: E402
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
 from pipeline.plan import Plan, prepare  # noqa: E402
 from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
@@ -68,8 +67,8 @@ from pipeline.stage import Stage, StageRecord  # noqa: E402
 
 logger = logging.getLogger("run")
 
-STEPS = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine",
-         "reference", "global_reference", "evaluation", "report")
+STEPS = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
+         "refine", "reference", "global_reference", "evaluation", "report")
 
 
 class Runner:
@@ -79,24 +78,35 @@ class Runner:
         self.plan = plan
         self.times: dict[str, float] = dict(plan.times)
         self.reused: dict[str, bool] = {}
-        self.k = 0
 
-    def step(self, name: str, title: str, fn: Callable[[], Any]) -> Any:
-        self.k += 1
+    def step(self, name: str, title: str, fn: Callable[[], Any], again: bool = False) -> Any:
+        """Run one step, numbered by its place in ``STEPS``; ``again``: its second round (loop closure)."""
+        k = f"[{STEPS.index(name) + 1}/{len(STEPS)}]"
+        if again:
+            title = f"{title} (loop-closure round)"
         if not self.plan.quiet:
-            print(f"[{self.k}/{len(STEPS)}] {title} ...", file=sys.stderr, flush=True)
+            print(f"{k} {title} ...", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
         res = fn()
-        self.times[name] = self.times.get(name, 0.0) + time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        self.times[name] = self.times.get(name, 0.0) + dt  # both rounds of a step
         if isinstance(res, StageRecord):
-            self.reused[name] = res.reused
+            self.reused[name] = res.reused and self.reused.get(name, True)
         if not self.plan.quiet:
-            tag = " (reused)" if self.reused.get(name) else ""
-            print(f"[{self.k}/{len(STEPS)}] {title}: {self.times[name]:.2f} s{tag}", file=sys.stderr, flush=True)
+            tag = " (reused)" if isinstance(res, StageRecord) and res.reused else ""
+            print(f"{k} {title}: {dt:.2f} s{tag}", file=sys.stderr, flush=True)
         return res
 
-    def stage(self, stage: Stage) -> StageRecord:
-        return self.step(stage.name, stage.title, lambda: stage.run(self.plan.overwrite))
+    def stage(self, stage: Stage, overwrite: bool | None = None, again: bool = False) -> StageRecord:
+        ow = self.plan.overwrite if overwrite is None else overwrite
+        return self.step(stage.name, stage.title, lambda: stage.run(ow), again)
+
+    def front_end(self) -> None:
+        """Matching, cameras, two-view, two-view BA, and the loop-closure round where it applies."""
+        plan, progress = self.plan, {"progress": self.plan.progress}
+        front = FrontEnd(plan.config("matching"), plan.config("cameras", **progress), plan.config("two_view", **progress),
+                         plan.config("two_view_ba", **progress), plan.config("loop_closure"), plan.progress)
+        run_front_end(plan.work, front, lambda st, ow, again: self.stage(st, ow, again), plan.overwrite)
 
 
 def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str, dict]]:
@@ -123,7 +133,6 @@ def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str
 def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
     """The pycolmap reference; its failure is reported and never throws our result away."""
     if not plan.reference:
-        runner.k += 1
         return None
     stage = IncrementalReferenceStage(plan.out / "reference", plan.configs["reference"], images=plan.images,
                                       names=names, K=plan.K, work=plan.work, progress=plan.progress)
@@ -151,13 +160,10 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     with folder_lock(plan.out), plan.executors():
         remove_stale_temporaries(plan.out)
         runner = Runner(plan)
-        work, progress = plan.work, {"progress": plan.progress}
+        work = plan.work
         runner.stage(plan.features)
         plan.note_features(load_manifest(work))
-        runner.stage(MatchingStage(work, plan.config("matching"), progress=plan.progress))
-        runner.stage(CamerasStage(work, plan.config("cameras", **progress)))
-        runner.stage(TwoViewStage(work, plan.config("two_view", **progress)))
-        runner.stage(TwoViewBAStage(work, plan.config("two_view_ba", **progress)))
+        runner.front_end()
         graph = ViewGraphStage(plan.out, plan.config("viewgraph"), work=work)
         runner.stage(graph)
         vg = graph.load()

@@ -26,7 +26,8 @@ from pipeline.reference.types import Reference
 __all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "OUR_PATH"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
-OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "viewgraph", "averaging", "refine")
+OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
+            "refine")
 
 
 def _intrinsics(work: Path) -> dict[str, Any]:

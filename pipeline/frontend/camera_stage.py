@@ -138,7 +138,13 @@ class CamerasStage(Stage[CamerasConfig]):
     config_cls = CamerasConfig
 
     def inputs(self) -> dict[str, str]:
-        inp = {"features": self.upstream("features").fingerprint, "matching": self.upstream("matching").fingerprint}
+        # the first round's matches: a loop-closure round (pipeline.frontend.loop_stage) adds pairs, not cameras
+        rec = self.upstream("matching")
+        return {**self.file_inputs(), "matching": str(rec.summary.get("base") or rec.fingerprint)}
+
+    def file_inputs(self) -> dict[str, str]:
+        """The inputs besides the matches: the features, and the camera files whose distortion is read here."""
+        inp = {"features": self.upstream("features").fingerprint}
         from pipeline.frontend.feature_stage import load_manifest  # noqa: PLC0415
 
         for src in _file_sources(load_manifest(self.folder).get("K_source", [])):

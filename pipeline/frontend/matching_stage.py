@@ -12,7 +12,12 @@ WORK folder layout::
     WORK/matches.json            manifest: names, pairs (P, 2), item keys, config
     WORK/matches/chunk-*.npz     per pair: matches (m, 2) int32 keypoint indices (in a, in b)
     WORK/matches/index.json      the item keys of the current pairs
+    WORK/retrieval.npz           with retrieval: each image's ranked neighbours (for the loop-closure round)
     WORK/matching.record.json    the stage record
+
+With a loop-closure stage (:mod:`pipeline.frontend.loop_stage`) whose result is current, the
+pairs are the first round's and the loop-closure pairs (``WORK/loop_closure.json``); the
+record's ``base`` is the fingerprint of the first round's selection alone.
 
 A pair's key hashes the matching options (not the pair selection) and the two
 images' feature keys: with new images, or another selector, only the new pairs are matched. Command line::
@@ -34,7 +39,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from pipeline.core.atomic import write_json
+from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError, ConfigError, InputFileError
 from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
@@ -50,6 +55,7 @@ __all__ = ["MatchingStage", "MatchSet", "load_matches", "load_manifest", "main",
 
 MANIFEST = "matches.json"
 STORE = "matches"
+RANKED = "retrieval.npz"
 _CACHE_IMAGES = 48
 
 
@@ -134,11 +140,33 @@ class MatchingStage(Stage[MatchingConfig]):
     title = "matching"
     config_cls = MatchingConfig
 
-    def __init__(self, work: Path, config: MatchingConfig | None = None, *, progress: bool = True) -> None:
+    def __init__(self, work: Path, config: MatchingConfig | None = None, *, progress: bool = True,
+                 loop: Any = None) -> None:
+        """``loop``: a :class:`pipeline.frontend.loop_stage.LoopClosureStage`; its pairs are added when its result
+        is current and adds any."""
         super().__init__(work, config)
         self.progress = progress
+        self.loop = loop
+
+    def _loop_record(self) -> StageRecord | None:
+        """The loop-closure stage's current record when it adds pairs to this selection, else None."""
+        if self.loop is None or not self.loop.applies():
+            return None
+        rec = self.loop.cached()
+        return rec if rec is not None and rec.summary.get("n_added", 0) > 0 else None
+
+    def base_fingerprint(self) -> str:
+        """The fingerprint of the first round: this selection without loop-closure pairs."""
+        return self.fingerprint(self.base_inputs())
 
     def inputs(self) -> dict[str, str]:
+        inp = self.base_inputs()
+        rec = self._loop_record()
+        if rec is not None:
+            inp["loop_closure"] = rec.fingerprint
+        return inp
+
+    def base_inputs(self) -> dict[str, str]:
         inp = {"features": self.upstream("features").fingerprint}
         kind, arg = parse_selector(self.config.pairs)
         if kind == "file":
@@ -156,12 +184,22 @@ class MatchingStage(Stage[MatchingConfig]):
         store = ItemStore(self.folder / STORE)
         if fm.get("database"):  # features from a COLMAP database: its verified inlier matches
             pairs, keys, n_read = self._from_database(fm, store)
+            (self.folder / RANKED).unlink(missing_ok=True)
             selection = selection_summary({"spec": cfg.pairs, "selector": "database", "k": None}, len(names),
                                           len(keys))
             return self._finish(names, pairs, keys, store, n_read, selection)
         where = ItemStore(self.folder / feature_stage.STORE).load_index()
-        pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),
-                                        cfg.exhaustive_max_images)
+        loop = self._loop_record()
+        if loop is not None:  # the loop-closure round: the first round's pairs and the loop's
+            pairs, selection = self.loop.load_pairs(names)
+        else:
+            ranked: dict[str, np.ndarray] = {}
+            pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),
+                                            cfg.exhaustive_max_images, ranked=ranked)
+            if ranked:
+                save_npz(self.folder / RANKED, **ranked)
+            else:
+                (self.folder / RANKED).unlink(missing_ok=True)
         logger.info("matching pairs: %s%s: %d of %d pairs (%.1f%%)", selection["selector"],
                     f" K={selection['k']}" if selection["k"] else "", selection["n_pairs"], selection["n_exhaustive"],
                     100 * selection["fraction"])
@@ -197,6 +235,8 @@ class MatchingStage(Stage[MatchingConfig]):
     def _finish(self, names: list[str], pairs: np.ndarray, keys: list[str], store: ItemStore,
                 n_computed: int, selection: dict[str, Any]) -> tuple[list[Path], dict[str, Any]]:
         files = store.write_index(keys)
+        if (self.folder / RANKED).is_file():
+            files.append(self.folder / RANKED)
         counts = [len(store.get(k)["matches"]) for k in keys] if keys else []
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
@@ -204,10 +244,13 @@ class MatchingStage(Stage[MatchingConfig]):
             "n_reused": len(keys) - n_computed, "selection": selection})
         logger.info("matching: %d pairs (%d matched, %d reused); median %d matches per pair", len(keys), n_computed,
                     len(keys) - n_computed, int(np.median(counts)) if counts else 0)
-        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed, "pairs": selection}
+        return [path, *files], {"n_pairs": len(keys), "n_computed": n_computed, "pairs": selection,
+                                "base": self.base_fingerprint()}
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)
+        if (m.get("selection") or {}).get("selector") == "retrieval" and not (self.folder / RANKED).is_file():
+            raise CacheError(f"{self.folder / RANKED} (the ranked neighbours of the retrieval) is missing")
         where = ItemStore(self.folder / STORE).load_index()
         if list(where) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the pairs")

@@ -153,7 +153,8 @@ def select_pairs(spec: str, names: list[str]) -> np.ndarray:
 
 
 def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
-                 exhaustive_max_images: int = 40, seed: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
+                 exhaustive_max_images: int = 40, seed: int = 0, ranked: dict[str, np.ndarray] | None = None
+                 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The pairs of ``names`` chosen by ``spec``, and what was chosen.
 
     Args:
@@ -163,6 +164,8 @@ def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[li
             N response arrays (n_i,).
         exhaustive_max_images: ``auto`` is exhaustive up to this many images, retrieval above.
         seed: seed of the retrieval vocabulary.
+        ranked: when given and retrieval runs, filled with each image's ranked ``neighbours`` and their
+            ``similarities`` (:func:`pipeline.frontend.retrieval.retrieve_pairs`).
     Returns:
         pairs (P, 2) sorted unique ``a < b``, and ``{"spec", "selector", "k", "n_images", "n_pairs",
         "n_exhaustive", "fraction"}`` (plus the vocabulary size and time when retrieval ran).
@@ -179,6 +182,8 @@ def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[li
         descs, responses = descriptors()
         res = retrieve_pairs(descs, None if arg is None else int(arg), responses=responses, seed=seed)  # type: ignore[arg-type]
         pairs = res["pairs"]
+        if ranked is not None:
+            ranked.update(neighbours=res["neighbours"], similarities=res["similarities"])
         info.update(k=res["k"], n_words=res["n_words"], time_s=round(res["time_s"], 3))
     else:
         pairs = select_pairs(kind if kind == "exhaustive" else spec, names)

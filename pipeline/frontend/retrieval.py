@@ -10,6 +10,8 @@ tf-idf bag of words (Sivic & Zisserman 2003; Nistér & Stewénius 2006) with
 square-rooted term frequencies (against bursts), L2-normalised; two images' similarity
 is the cosine of their vectors. The pairs are each image's ``k`` most similar images, as
 a symmetric union (:func:`knn_pairs`); ``k`` defaults to :func:`choose_k` (≈ 1.5·log₂ N).
+Each image's next-ranked images (up to ``RANKED_PER_K``·k, :func:`ranked_neighbours`) are
+kept for the loop-closure round (:mod:`pipeline.frontend.loop_closure`).
 
 Every function is pure (arrays in, arrays out, no I/O, no logging). Shapes: D = 128,
 N images, n_i descriptors of image i, W words.
@@ -27,7 +29,10 @@ import scipy.sparse as sp
 from pipeline.frontend.matching import root_sift
 
 __all__ = ["Vocabulary", "sample_descriptors", "kmeans", "fit_vocabulary", "assign", "bow_vectors", "similarity",
-           "knn_pairs", "choose_k", "choose_vocabulary", "retrieve_pairs", "pair_recall"]
+           "knn_pairs", "ranked_neighbours", "choose_k", "choose_vocabulary", "retrieve_pairs", "pair_recall",
+           "RANKED_PER_K"]
+
+RANKED_PER_K = 4  # ranked neighbours kept per image, in multiples of k: the loop-closure round's candidates
 
 
 def _as_root_sift(desc: np.ndarray) -> np.ndarray:
@@ -177,6 +182,14 @@ def knn_pairs(S: np.ndarray, k: int) -> np.ndarray:
     return np.unique(P[P[:, 0] != P[:, 1]], axis=0).astype(np.int64)
 
 
+def ranked_neighbours(S: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's ``m`` most similar columns, best first: indices (N, m') int32 and similarities (N, m') float32,
+    ``m' = min(m, N − 1)``; ties broken by the column index, as in :func:`knn_pairs`."""
+    m = int(max(0, min(m, S.shape[0] - 1)))
+    nn = np.argsort(-S, axis=1, kind="stable")[:, :m]
+    return nn.astype(np.int32), np.take_along_axis(S, nn, axis=1).astype(np.float32)
+
+
 def choose_k(n_images: int, k_min: int = 8, k_max: int = 40) -> int:
     """Neighbours per image: ``round(1.5·log2 N)`` clamped to [k_min, k_max] and to N − 1.
 
@@ -205,11 +218,14 @@ def retrieve_pairs(descs: list[np.ndarray], k: int | None = None, *, n_train: in
             ``responses`` when given, else the first ones); 0 keeps all.
         seed: seed of the sample and of k-means (the result is deterministic).
     Returns:
-        dict with ``pairs`` (P, 2) ``a < b`` sorted unique, ``k``, ``n_words`` and ``time_vocab_s``, ``time_s``.
+        dict with ``pairs`` (P, 2) ``a < b`` sorted unique, ``k``, ``n_words``, ``time_vocab_s``, ``time_s``,
+        and ``neighbours`` (N, m) int32 / ``similarities`` (N, m) float32: each image's
+        ``m = min(N − 1, RANKED_PER_K·k)`` most similar images, best first.
     """
     N = len(descs)
     if N < 2:
-        return {"pairs": np.zeros((0, 2), np.int64), "k": 0, "n_words": 0, "time_vocab_s": 0.0, "time_s": 0.0}
+        return {"pairs": np.zeros((0, 2), np.int64), "k": 0, "n_words": 0, "time_vocab_s": 0.0, "time_s": 0.0,
+                "neighbours": np.zeros((N, 0), np.int32), "similarities": np.zeros((N, 0), np.float32)}
     t0 = time.perf_counter()
     k = choose_k(N) if k is None else int(k)
     if k < 1:
@@ -222,14 +238,16 @@ def retrieve_pairs(descs: list[np.ndarray], k: int | None = None, *, n_train: in
     if len(X) < 8:  # too few features for a vocabulary: no evidence against any pair
         S = np.zeros((N, N))
         np.fill_diagonal(S, -np.inf)
+        nn, sim = ranked_neighbours(S, RANKED_PER_K * k)
         return {"pairs": knn_pairs(S, k), "k": k, "n_words": 0, "time_vocab_s": 0.0,
-                "time_s": time.perf_counter() - t0}
+                "time_s": time.perf_counter() - t0, "neighbours": nn, "similarities": sim}
     vocab = fit_vocabulary(X, branching or choose_vocabulary(len(X)), seed=seed)
     t1 = time.perf_counter()
     G = bow_vectors([assign(d, vocab) for d in descs], vocab.n_words)
-    pairs = knn_pairs(similarity(G), k)
-    return {"pairs": pairs, "k": k, "n_words": vocab.n_words, "time_vocab_s": t1 - t0,
-            "time_s": time.perf_counter() - t0}
+    S = similarity(G)
+    nn, sim = ranked_neighbours(S, RANKED_PER_K * k)
+    return {"pairs": knn_pairs(S, k), "k": k, "n_words": vocab.n_words, "time_vocab_s": t1 - t0,
+            "time_s": time.perf_counter() - t0, "neighbours": nn, "similarities": sim}
 
 
 def pair_recall(selected: np.ndarray, truth: np.ndarray, n_images: int) -> dict:

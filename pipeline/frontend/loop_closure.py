@@ -1,0 +1,151 @@
+"""Loop closure: the second matching round's pairs, chosen from the first round's verified view graph.
+
+Retrieval matches each image with its k most similar images. Where a scene's look changes
+abruptly (a weak junction of a ring, a corner of a street), the two sides can rank each
+other below k; then no verified pair crosses there, the view graph is an open chain, and
+nothing holds its drift (notes/issue-16.md: on a rendered ring of 300 views, the two
+junction images rank each other 21st and 29th with k = 12, and IRLS-ℓ½ gives 0.705°
+against 0.315° with those two pairs added). The first round's result says where to look:
+
+- a **candidate** is a pair among each image's next-ranked retrieval neighbours (up to
+  ``RANKED_PER_K``·k, :func:`pipeline.frontend.retrieval.ranked_neighbours`) that the first
+  round did not match;
+- its **value** is its hop distance in the first round's verified graph (∞ across
+  components): the length of the loop it would close. A pair two hops apart closes a triangle
+  the graph nearly has already; a pair at the two ends of an open ring closes the ring;
+- the first round's averaged rotations rule out pairs whose viewing directions differ by
+  more than ``max_angle_deg`` (they cannot overlap; where either camera is unsolved, no
+  pair is ruled out);
+- pairs at least ``min_hops`` apart are taken longest loop first (then most similar), up to
+  a budget of pairs, each as if it will verify: a candidate that a pair already taken brings
+  within ``min_hops`` (through that pair) is passed over. So one weak junction costs a few
+  pairs spread along it, not the whole budget.
+
+Every pair taken is matched and verified like any other (two-view geometry, two-view BA,
+the view graph's checks): a wrong candidate costs time, not accuracy.
+
+Pure functions (arrays in, arrays out). Shapes: N images, m ranked neighbours per image,
+E verified edges, P candidate pairs.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, dijkstra, shortest_path
+
+__all__ = ["hop_distances", "loop_candidates"]
+
+_BFS_BLOCK = 256  # sources per shortest-path call: (256, N) distances at a time
+
+
+def _adjacency(edges: np.ndarray, n: int) -> sp.csr_matrix:
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    A = sp.csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    return sp.csr_matrix(A + A.T)
+
+
+def hop_distances(edges: np.ndarray, n: int, pairs: np.ndarray) -> np.ndarray:
+    """Hop distance (P,) in the graph of ``edges`` (E, 2) on n nodes between the two images of each pair (P, 2);
+    ``inf`` when they lie in different components. Breadth-first from each distinct first image, in blocks."""
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    out = np.full(len(pairs), np.inf)
+    if not len(pairs):
+        return out
+    A = _adjacency(edges, n)
+    _, comp = connected_components(A, directed=False)
+    same = comp[pairs[:, 0]] == comp[pairs[:, 1]]
+    src, row = np.unique(pairs[same, 0], return_inverse=True)
+    idx = np.flatnonzero(same)
+    for s in range(0, len(src), _BFS_BLOCK):  # blocks of sources, each block one C call
+        sel = (row >= s) & (row < s + _BFS_BLOCK)
+        D = shortest_path(A, unweighted=True, directed=False, indices=src[s:s + _BFS_BLOCK])
+        out[idx[sel]] = D[row[sel] - s, pairs[idx[sel], 1]]
+    return out
+
+
+def _angles_deg(R: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (P,) in degrees of ``R_b R_aᵀ`` for rotations R (N, 3, 3); NaN where either is NaN."""
+    tr = np.einsum("pij,pij->p", R[b], R[a])  # tr(R_b R_aᵀ)
+    return np.degrees(np.arccos(np.clip(0.5 * (tr - 1.0), -1.0, 1.0)))
+
+
+def _spread(A: sp.csr_matrix, P: np.ndarray, min_hops: int, budget: int) -> np.ndarray:
+    """Positions of the pairs taken from ``P`` (C, 2), in order: each in turn unless a pair taken before brings
+    its two images within ``min_hops`` through itself (as if it verified). Per pair taken: one breadth-first
+    search bounded at ``min_hops`` hops from each of its images, and an update of the pairs near them."""
+    n = A.shape[0]
+    ends = np.r_[P[:, 0], P[:, 1]]
+    touch = sp.csr_matrix((np.ones(len(ends)), (ends, np.r_[np.arange(len(P)), np.arange(len(P))])),
+                          shape=(n, len(P)))  # image → the candidates it belongs to
+    passed = np.zeros(len(P), bool)
+    taken: list[int] = []
+    pos = 0
+    while len(taken) < budget and pos < len(P):  # one iteration per pair taken (≤ budget)
+        nxt = pos + int(np.argmax(~passed[pos:]))
+        if passed[nxt]:
+            break
+        taken.append(nxt)
+        pos = nxt + 1
+        D = dijkstra(A, indices=P[nxt], unweighted=True, limit=min_hops)  # (2, n), inf beyond min_hops
+        near = np.flatnonzero(np.isfinite(D).any(axis=0))
+        cand = np.unique(touch[near].indices)
+        cand = cand[cand > nxt]
+        c, d = P[cand, 0], P[cand, 1]
+        via = np.minimum(D[0, c] + 1 + D[1, d], D[1, c] + 1 + D[0, d])
+        passed[cand[via < min_hops]] = True
+    return np.asarray(taken, np.int64)
+
+
+def loop_candidates(n: int, matched: np.ndarray, verified: np.ndarray, neighbours: np.ndarray,
+                    similarities: np.ndarray, R: np.ndarray | None = None, *, min_hops: int = 3,
+                    max_angle_deg: float = 60.0, budget: int) -> dict[str, Any]:
+    """The pairs of a loop-closure round (see the module docstring).
+
+    Args:
+        n: number of images N.
+        matched: (P1, 2) the pairs the first round matched (verified or not), ``a < b``.
+        verified: (E, 2) the pairs it verified (the two-view BA's edges).
+        neighbours: (N, m) each image's ranked retrieval neighbours, best first.
+        similarities: (N, m) their similarities.
+        R: (N, 3, 3) the first round's averaged rotations, NaN for unsolved images; None: no angle test.
+        min_hops: the least hop distance of a pair taken, in the verified graph and through each pair taken
+            before it.
+        max_angle_deg: pairs whose rotations differ by more are not taken.
+        budget: the most pairs taken.
+    Returns:
+        ``pairs`` (P, 2) ``a < b`` in the order taken, and per pair ``hops``, ``angle_deg`` (NaN: not known)
+        and ``similarity``; the counts ``n_candidates`` (unmatched ranked pairs), ``n_far`` (of them at least
+        ``min_hops`` apart or across components), ``n_apart`` (of those, ruled out by the angle),
+        ``n_eligible`` (far and not apart: the pairs examined, longest loop first), ``n_across`` (of the pairs
+        taken, those across components).
+    """
+    nb = np.asarray(neighbours, np.int64)
+    a = np.repeat(np.arange(n), nb.shape[1])
+    b, s = nb.ravel(), np.asarray(similarities, np.float64).ravel()
+    ok = a != b
+    P = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)[ok]
+    s = s[ok]
+    key = P[:, 0] * n + P[:, 1]
+    order = np.lexsort((-s, key))  # per pair, its best similarity first
+    key, P, s = key[order], P[order], s[order]
+    first = np.r_[True, key[1:] != key[:-1]]
+    key, P, s = key[first], P[first], s[first]
+    m = np.asarray(matched, np.int64).reshape(-1, 2)
+    new = ~np.isin(key, m[:, 0] * n + m[:, 1])
+    P, s = P[new], s[new]
+    hops = hop_distances(verified, n, P)
+    far = hops >= min_hops
+    ang = np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
+    apart = far & (ang > max_angle_deg)  # NaN compares False: unknown angles never rule a pair out
+    take = np.flatnonzero(far & ~apart)
+    take = take[np.lexsort((-s[take], -hops[take]))]  # longest loop first, then most similar
+    if budget > 0 and len(take):
+        take = take[_spread(_adjacency(verified, n), P[take], min_hops, int(budget))]
+    else:
+        take = take[:0]
+    return {"pairs": P[take], "hops": hops[take], "angle_deg": ang[take], "similarity": s[take],
+            "n_candidates": int(len(P)), "n_far": int(far.sum()), "n_apart": int(apart.sum()),
+            "n_across": int(np.isinf(hops[take]).sum()), "n_eligible": int((far & ~apart).sum())}

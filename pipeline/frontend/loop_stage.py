@@ -1,0 +1,289 @@
+"""The loop-closure round of the front end: a stage, and the front end's rounds around it.
+
+With retrieval pair selection, the front end runs in two rounds (:func:`run_front_end`):
+
+1. matching of the selected pairs, cameras, two-view geometry, two-view BA (the first round);
+2. the loop-closure stage: the first round's verified graph is averaged (IRLS-ℓ½ on its
+   largest component), and the pairs that would close its longest loops are chosen among
+   each image's next-ranked retrieval neighbours (:func:`pipeline.frontend.loop_closure.loop_candidates`);
+3. matching, two-view geometry and two-view BA again, on the first round's pairs and those
+   (the second round). Every pair is cached by its own key, so only the added pairs are computed.
+
+The cameras are the first round's: the loop's pairs are chosen to close loops, not to
+estimate intrinsics, and a second estimate would redo every pair's geometry.
+
+A re-run reuses the loop-closure result while the first round's selection and every
+option of the rounds are unchanged, without running the first round again; otherwise the
+first round runs first. Without retrieval (exhaustive, sequential, a pairs file, a database)
+or with ``loop_closure.enabled: false`` there is one round.
+
+WORK/loop_closure.json: the first round's pairs and the pairs added (each with its hop
+distance, angle and retrieval similarity), and the counts. Command line::
+
+    python -m pipeline.loop_closure --work WORK [--config YAML] [--min-hops 5] [--max-fraction 0.1]
+
+runs the front end's rounds in WORK (each stage reused where it is done).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.core.atomic import write_json
+from pipeline.core.config import Config, option
+from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.readers import read_json
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.frontend import feature_stage, matching_stage
+from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
+from pipeline.frontend.loop_closure import loop_candidates
+from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.pairs import parse_selector, selection_summary
+from pipeline.geometry.ba_solver import BAConfig
+from pipeline.geometry.ba_stage import TwoViewBAStage, load_ba_viewgraph
+from pipeline.geometry.ransac import TwoViewConfig
+from pipeline.geometry.two_view_stage import TwoViewStage
+from pipeline.stage import Stage, StageRecord, read_record
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["LoopClosureConfig", "LoopClosureStage", "FrontEnd", "run_front_end", "first_round_rotations", "main",
+           "main_cli", "OUTPUT"]
+
+OUTPUT = "loop_closure.json"
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoopClosureConfig(Config):
+    """Options of the loop-closure round (YAML section ``loop_closure``)."""
+
+    SECTION = "loop_closure"
+
+    enabled: bool = option(True, "with retrieval pair selection, match a second round of pairs that close the "
+                           "first round's loops")
+    min_hops: int = option(5, "a pair is matched only if its images are at least this many verified pairs apart "
+                           "(also through each loop-closure pair taken before it)", ge=2)
+    max_angle_deg: float = option(60.0, "a pair whose first-round rotations differ by more is not matched", gt=0,
+                                  le=180)
+    max_fraction: float = option(0.1, "the second round matches at most this fraction of the first round's pairs",
+                                 ge=0)
+
+
+@dataclass(frozen=True)
+class FrontEnd:
+    """The configs of the front end's rounds (progress applied where a config has it)."""
+
+    matching: MatchingConfig
+    cameras: CamerasConfig
+    two_view: TwoViewConfig
+    two_view_ba: BAConfig
+    loop_closure: LoopClosureConfig
+    progress: bool = True
+
+    def stages(self, work: Path, loop: LoopClosureStage | None) -> list[Stage]:
+        """Matching (with the loop's pairs when ``loop`` is given), cameras, two-view, two-view BA."""
+        return [matching_stage.MatchingStage(work, self.matching, progress=self.progress, loop=loop),
+                CamerasStage(work, self.cameras), TwoViewStage(work, self.two_view),
+                TwoViewBAStage(work, self.two_view_ba)]
+
+
+def first_round_rotations(vg: ViewGraph) -> np.ndarray:
+    """(N, 3, 3) IRLS-ℓ½ rotations of the largest component of a two-view BA graph; NaN elsewhere."""
+    from pipeline.averaging.solve import average  # noqa: PLC0415 - the averaging package is heavy
+
+    R = np.full((vg.n_cameras, 3, 3), np.nan)
+    if vg.n_edges == 0:
+        return R
+    sub, _ = vg.largest_component()
+    if sub.n_cameras >= 2:
+        res = average(sub, "irls")
+        idx = {nm: k for k, nm in enumerate(vg.names)}
+        R[[idx[nm] for nm in res.names]] = np.asarray(res.R)
+    return R
+
+
+class LoopClosureStage(Stage[LoopClosureConfig]):
+    """The pairs of the loop-closure round, from the first round's result in WORK (folder = WORK)."""
+
+    name = "loop_closure"
+    title = "loop closure"
+    config_cls = LoopClosureConfig
+
+    def __init__(self, work: Path, front: FrontEnd) -> None:
+        super().__init__(work, front.loop_closure)
+        self.front = front
+        self._applies: bool | None = None
+
+    def first_round(self) -> matching_stage.MatchingStage:
+        return matching_stage.MatchingStage(self.folder, self.front.matching, progress=self.front.progress)
+
+    def applies(self) -> bool:
+        """Whether the front end has a loop-closure round: enabled, our own features, and retrieval selection."""
+        if self._applies is None:
+            fm = feature_stage.load_manifest(self.folder)
+            kind, _ = parse_selector(self.front.matching.pairs)
+            if kind == "auto":
+                kind = "retrieval" if len(fm["names"]) > self.front.matching.exhaustive_max_images else "exhaustive"
+            self._applies = bool(self.config.enabled and not fm.get("database") and kind == "retrieval")
+        return self._applies
+
+    def inputs(self) -> dict[str, str]:
+        """The first round's selection and every option of the first round (not its records: the second round
+        writes over them)."""
+        cams = CamerasStage(self.folder, self.front.cameras)
+        return {"matching": self.first_round().base_fingerprint(), "cameras": self.front.cameras.fingerprint(),
+                **{f"cameras:{k}": v for k, v in cams.file_inputs().items()},
+                "two_view": self.front.two_view.fingerprint(), "two_view_ba": self.front.two_view_ba.fingerprint()}
+
+    def ready(self) -> StageRecord | None:
+        """The cached result, or None (also when the first round has not run: nothing to be cached then)."""
+        try:
+            return self.cached()
+        except InputFileError:
+            return None
+
+    def _check_first_round(self, base: str) -> None:
+        """WORK's two-view BA graph is the first round's (the matches, two-view and BA records chain to ``base``)."""
+        work = self.folder
+        recs = {n: read_record(work, n) for n in ("matching", "two_view", "two_view_ba")}
+        ok = (all(r is not None for r in recs.values()) and recs["matching"].fingerprint == base  # type: ignore[union-attr]
+              and recs["two_view"].inputs.get("matching") == base  # type: ignore[union-attr]
+              and recs["two_view_ba"].inputs.get("two_view") == recs["two_view"].fingerprint)  # type: ignore[union-attr]
+        if not ok:
+            raise InputFileError(f"{work} does not hold the first round's two-view BA (matching, two_view, "
+                                 f"two_view_ba of the current selection); run `python -m pipeline.loop_closure "
+                                 f"--work {work}`, which runs it first")
+
+    def compute(self) -> tuple[list[Path], dict[str, Any]]:
+        cfg, work = self.config, self.folder
+        base = self.first_round().base_fingerprint()
+        self._check_first_round(base)
+        mm = matching_stage.load_manifest(work)
+        names, first = list(mm["names"]), np.asarray(mm["pairs"], np.int64).reshape(-1, 2)
+        ranked_path = work / matching_stage.RANKED
+        try:
+            with np.load(ranked_path) as z:
+                nb, sim = np.asarray(z["neighbours"], np.int64), np.asarray(z["similarities"], np.float64)
+        except (OSError, KeyError, ValueError) as exc:
+            raise CacheError(f"{ranked_path} is missing or damaged ({' '.join(str(exc).split())[:80]}); re-run "
+                             f"`python -m pipeline.matching --work {work}`") from None
+        if nb.ndim != 2 or nb.shape[0] != len(names) or sim.shape != nb.shape or (nb.size and (
+                nb.min() < 0 or nb.max() >= len(names))):
+            raise CacheError(f"{ranked_path} does not fit the {len(names)} images; re-run "
+                             f"`python -m pipeline.matching --work {work}`")
+        vg = load_ba_viewgraph(work)
+        budget = int(math.floor(cfg.max_fraction * len(first)))
+        c = loop_candidates(len(names), first, vg.edges, nb, sim, first_round_rotations(vg), min_hops=cfg.min_hops,
+                            max_angle_deg=cfg.max_angle_deg, budget=budget)
+        added = c["pairs"]
+        pairs = np.unique(np.concatenate([first, added]), axis=0)
+        counts = {k: v for k, v in c.items() if k.startswith("n_")}
+        summary = {"base": base, "n_first": len(first), "n_added": len(added), "budget": budget, **counts}
+        sel = dict(mm.get("selection") or {})
+        selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added)}},
+                                      len(names), len(pairs))
+        path = write_json(work / OUTPUT, {
+            "format": "rotavg-loop-closure", "names": names, "pairs": pairs.tolist(), "selection": selection,
+            "added": [{"pair": [names[a], names[b]], "hops": None if math.isinf(h) else int(h),
+                       "angle_deg": None if math.isnan(g) else round(float(g), 3), "similarity": round(float(s), 4)}
+                      for (a, b), h, g, s in zip(added.tolist(), c["hops"], c["angle_deg"], c["similarity"])],
+            **summary})
+        logger.info("loop closure: %d of %d first-round pairs' worth added (budget %d; %d unmatched ranked pairs, "
+                    "%d at least %d hops apart, %d of them ruled out by their rotations)", len(added), len(first),
+                    budget, c["n_candidates"], c["n_far"], cfg.min_hops, c["n_apart"])
+        return [path], summary
+
+    def verify(self, record: StageRecord) -> None:
+        self.load_pairs(list(feature_stage.load_manifest(self.folder)["names"]))
+
+    def load_pairs(self, names: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
+        """The second round's pairs (P, 2) and its selection summary, checked against the images ``names``."""
+        path = self.folder / OUTPUT
+        d = read_json(path, "the loop-closure result", CacheError)
+        try:
+            if list(d["names"]) != names:
+                raise ValueError("other images than the current features")
+            P = np.asarray(d["pairs"], np.int64).reshape(-1, 2)
+            if P.size and (P.min() < 0 or P.max() >= len(names) or np.any(P[:, 0] >= P[:, 1])):
+                raise ValueError("a pair is out of range or not (a, b) with a < b")
+            return P, dict(d["selection"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run "
+                             f"`python -m pipeline.loop_closure --work {self.folder}`") from None
+
+
+RunStage = Callable[[Stage, bool, bool], Any]
+
+
+def run_front_end(work: Path, front: FrontEnd, run: RunStage | None = None, overwrite: bool = False) -> None:
+    """Matching, cameras, two-view and two-view BA in WORK, in two rounds around the loop-closure stage where it
+    applies (see the module docstring).
+
+    Args:
+        run: ``run(stage, overwrite, again)`` runs a stage (``again``: its second round); default ``stage.run``.
+        overwrite: recompute every stage once (the second round reuses the first round's pairs).
+    """
+    run = run or (lambda stage, ow, again: stage.run(ow))
+    loop = LoopClosureStage(work, front)
+    if not loop.applies():
+        for st in front.stages(work, None):
+            run(st, overwrite, False)
+        return
+    first = overwrite or loop.ready() is None
+    if first:
+        for st in front.stages(work, None):
+            run(st, overwrite, False)
+    run(loop, overwrite, False)
+    for st in front.stages(work, loop):
+        run(st, overwrite and not first, first)
+
+
+def main(work: Path, config: Path | None = None, loop_config: LoopClosureConfig | None = None,
+         overwrite: bool = False, progress: bool = True) -> Path:
+    """The front end's rounds in WORK with the sections of ``config`` (``loop_config`` replaces its loop_closure
+    section); returns the loop-closure result's path."""
+    from pipeline.core.config import load_yaml, stage_config  # noqa: PLC0415
+
+    data = load_yaml(config)
+    front = FrontEnd(stage_config(MatchingConfig, data), stage_config(CamerasConfig, data, progress=progress),
+                     stage_config(TwoViewConfig, data, progress=progress),
+                     stage_config(BAConfig, data, progress=progress),
+                     loop_config or stage_config(LoopClosureConfig, data), progress)
+    loop = LoopClosureStage(work, front)
+    if not loop.applies():
+        raise InputFileError(f"no loop-closure round in {work}: it follows retrieval pair selection of our own "
+                             f"features (matching.pairs={front.matching.pairs!r}) with loop_closure.enabled")
+    run_front_end(Path(work), front, overwrite=overwrite)
+    return Path(work) / OUTPUT
+
+
+def main_cli(argv: list[str] | None = None) -> int:
+    from pipeline.core.cli import add_config_args, config_from_args, run_cli  # noqa: PLC0415
+
+    p = argparse.ArgumentParser(prog="python -m pipeline.loop_closure",
+                                description="The front end's rounds in WORK: matching, cameras, two-view and "
+                                "two-view BA of the retrieval pairs, then of the pairs that close the first round's "
+                                "loops.")
+    p.add_argument("--work", type=Path, required=True, help="WORK folder written by pipeline.features")
+    p.add_argument("--config", type=Path, default=None, help="YAML config (its matching, cameras, two_view, "
+                   "two_view_ba and loop_closure sections)")
+    p.add_argument("--overwrite", action="store_true", help="recompute every stage")
+    add_config_args(p, LoopClosureConfig)
+
+    def body(a: argparse.Namespace) -> int:
+        print(main(a.work, a.config, config_from_args(LoopClosureConfig, a, a.config), a.overwrite, not a.quiet))
+        return 0
+
+    return run_cli(body, p, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main_cli())

@@ -1,0 +1,197 @@
+"""Loop closure: hop distances, the choice of pairs on an open ring, and the two rounds of the front end."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import shortest_path
+
+from pipeline import features
+from pipeline.core import so3
+from pipeline.frontend.camera_estimate import CamerasConfig
+from pipeline.frontend.loop_closure import _adjacency, hop_distances, loop_candidates
+from pipeline.frontend.loop_stage import FrontEnd, LoopClosureConfig, LoopClosureStage, run_front_end
+from pipeline.frontend.matching import MatchingConfig
+from pipeline.frontend.matching_stage import load_matches
+from pipeline.geometry.ba_solver import BAConfig
+from pipeline.geometry.ransac import TwoViewConfig
+from pipeline.stage import read_record
+from pipeline.synthetic.large import render_large
+from pipeline.synthetic.large_layouts import LargeSceneConfig
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_hop_distances_match_all_pairs_shortest_paths():
+    rng = np.random.default_rng(0)
+    n = 40
+    E = np.unique(np.sort(rng.integers(0, 30, (45, 2)), axis=1), axis=0)  # images 30-39 isolated
+    E = E[E[:, 0] != E[:, 1]]
+    P = np.unique(np.sort(rng.integers(0, n, (300, 2)), axis=1), axis=0)
+    P = P[P[:, 0] != P[:, 1]]
+    D = shortest_path(_adjacency(E, n), unweighted=True, directed=False)
+    np.testing.assert_array_equal(hop_distances(E, n, P), D[P[:, 0], P[:, 1]])
+    assert np.isinf(hop_distances(E, n, P)).any() and np.isfinite(hop_distances(E, n, P)).any()
+
+
+def ring(n: int, span: int = 2, gap: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of a ring of n views within ``span`` steps, and the ring's rotations (yaw 360/n° per view);
+    with ``gap`` no pair crosses between views gap and gap + 1 (an open ring)."""
+    a = np.repeat(np.arange(n), span)
+    b = (a + np.tile(np.arange(1, span + 1), n)) % n
+    P = np.unique(np.sort(np.stack([a, b], 1), axis=1), axis=0)
+    if gap is not None:
+        pos = (np.arange(n) - gap - 1) % n  # position along the open chain, the gap at its ends
+        P = P[np.abs(pos[P[:, 0]] - pos[P[:, 1]]) <= span]
+    R = so3.exp(np.outer(np.radians(360.0 / n * np.arange(n)), [0, 1, 0]))
+    return P, R
+
+
+def ranked(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each view's m nearest views around the ring, nearest first, with a similarity that falls with distance."""
+    d = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :])
+    d = np.minimum(d, n - d).astype(float)
+    np.fill_diagonal(d, np.inf)
+    nb = np.argsort(d, axis=1, kind="stable")[:, :m]
+    return nb, 1.0 / (1.0 + np.take_along_axis(d, nb, axis=1))
+
+
+def test_the_junction_of_an_open_ring_is_closed_first():
+    n = 60
+    verified, R = ring(n, span=2, gap=29)  # no verified pair crosses between 29 and 30
+    matched = verified
+    nb, sim = ranked(n, 8)
+    c = loop_candidates(n, matched, verified, nb, sim, R, min_hops=5, budget=6)
+    P = c["pairs"]
+    assert tuple(P[0]) == (29, 30)  # the longest loop: the whole ring
+    assert c["hops"][0] == np.ceil((n - 1) / 2)
+    assert not np.isin(P[:, 0] * n + P[:, 1], matched[:, 0] * n + matched[:, 1]).any()
+    # the other pairs across the junction come within min_hops through (29, 30): one pair, not the budget
+    assert len(P) == 1
+    # with more ranked neighbours, pairs farther from the junction are taken too, spread along it
+    n = 120
+    verified, R = ring(n, span=2, gap=59)
+    nb, sim = ranked(n, 24)
+    c = loop_candidates(n, verified, verified, nb, sim, R, min_hops=5, budget=6)
+    P = c["pairs"]
+    assert tuple(P[0]) == (59, 60) and len(P) == 6 and (c["hops"][:-1] >= c["hops"][1:]).all()
+    across = (P[:, 0] <= 59) & (P[:, 1] >= 60)
+    assert across.sum() >= 3 and (c["hops"][across] > 40).all() and (c["hops"][~across] < 10).all()
+    for j in range(len(P) - 1):  # none brought within min_hops by a pair taken before it (as if it verified)
+        Dj = shortest_path(_adjacency(np.r_[verified, P[j:j + 1]], n), unweighted=True, directed=False)
+        assert (Dj[P[j + 1:, 0], P[j + 1:, 1]] >= 5).all()
+    # with the ring closed (no gap) nothing is far apart: no pair is taken
+    n = 60
+    nb, sim = ranked(n, 8)
+    closed, R = ring(n, span=2)
+    assert len(loop_candidates(n, closed, closed, nb, sim, R, min_hops=5, budget=6)["pairs"]) == 0
+
+
+def test_rotations_rule_out_pairs_looking_apart():
+    n = 60
+    verified, R = ring(n, span=2, gap=29)
+    nb, sim = ranked(n, 8)
+    R2 = R.copy()
+    R2[30] = so3.exp(np.array([0.0, np.pi, 0.0])) @ R[30]  # view 30 turned around: not a pair for 29
+    c = loop_candidates(n, verified, verified, nb, sim, R2, min_hops=5, budget=6)
+    assert (29, 30) not in set(map(tuple, c["pairs"].tolist())) and c["n_apart"] >= 1
+    R2[30] = np.nan  # unsolved: no angle, nothing ruled out
+    c = loop_candidates(n, verified, verified, nb, sim, R2, min_hops=5, budget=6)
+    assert tuple(c["pairs"][0]) == (29, 30) and np.isnan(c["angle_deg"][0])
+    assert len(loop_candidates(n, verified, verified, nb, sim, R, budget=0)["pairs"]) == 0
+
+
+def test_pairs_across_components_come_first():
+    n = 40
+    a, _ = ring(20, span=2)
+    verified = np.r_[a, a + 20]  # two separate rings
+    nb = np.stack([(np.arange(n) + 20) % n, (np.arange(n) + 1) % n], axis=1)  # each view's twin first
+    sim = np.tile([0.5, 0.4], (n, 1))
+    c = loop_candidates(n, verified, verified, nb, sim, None, min_hops=5, budget=3)
+    assert c["n_across"] == 3 and np.isinf(c["hops"]).all()
+    assert (c["pairs"][:, 1] - c["pairs"][:, 0] == 20).all()
+
+
+# ---------------------------------------------------------------------- the rounds in a WORK folder
+SCENE = LargeSceneConfig(layout="ring", n_views=24, width=320, height=240, focal=280.0, points_per_view=800,
+                         supersample=1)
+
+
+def front(**loop: object) -> FrontEnd:
+    quiet = {"progress": False}
+    return FrontEnd(MatchingConfig(pairs="retrieval:3"), CamerasConfig(**quiet), TwoViewConfig(**quiet),
+                    BAConfig(**quiet), LoopClosureConfig(**{"min_hops": 3, "max_fraction": 0.5, **loop}), False)
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("loop")
+    render_large(SCENE, tmp / "scene", seed=0)
+    features.main(tmp / "scene", tmp / "work", K_path=tmp / "scene" / "K.txt", progress=False)
+    return tmp / "work"
+
+
+def summary(work: Path, name: str) -> dict:
+    rec = read_record(work, name)
+    assert rec is not None
+    return rec.summary
+
+
+def test_two_rounds_then_a_rerun_reuses_both(work: Path):
+    calls: list[tuple[str, bool, bool]] = []
+
+    def run(stage, overwrite, again):
+        rec = stage.run(overwrite)
+        calls.append((stage.name, again, rec.reused))
+        return rec
+
+    run_front_end(work, front(), run)
+    assert [c[:2] for c in calls] == [("matching", False), ("cameras", False), ("two_view", False),
+                                      ("two_view_ba", False), ("loop_closure", False), ("matching", True),
+                                      ("cameras", True), ("two_view", True), ("two_view_ba", True)]
+    lc = json.loads((work / "loop_closure.json").read_text())
+    n_first, n_added = lc["n_first"], lc["n_added"]
+    assert 0 < n_added <= 0.5 * n_first and len(lc["added"]) == n_added
+    assert all(a["hops"] is None or a["hops"] >= 3 for a in lc["added"])
+    pairs = load_matches(work).pairs
+    assert len(pairs) == n_first + n_added and len(np.unique(pairs, axis=0)) == len(pairs)
+    # the second round computed only the added pairs; the cameras are the first round's
+    assert summary(work, "matching")["n_computed"] == n_added
+    assert summary(work, "two_view")["n_computed"] == n_added
+    assert calls[6][2]  # cameras reused in the second round
+    assert summary(work, "matching")["pairs"]["loop_closure"] == {"n_first": n_first, "n_added": n_added}
+    assert summary(work, "matching")["base"] == lc["base"]
+
+    calls.clear()
+    run_front_end(work, front(), run)  # a re-run: the loop closure is current, the first round is not run again
+    assert [c[0] for c in calls] == ["loop_closure", "matching", "cameras", "two_view", "two_view_ba"]
+    assert all(c[2] for c in calls) and not any(c[1] for c in calls)
+
+
+def test_a_damaged_loop_result_is_recomputed_with_the_same_pairs(work: Path):
+    run_front_end(work, front())
+    before = load_matches(work).pairs
+    (work / "loop_closure.json").write_text("{not json")
+    calls: list[str] = []
+    run_front_end(work, front(), lambda st, ow, again: calls.append(st.name) or st.run(ow))
+    assert calls[:5] == ["matching", "cameras", "two_view", "two_view_ba", "loop_closure"]  # the first round again
+    np.testing.assert_array_equal(load_matches(work).pairs, before)
+    assert json.loads((work / "loop_closure.json").read_text())["format"] == "rotavg-loop-closure"
+
+
+def test_no_loop_round_without_retrieval_or_when_disabled(work: Path):
+    for fe in (front(enabled=False), dataclasses.replace(front(), matching=MatchingConfig(pairs="sequential:3"))):
+        calls: list[str] = []
+        run_front_end(work, fe, lambda st, ow, again: calls.append(st.name) or st.run(ow))
+        assert calls == ["matching", "cameras", "two_view", "two_view_ba"]
+        assert not LoopClosureStage(work, fe).applies()
+    proc = subprocess.run([sys.executable, "-m", "pipeline.loop_closure", "--work", str(work), "--no-enabled"],
+                          capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 2 and "no loop-closure round" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
