@@ -56,7 +56,7 @@ from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
-from pipeline.frontend.loop_stage import FrontEnd, run_front_end  # noqa: E402
+from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
 from pipeline.plan import Plan, prepare  # noqa: E402
 from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
@@ -107,6 +107,9 @@ class Runner:
         front = FrontEnd(plan.config("matching"), plan.config("cameras", **progress), plan.config("two_view", **progress),
                          plan.config("two_view_ba", **progress), plan.config("loop_closure"), plan.progress)
         run_front_end(plan.work, front, lambda st, ow, again: self.stage(st, ow, again), plan.overwrite)
+        note = loop_note(plan.work)
+        if note:
+            plan.notes.append(note)
 
 
 def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str, dict]]:

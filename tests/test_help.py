@@ -26,6 +26,7 @@ EXPECTED = {
     "pipeline.matching": ["--work", "--pairs", "--ratio"],
     "pipeline.two_view": ["--work", "--threshold-px"],
     "pipeline.two_view_ba": ["--work", "--sigma-px"],
+    "pipeline.loop_closure": ["--work", "--min-hops", "--max-fraction"],
     "pipeline.average": ["--method", "--loss", "--json", "--init", "--out"],
     "pipeline.reference": ["--images", "--out", "--K"],
     "pipeline.evaluate": ["--reference", "--align", "--rotations"],

@@ -1,11 +1,12 @@
 """The loop-closure round of the front end: a stage, and the front end's rounds around it.
 
-With retrieval pair selection, the front end runs in two rounds (:func:`run_front_end`):
+With retrieval or sequential pairs, the front end runs in two rounds (:func:`run_front_end`):
 
 1. matching of the selected pairs, cameras, two-view geometry, two-view BA (the first round);
 2. the loop-closure stage: the first round's verified graph is averaged (IRLS-ℓ½ on its
    largest component), and the pairs that would close its longest loops are chosen among
-   each image's next-ranked retrieval neighbours (:func:`pipeline.frontend.loop_closure.loop_candidates`);
+   each image's next-ranked retrieval neighbours (:func:`pipeline.frontend.loop_closure.loop_candidates`;
+   with sequential pairs the first round ranks them too, as COLMAP's sequential matcher's loop detection does);
 3. matching, two-view geometry and two-view BA again, on the first round's pairs and those
    (the second round). Every pair is cached by its own key, so only the added pairs are computed.
 
@@ -14,8 +15,8 @@ estimate intrinsics, and a second estimate would redo every pair's geometry.
 
 A re-run reuses the loop-closure result while the first round's selection and every
 option of the rounds are unchanged, without running the first round again; otherwise the
-first round runs first. Without retrieval (exhaustive, sequential, a pairs file, a database)
-or with ``loop_closure.enabled: false`` there is one round.
+first round runs first. With exhaustive pairs, a pairs file or a database's matches, or
+with ``loop_closure.enabled: false``, there is one round.
 
 WORK/loop_closure.json: the first round's pairs and the pairs added (each with its hop
 distance, angle and retrieval similarity), and the counts. Command line::
@@ -39,7 +40,7 @@ import numpy as np
 
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config, option
-from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.errors import CacheError, InputFileError, ViewGraphError
 from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
@@ -55,8 +56,8 @@ from pipeline.stage import Stage, StageRecord, read_record
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["LoopClosureConfig", "LoopClosureStage", "FrontEnd", "run_front_end", "first_round_rotations", "main",
-           "main_cli", "OUTPUT"]
+__all__ = ["LoopClosureConfig", "LoopClosureStage", "FrontEnd", "run_front_end", "first_round_rotations", "loop_note",
+           "main", "main_cli", "OUTPUT"]
 
 OUTPUT = "loop_closure.json"
 
@@ -67,8 +68,8 @@ class LoopClosureConfig(Config):
 
     SECTION = "loop_closure"
 
-    enabled: bool = option(True, "with retrieval pair selection, match a second round of pairs that close the "
-                           "first round's loops")
+    enabled: bool = option(True, "with retrieval or sequential pairs, match a second round of pairs that close "
+                           "the first round's loops")
     min_hops: int = option(5, "a pair is matched only if its images are at least this many verified pairs apart "
                            "(also through each loop-closure pair taken before it)", ge=2)
     max_angle_deg: float = option(60.0, "a pair whose first-round rotations differ by more is not matched", gt=0,
@@ -88,9 +89,10 @@ class FrontEnd:
     loop_closure: LoopClosureConfig
     progress: bool = True
 
-    def stages(self, work: Path, loop: LoopClosureStage | None) -> list[Stage]:
-        """Matching (with the loop's pairs when ``loop`` is given), cameras, two-view, two-view BA."""
-        return [matching_stage.MatchingStage(work, self.matching, progress=self.progress, loop=loop),
+    def stages(self, work: Path, loop: LoopClosureStage | None, rank: bool = False) -> list[Stage]:
+        """Matching (with the loop's pairs when ``loop`` is given; ranked for a loop-closure round with ``rank``),
+        cameras, two-view, two-view BA."""
+        return [matching_stage.MatchingStage(work, self.matching, progress=self.progress, loop=loop, rank=rank),
                 CamerasStage(work, self.cameras), TwoViewStage(work, self.two_view),
                 TwoViewBAStage(work, self.two_view_ba)]
 
@@ -103,10 +105,14 @@ def first_round_rotations(vg: ViewGraph) -> np.ndarray:
     if vg.n_edges == 0:
         return R
     sub, _ = vg.largest_component()
-    if sub.n_cameras >= 2:
+    try:
         res = average(sub, "irls")
-        idx = {nm: k for k, nm in enumerate(vg.names)}
-        R[[idx[nm] for nm in res.names]] = np.asarray(res.R)
+    except (ViewGraphError, ValueError) as exc:  # no angle test then: every far pair stays a candidate
+        logger.warning("loop closure: the first round's graph could not be averaged (%s); pairs are chosen without "
+                       "their rotations", " ".join(str(exc).split()))
+        return R
+    idx = {nm: k for k, nm in enumerate(vg.names)}
+    R[[idx[nm] for nm in res.names]] = np.asarray(res.R)
     return R
 
 
@@ -123,16 +129,16 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         self._applies: bool | None = None
 
     def first_round(self) -> matching_stage.MatchingStage:
-        return matching_stage.MatchingStage(self.folder, self.front.matching, progress=self.front.progress)
+        return matching_stage.MatchingStage(self.folder, self.front.matching, progress=self.front.progress, rank=True)
 
     def applies(self) -> bool:
-        """Whether the front end has a loop-closure round: enabled, our own features, and retrieval selection."""
+        """Whether the front end has a loop-closure round: enabled, our own features, retrieval or sequential pairs."""
         if self._applies is None:
             fm = feature_stage.load_manifest(self.folder)
             kind, _ = parse_selector(self.front.matching.pairs)
             if kind == "auto":
                 kind = "retrieval" if len(fm["names"]) > self.front.matching.exhaustive_max_images else "exhaustive"
-            self._applies = bool(self.config.enabled and not fm.get("database") and kind == "retrieval")
+            self._applies = bool(self.config.enabled and not fm.get("database") and kind in ("retrieval", "sequential"))
         return self._applies
 
     def inputs(self) -> dict[str, str]:
@@ -168,17 +174,7 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         self._check_first_round(base)
         mm = matching_stage.load_manifest(work)
         names, first = list(mm["names"]), np.asarray(mm["pairs"], np.int64).reshape(-1, 2)
-        ranked_path = work / matching_stage.RANKED
-        try:
-            with np.load(ranked_path) as z:
-                nb, sim = np.asarray(z["neighbours"], np.int64), np.asarray(z["similarities"], np.float64)
-        except (OSError, KeyError, ValueError) as exc:
-            raise CacheError(f"{ranked_path} is missing or damaged ({' '.join(str(exc).split())[:80]}); re-run "
-                             f"`python -m pipeline.matching --work {work}`") from None
-        if nb.ndim != 2 or nb.shape[0] != len(names) or sim.shape != nb.shape or (nb.size and (
-                nb.min() < 0 or nb.max() >= len(names))):
-            raise CacheError(f"{ranked_path} does not fit the {len(names)} images; re-run "
-                             f"`python -m pipeline.matching --work {work}`")
+        nb, sim = matching_stage.load_ranked(work, len(names))
         vg = load_ba_viewgraph(work)
         budget = int(math.floor(cfg.max_fraction * len(first)))
         c = loop_candidates(len(names), first, vg.edges, nb, sim, first_round_rotations(vg), min_hops=cfg.min_hops,
@@ -186,7 +182,8 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         added = c["pairs"]
         pairs = np.unique(np.concatenate([first, added]), axis=0)
         counts = {k: v for k, v in c.items() if k.startswith("n_")}
-        summary = {"base": base, "n_first": len(first), "n_added": len(added), "budget": budget, **counts}
+        summary = {"base": base, "n_first": len(first), "n_added": len(added), "budget": budget,
+                   "min_hops": cfg.min_hops, **counts}
         sel = dict(mm.get("selection") or {})
         selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added)}},
                                       len(names), len(pairs))
@@ -196,9 +193,9 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
                        "angle_deg": None if math.isnan(g) else round(float(g), 3), "similarity": round(float(s), 4)}
                       for (a, b), h, g, s in zip(added.tolist(), c["hops"], c["angle_deg"], c["similarity"])],
             **summary})
-        logger.info("loop closure: %d of %d first-round pairs' worth added (budget %d; %d unmatched ranked pairs, "
-                    "%d at least %d hops apart, %d of them ruled out by their rotations)", len(added), len(first),
-                    budget, c["n_candidates"], c["n_far"], cfg.min_hops, c["n_apart"])
+        logger.info("loop closure: %d pairs added to the first round's %d (budget %d; of %d unmatched ranked pairs, "
+                    "%d at least %d hops apart, %d of those looking apart)", len(added), len(first), budget,
+                    c["n_candidates"], c["n_far"], cfg.min_hops, c["n_apart"])
         return [path], summary
 
     def verify(self, record: StageRecord) -> None:
@@ -220,6 +217,21 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
                              f"`python -m pipeline.loop_closure --work {self.folder}`") from None
 
 
+def loop_note(work: Path) -> str | None:
+    """One line for the report on the loop-closure round of WORK's current matches (None: there was none)."""
+    m = matching_stage.load_manifest(work).get("selection") or {}
+    if "loop_closure" not in m:
+        return None
+    d = read_json(Path(work) / OUTPUT, "the loop-closure result", CacheError)
+    idx = {nm: k for k, nm in enumerate(d["names"])}
+    n = len(idx)
+    added = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]])) for a in d["added"]], np.int64).reshape(-1, 2)
+    edges = load_ba_viewgraph(work).edges
+    n_ok = int(np.isin(added @ [n, 1], edges @ [n, 1]).sum())
+    return (f"loop closure: {len(added)} pairs added to the first round's {d['n_first']} (their images at least "
+            f"{d['min_hops']} verified pairs apart), {n_ok} of them verified")
+
+
 RunStage = Callable[[Stage, bool, bool], Any]
 
 
@@ -239,10 +251,10 @@ def run_front_end(work: Path, front: FrontEnd, run: RunStage | None = None, over
         return
     first = overwrite or loop.ready() is None
     if first:
-        for st in front.stages(work, None):
+        for st in front.stages(work, None, rank=True):
             run(st, overwrite, False)
     run(loop, overwrite, False)
-    for st in front.stages(work, loop):
+    for st in front.stages(work, loop, rank=True):
         run(st, overwrite and not first, first)
 
 
@@ -259,7 +271,7 @@ def main(work: Path, config: Path | None = None, loop_config: LoopClosureConfig 
                      loop_config or stage_config(LoopClosureConfig, data), progress)
     loop = LoopClosureStage(work, front)
     if not loop.applies():
-        raise InputFileError(f"no loop-closure round in {work}: it follows retrieval pair selection of our own "
+        raise InputFileError(f"no loop-closure round in {work}: it follows retrieval or sequential pairs of our own "
                              f"features (matching.pairs={front.matching.pairs!r}) with loop_closure.enabled")
     run_front_end(Path(work), front, overwrite=overwrite)
     return Path(work) / OUTPUT
@@ -270,7 +282,7 @@ def main_cli(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m pipeline.loop_closure",
                                 description="The front end's rounds in WORK: matching, cameras, two-view and "
-                                "two-view BA of the retrieval pairs, then of the pairs that close the first round's "
+                                "two-view BA of the retrieval or sequential pairs, then of the pairs that close the first round's "
                                 "loops.")
     p.add_argument("--work", type=Path, required=True, help="WORK folder written by pipeline.features")
     p.add_argument("--config", type=Path, default=None, help="YAML config (its matching, cameras, two_view, "

@@ -12,7 +12,8 @@ WORK folder layout::
     WORK/matches.json            manifest: names, pairs (P, 2), item keys, config
     WORK/matches/chunk-*.npz     per pair: matches (m, 2) int32 keypoint indices (in a, in b)
     WORK/matches/index.json      the item keys of the current pairs
-    WORK/retrieval.npz           with retrieval: each image's ranked neighbours (for the loop-closure round)
+    WORK/retrieval.npz           each image's ranked neighbours by retrieval (for the loop-closure round):
+                                 with retrieval, and with ``rank=True`` (sequential pairs with loop closure)
     WORK/matching.record.json    the stage record
 
 With a loop-closure stage (:mod:`pipeline.frontend.loop_stage`) whose result is current, the
@@ -31,6 +32,8 @@ import argparse
 import logging
 import sys
 import threading
+import zipfile
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,7 +54,8 @@ from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MatchingStage", "MatchSet", "load_matches", "load_manifest", "main", "main_cli", "MANIFEST", "STORE"]
+__all__ = ["MatchingStage", "MatchSet", "load_matches", "load_manifest", "load_ranked", "main", "main_cli", "MANIFEST",
+           "STORE", "RANKED"]
 
 MANIFEST = "matches.json"
 STORE = "matches"
@@ -141,12 +145,14 @@ class MatchingStage(Stage[MatchingConfig]):
     config_cls = MatchingConfig
 
     def __init__(self, work: Path, config: MatchingConfig | None = None, *, progress: bool = True,
-                 loop: Any = None) -> None:
+                 loop: Any = None, rank: bool = False) -> None:
         """``loop``: a :class:`pipeline.frontend.loop_stage.LoopClosureStage`; its pairs are added when its result
-        is current and adds any."""
+        is current and adds any. ``rank``: rank each image's neighbours by retrieval for the loop-closure round
+        also when the pairs are sequential."""
         super().__init__(work, config)
         self.progress = progress
         self.loop = loop
+        self.rank = rank and parse_selector(self.config.pairs)[0] == "sequential"
 
     def _loop_record(self) -> StageRecord | None:
         """The loop-closure stage's current record when it adds pairs to this selection, else None."""
@@ -173,6 +179,8 @@ class MatchingStage(Stage[MatchingConfig]):
             inp["pairs_file"] = fingerprint_of(Path(arg).read_bytes().decode("utf-8", "replace"))  # type: ignore[arg-type]
         if kind == "database" and arg is not None:
             inp["pairs_database"] = database_fingerprint(Path(arg))  # type: ignore[arg-type]
+        if self.rank:
+            inp["ranked"] = "retrieval"
         return inp
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
@@ -196,8 +204,15 @@ class MatchingStage(Stage[MatchingConfig]):
             ranked: dict[str, np.ndarray] = {}
             pairs, selection = choose_pairs(cfg.pairs, names, lambda: _descriptors(self.folder, fkeys, where),
                                             cfg.exhaustive_max_images, ranked=ranked)
+            if self.rank:  # sequential pairs, ranked for the loop-closure round
+                from pipeline.frontend.retrieval import retrieve_pairs  # noqa: PLC0415 - faiss is imported on use
+
+                descs, responses = _descriptors(self.folder, fkeys, where)
+                res = retrieve_pairs(descs, None, responses=responses)
+                ranked = {"neighbours": res["neighbours"], "similarities": res["similarities"]}
             if ranked:
                 save_npz(self.folder / RANKED, **ranked)
+                selection["ranked"] = True
             else:
                 (self.folder / RANKED).unlink(missing_ok=True)
         logger.info("matching pairs: %s%s: %d of %d pairs (%.1f%%)", selection["selector"],
@@ -235,8 +250,8 @@ class MatchingStage(Stage[MatchingConfig]):
     def _finish(self, names: list[str], pairs: np.ndarray, keys: list[str], store: ItemStore,
                 n_computed: int, selection: dict[str, Any]) -> tuple[list[Path], dict[str, Any]]:
         files = store.write_index(keys)
-        if (self.folder / RANKED).is_file():
-            files.append(self.folder / RANKED)
+        if selection.get("ranked") and "loop_closure" not in selection:
+            files.append(self.folder / RANKED)  # the first round's: the loop-closure round reads it
         counts = [len(store.get(k)["matches"]) for k in keys] if keys else []
         path = write_json(self.folder / MANIFEST, {
             "format": "rotavg-matches", "names": names, "pairs": pairs.tolist(), "keys": keys,
@@ -249,8 +264,9 @@ class MatchingStage(Stage[MatchingConfig]):
 
     def verify(self, record: StageRecord) -> None:
         m = _load_manifest(self.folder)
-        if (m.get("selection") or {}).get("selector") == "retrieval" and not (self.folder / RANKED).is_file():
-            raise CacheError(f"{self.folder / RANKED} (the ranked neighbours of the retrieval) is missing")
+        sel = m.get("selection") or {}
+        if (sel.get("ranked") or sel.get("selector") == "retrieval") and "loop_closure" not in sel:
+            load_ranked(self.folder, len(m["names"]))
         where = ItemStore(self.folder / STORE).load_index()
         if list(where) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the pairs")
@@ -288,6 +304,21 @@ def _pair_matches(item: Any) -> np.ndarray:
     if not (m.ndim == 2 and m.shape[1] == 2 and m.dtype.kind in "iu" and (m.size == 0 or 0 <= m.min() <= m.max() < 2 ** 31)):
         raise CacheError(f"{item.source}: a pair's matches are damaged (shape {m.shape}, dtype {m.dtype})")
     return m.astype(np.int32)
+
+
+def load_ranked(work: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The retrieval's ranked neighbours (n, m) int64 and similarities (n, m) of ``work``'s n images, checked."""
+    path = Path(work) / RANKED
+    try:
+        with np.load(path) as z:
+            nb, sim = np.asarray(z["neighbours"], np.int64), np.asarray(z["similarities"], np.float64)
+        if nb.ndim != 2 or nb.shape[0] != n or sim.shape != nb.shape or (nb.size and (nb.min() < 0 or nb.max() >= n)):
+            raise ValueError(f"shape {nb.shape} does not fit {n} images")
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        raise CacheError(f"{path} (the retrieval's ranked neighbours) is missing or damaged "
+                         f"({' '.join(str(exc).split())[:80]}); re-run `python -m pipeline.matching --work {work}`"
+                         ) from None
+    return nb, sim
 
 
 def load_manifest(work: Path) -> dict:

@@ -16,9 +16,10 @@ from pipeline import features
 from pipeline.core import so3
 from pipeline.frontend.camera_estimate import CamerasConfig
 from pipeline.frontend.loop_closure import _adjacency, hop_distances, loop_candidates
-from pipeline.frontend.loop_stage import FrontEnd, LoopClosureConfig, LoopClosureStage, run_front_end
+from pipeline.frontend.loop_stage import FrontEnd, LoopClosureConfig, LoopClosureStage, loop_note, run_front_end
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.matching_stage import load_matches
+from pipeline.geometry.ba_stage import load_ba_viewgraph
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.stage import read_record
@@ -178,15 +179,36 @@ def test_a_damaged_loop_result_is_recomputed_with_the_same_pairs(work: Path):
     run_front_end(work, front())
     before = load_matches(work).pairs
     (work / "loop_closure.json").write_text("{not json")
+    ranked = work / "retrieval.npz"
+    data = bytearray(ranked.read_bytes())
+    data[len(data) // 2:len(data) // 2 + 8] = b"\x00\xff" * 4  # same size: only its content can tell
+    ranked.write_bytes(bytes(data))
     calls: list[str] = []
     run_front_end(work, front(), lambda st, ow, again: calls.append(st.name) or st.run(ow))
     assert calls[:5] == ["matching", "cameras", "two_view", "two_view_ba", "loop_closure"]  # the first round again
     np.testing.assert_array_equal(load_matches(work).pairs, before)
     assert json.loads((work / "loop_closure.json").read_text())["format"] == "rotavg-loop-closure"
+    assert ranked.read_bytes() != bytes(data)  # the first round's matching ran again: the ranking was recomputed
+    note = loop_note(work)
+    assert note is not None and note.startswith("loop closure: ") and "verified" in note
 
 
-def test_no_loop_round_without_retrieval_or_when_disabled(work: Path):
-    for fe in (front(enabled=False), dataclasses.replace(front(), matching=MatchingConfig(pairs="sequential:3"))):
+def test_sequential_pairs_of_a_ring_are_closed_at_its_ends(work: Path):
+    # a ring captured in order: sequential pairs leave it open between its last and first views
+    fe = dataclasses.replace(front(), matching=MatchingConfig(pairs="sequential:2"))
+    run_front_end(work, fe)
+    lc = json.loads((work / "loop_closure.json").read_text())
+    names = lc["names"]
+    first = names.index("view_000.png"), names.index("view_023.png")
+    assert lc["added"][0]["hops"] >= 10  # the longest loop first: across the ends of the chain
+    edges = load_ba_viewgraph(work).edges
+    ends = (np.isin(edges[:, 0], first[:1] + (1, 2)) & np.isin(edges[:, 1], (21, 22) + first[1:]))
+    assert ends.any(), "a verified pair closes the ring"
+    assert summary(work, "matching")["pairs"]["ranked"] is True
+
+
+def test_no_loop_round_with_exhaustive_pairs_or_when_disabled(work: Path):
+    for fe in (front(enabled=False), dataclasses.replace(front(), matching=MatchingConfig(pairs="exhaustive"))):
         calls: list[str] = []
         run_front_end(work, fe, lambda st, ow, again: calls.append(st.name) or st.run(ow))
         assert calls == ["matching", "cameras", "two_view", "two_view_ba"]
@@ -195,3 +217,20 @@ def test_no_loop_round_without_retrieval_or_when_disabled(work: Path):
                           capture_output=True, text=True, cwd=REPO)
     assert proc.returncode == 2 and "no loop-closure round" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_run_py_reports_the_loop_round(work: Path, tmp_path: Path):
+    from pipeline import run  # noqa: PLC0415
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("run:\n  plots: false\n  refine: false\n  reference: false\nmatching:\n  pairs: retrieval:3\n"
+                   "loop_closure:\n  min_hops: 3\n  max_fraction: 0.5\n")
+    scene = work.parent / "scene"
+    metrics = json.loads(run.main(scene, tmp_path / "out", cfg, ["irls"], gt=scene / "cameras.txt",
+                                  K=scene / "K.txt", quiet=True).read_text())
+    lc = json.loads((tmp_path / "out" / "work" / "loop_closure.json").read_text())
+    assert metrics["pairs"]["loop_closure"] == {"n_first": lc["n_first"], "n_added": lc["n_added"]}
+    assert metrics["pairs"]["n_pairs"] == lc["n_first"] + lc["n_added"]
+    assert "loop_closure" in metrics["stages"]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert f"loop closure: {lc['n_added']} pairs added to the first round's {lc['n_first']}" in report
