@@ -69,7 +69,8 @@ class RunConfig(Config):
 PER_ITEM = ("features", "matching", "two_view", "two_view_ba")  # the sections whose work runs on an executor
 STAGE_CONFIGS: dict[str, type[Config]] = {
     c.SECTION: c for c in (RunConfig, FeatureConfig, MatchingConfig, CamerasConfig, TwoViewConfig, BAConfig,
-                           LoopClosureConfig, ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig, EvaluationConfig)}
+                           LoopClosureConfig, ViewGraphConfig, ReferenceConfig, GlobalReferenceConfig, RefineConfig,
+                           EvaluationConfig)}
 
 
 @dataclass

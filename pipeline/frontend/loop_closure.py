@@ -50,11 +50,14 @@ def _adjacency(edges: np.ndarray, n: int) -> sp.csr_matrix:
 def hop_distances(edges: np.ndarray, n: int, pairs: np.ndarray) -> np.ndarray:
     """Hop distance (P,) in the graph of ``edges`` (E, 2) on n nodes between the two images of each pair (P, 2);
     ``inf`` when they lie in different components. Breadth-first from each distinct first image, in blocks."""
-    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    return _hops(_adjacency(edges, n), np.asarray(pairs, np.int64).reshape(-1, 2))
+
+
+def _hops(A: sp.csr_matrix, pairs: np.ndarray) -> np.ndarray:
+    """:func:`hop_distances` on the symmetric adjacency A."""
     out = np.full(len(pairs), np.inf)
     if not len(pairs):
         return out
-    A = _adjacency(edges, n)
     _, comp = connected_components(A, directed=False)
     same = comp[pairs[:, 0]] == comp[pairs[:, 1]]
     src, row = np.unique(pairs[same, 0], return_inverse=True)
@@ -136,14 +139,15 @@ def loop_candidates(n: int, matched: np.ndarray, verified: np.ndarray, neighbour
     m = np.asarray(matched, np.int64).reshape(-1, 2)
     new = ~np.isin(key, m[:, 0] * n + m[:, 1])
     P, s = P[new], s[new]
-    hops = hop_distances(verified, n, P)
+    A = _adjacency(verified, n)
+    hops = _hops(A, P)
     far = hops >= min_hops
     ang = np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
     apart = far & (ang > max_angle_deg)  # NaN compares False: unknown angles never rule a pair out
     take = np.flatnonzero(far & ~apart)
     take = take[np.lexsort((-s[take], -hops[take]))]  # longest loop first, then most similar
     if budget > 0 and len(take):
-        take = take[_spread(_adjacency(verified, n), P[take], min_hops, int(budget))]
+        take = take[_spread(A, P[take], min_hops, int(budget))]
     else:
         take = take[:0]
     return {"pairs": P[take], "hops": hops[take], "angle_deg": ang[take], "similarity": s[take],

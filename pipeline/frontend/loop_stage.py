@@ -47,7 +47,7 @@ from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
 from pipeline.frontend.loop_closure import loop_candidates
 from pipeline.frontend.matching import MatchingConfig
-from pipeline.frontend.pairs import parse_selector, selection_summary
+from pipeline.frontend.pairs import parse_selector, resolve_auto, selection_summary
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ba_stage import TwoViewBAStage, load_ba_viewgraph
 from pipeline.geometry.ransac import TwoViewConfig
@@ -137,7 +137,7 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
             fm = feature_stage.load_manifest(self.folder)
             kind, _ = parse_selector(self.front.matching.pairs)
             if kind == "auto":
-                kind = "retrieval" if len(fm["names"]) > self.front.matching.exhaustive_max_images else "exhaustive"
+                kind = resolve_auto(len(fm["names"]), self.front.matching.exhaustive_max_images)
             self._applies = bool(self.config.enabled and not fm.get("database") and kind in ("retrieval", "sequential"))
         return self._applies
 

@@ -26,8 +26,8 @@ import numpy as np
 from pipeline.core.errors import ConfigError, InputFileError
 from pipeline.core.names import match_names, split_fields
 
-__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs", "choose_pairs",
-           "selection_summary"]
+__all__ = ["exhaustive_pairs", "sequential_pairs", "read_pairs", "parse_selector", "select_pairs", "resolve_auto",
+           "choose_pairs", "selection_summary"]
 
 MAX_PAIRS_FILE_BYTES = 256 << 20
 
@@ -152,6 +152,12 @@ def select_pairs(spec: str, names: list[str]) -> np.ndarray:
     return read_pairs(arg, names)  # type: ignore[arg-type]
 
 
+def resolve_auto(n_images: int, exhaustive_max_images: int) -> str:
+    """What ``auto`` selects for ``n_images`` images: ``"exhaustive"`` up to ``exhaustive_max_images``, else
+    ``"retrieval"``."""
+    return "exhaustive" if n_images <= exhaustive_max_images else "retrieval"
+
+
 def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
                  exhaustive_max_images: int = 40, seed: int = 0, ranked: dict[str, np.ndarray] | None = None
                  ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -174,7 +180,7 @@ def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[li
     n = len(names)
     info: dict[str, Any] = {"spec": spec, "selector": kind, "k": None}
     if kind == "auto":
-        kind = "exhaustive" if n <= exhaustive_max_images else "retrieval"
+        kind = resolve_auto(n, exhaustive_max_images)
         info.update(selector=kind, auto=True, exhaustive_max_images=exhaustive_max_images)
     if kind == "retrieval":
         from pipeline.frontend.retrieval import retrieve_pairs  # noqa: PLC0415 - faiss is imported on use

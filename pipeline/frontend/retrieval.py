@@ -172,12 +172,14 @@ def knn_pairs(S: np.ndarray, k: int) -> np.ndarray:
 
     Ties are broken by the column index (a stable sort), so the result is deterministic.
     """
-    N = S.shape[0]
-    k = int(min(k, N - 1))
-    if k <= 0:
+    return _union_pairs(ranked_neighbours(S, k)[0])
+
+
+def _union_pairs(nn: np.ndarray) -> np.ndarray:
+    """Symmetric union (P, 2), sorted unique ``a < b``, of each row's neighbours ``nn`` (N, k)."""
+    if nn.shape[1] == 0:
         return np.zeros((0, 2), np.int64)
-    nn = np.argsort(-S, axis=1, kind="stable")[:, :k]
-    a, b = np.repeat(np.arange(N), k), nn.ravel()
+    a, b = np.repeat(np.arange(nn.shape[0]), nn.shape[1]), nn.ravel().astype(np.int64)
     P = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
     return np.unique(P[P[:, 0] != P[:, 1]], axis=0).astype(np.int64)
 
@@ -235,18 +237,16 @@ def retrieve_pairs(descs: list[np.ndarray], k: int | None = None, *, n_train: in
                  d[np.sort(np.argsort(-responses[i], kind="stable")[:max_per_image] if responses is not None
                            else np.arange(max_per_image))] for i, d in enumerate(descs)]
     X = sample_descriptors(descs, n_train, seed)
+    n_words, t1 = 0, t0
     if len(X) < 8:  # too few features for a vocabulary: no evidence against any pair
         S = np.zeros((N, N))
         np.fill_diagonal(S, -np.inf)
-        nn, sim = ranked_neighbours(S, RANKED_PER_K * k)
-        return {"pairs": knn_pairs(S, k), "k": k, "n_words": 0, "time_vocab_s": 0.0,
-                "time_s": time.perf_counter() - t0, "neighbours": nn, "similarities": sim}
-    vocab = fit_vocabulary(X, branching or choose_vocabulary(len(X)), seed=seed)
-    t1 = time.perf_counter()
-    G = bow_vectors([assign(d, vocab) for d in descs], vocab.n_words)
-    S = similarity(G)
-    nn, sim = ranked_neighbours(S, RANKED_PER_K * k)
-    return {"pairs": knn_pairs(S, k), "k": k, "n_words": vocab.n_words, "time_vocab_s": t1 - t0,
+    else:
+        vocab = fit_vocabulary(X, branching or choose_vocabulary(len(X)), seed=seed)
+        n_words, t1 = vocab.n_words, time.perf_counter()
+        S = similarity(bow_vectors([assign(d, vocab) for d in descs], vocab.n_words))
+    nn, sim = ranked_neighbours(S, RANKED_PER_K * k)  # one sort: the k nearest are its first k columns
+    return {"pairs": _union_pairs(nn[:, :k]), "k": k, "n_words": n_words, "time_vocab_s": t1 - t0,
             "time_s": time.perf_counter() - t0, "neighbours": nn, "similarities": sim}
 
 
