@@ -12,7 +12,13 @@ BA's). In order:
 4. longer cycles (:func:`~pipeline.graph.loops.cycle_check`): each edge in no short cycle
    against the cheapest other path, σ = ``max(h_inflation·σ_weak, sigma_floor_deg)`` (an edge
    whose short cycles are inconsistent is not confirmed by a longer, looser one);
-5. pairs still unconfirmed are dropped unless strong (provisional ones always);
+5. pairs still unconfirmed are dropped unless strong (provisional ones always), except
+   where dropping would lose cameras: an unconfirmed *standalone* pair (strong but for its
+   parallax: a pan on the spot, a low-parallax step) whose two cameras the kept pairs leave in
+   different components is kept (``keep_bridges``), and :func:`pipeline.graph.flags.graph_flags`
+   flags the cameras it joins. A walk that turns on the spot (a rendered street's 30° pan
+   steps, each view overlapping only its two neighbours) is joined only by such pairs;
+   dropping them split a 300-view street in two halves of 148;
 6. the robust solution: IRLS-ℓ½ on each component of the kept graph; an edge whose residual
    exceeds ``max(robust_floor_deg, robust_k_sigma·h_inflation·σ_weak)`` is rejected. It sees
    what only long cycles see (a repeated structure's pair whose cycles it makes consistent).
@@ -29,6 +35,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
@@ -60,6 +68,8 @@ class ViewGraphConfig(Config):
     strong_max_sigma_deg: float = option(3.0, "strong pair: h_inflation·σ_weak at most this, degrees", gt=0)
     strong_max_cond: float = option(50.0, "strong pair: √(λ_max/λ_min) of H at most this", gt=0)
     min_parallax_deg: float = option(5.0, "strong pair: median triangulation angle at least this, degrees", ge=0)
+    keep_bridges: bool = option(True, "keep a pair confirmed by no cycle, strong but for its parallax, where it alone "
+                                      "joins cameras to the rest (they are flagged); false: drop it, and them")
     wide_parallax_deg: float = option(75.0, "weak or strong pairs whose rays meet at more than this are not kept "
                                             "(confirmed normal pairs are)", gt=0)
     max_cycle_length: int = option(4, "short cycles checked: 3 (triangles) or 4 (also 4-cycles)", ge=3, le=4)
@@ -102,6 +112,7 @@ class GraphChecks:
         tier: "strong", "normal", "provisional" or "" (not a candidate).
         confirmed: kept edges in a consistent cycle (short, or a longer path).
         inconsistent: edges rejected because they disagree with the others (steps 2–4, 6).
+        bridged: kept edges confirmed by no cycle that step 5 kept only because they join cameras to the rest.
         info: counts and figures of each step (JSON-ready).
     """
 
@@ -111,6 +122,7 @@ class GraphChecks:
     tier: np.ndarray
     confirmed: np.ndarray
     inconsistent: np.ndarray
+    bridged: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -164,11 +176,46 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     info["unconfirmed"] = _reject(chk, unconf, "unconfirmed", np.where(
         tiers.provisional, "provisional (few inliers) and confirmed by no cycle",
         "confirmed by no cycle and not strong enough to stand alone").astype(object))
+    chk.bridged = _keep_bridges(vg, chk, unconf & tiers.standalone & ~tiers.provisional) if cfg.keep_bridges \
+        else np.zeros(M, bool)
+    info["bridged"] = int(chk.bridged.sum())
     info["robust"] = _robust_filter(vg, chk, sw, cfg) if cfg.robust_filter else 0
+    if chk.bridged.any():
+        info["bridged_dropped"] = _drop_disputed_bridges(vg, chk)
     chk.confirmed = confirmed & chk.kept
+    chk.bridged = chk.bridged & chk.kept
     info["n_kept"], info["n_confirmed"] = int(chk.kept.sum()), int(chk.confirmed.sum())
     chk.info = info
     return chk
+
+
+def _keep_bridges(vg: ViewGraph, chk: GraphChecks, eligible: np.ndarray) -> np.ndarray:
+    """Step 5's exception: the ``eligible`` rejected edges whose two cameras the kept edges leave in different
+    components are kept again (all of them, so that two such pairs between the same parts check each other in
+    step 6). Returns the (M,) mask of the edges kept again."""
+    labels = ViewGraph(vg.names, vg.edges[chk.kept], vg.R_rel[chk.kept], allow_isolated=True).components()
+    back = eligible & (labels[vg.edges[:, 0]] != labels[vg.edges[:, 1]])
+    chk.kept |= back
+    chk.reason[back], chk.step[back] = "", ""
+    return back
+
+
+def _drop_disputed_bridges(vg: ViewGraph, chk: GraphChecks) -> int:
+    """After step 6: where it rejected a pair kept by the bridge exception, the loop that showed the error holds the
+    other such pairs between the same parts, and which of them is wrong cannot be told; they are dropped too."""
+    rest = chk.kept & ~chk.bridged
+    parts = ViewGraph(vg.names, vg.edges[rest], vg.R_rel[rest], allow_isolated=True).components()
+    pe = parts[vg.edges[chk.bridged]]  # the parts each bridged pair joins
+    n = int(parts.max()) + 1
+    _, group = connected_components(sp.csr_matrix((np.ones(len(pe)), (pe[:, 0], pe[:, 1])), shape=(n, n)),
+                                    directed=False)
+    bad = np.unique(group[pe[~chk.kept[chk.bridged], 0]])
+    idx = np.flatnonzero(chk.bridged)
+    drop = np.zeros(vg.n_edges, bool)
+    drop[idx[np.isin(group[pe[:, 0]], bad) & chk.kept[idx]]] = True
+    return _reject(chk, drop, "robust", lambda ix: [
+        "kept only to join cameras to the rest, but in a loop with another such pair that the robust solution "
+        "rejected: which of them is wrong cannot be told" for _ in ix])
 
 
 def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, cfg: ViewGraphConfig) -> int:

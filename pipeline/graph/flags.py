@@ -7,7 +7,9 @@ Pure functions on arrays. A camera is flagged when
   can never be detected), i.e. it lies outside the largest 2-edge-connected block of
   its component;
 - none of its pairs is in a consistent cycle (unconfirmed);
-- some of its pairs were rejected as inconsistent with the others.
+- some of its pairs were rejected as inconsistent with the others;
+- it is joined to the largest block only through pairs that no cycle confirmed and that
+  the checks kept only so as not to lose cameras (``bridged``: a pan on the spot).
 
 A graph without cycles (a forest) gets the message that its result cannot be verified.
 
@@ -18,6 +20,7 @@ its subtrees, computed on the preorder with sparse tables: O((N + M) log N), vec
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -157,8 +160,27 @@ def _bridge_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nda
     return core[block], towards[block]
 
 
+def _flag_bridged(edges: np.ndarray, n: int, kept: np.ndarray, bridged: np.ndarray, cams: np.ndarray,
+                  pair: Callable[[int], str], add: Callable[[np.ndarray, list[str]], None]) -> None:
+    """Flag the cameras outside the largest part that the kept edges without ``bridged`` leave, naming the bridged
+    pairs that join their part (a few bridged edges: one loop over them)."""
+    rest = kept & ~bridged
+    _, part = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)
+    main = np.bincount(part[cams]).argmax()
+    via: dict[int, list[int]] = {}
+    for e in np.flatnonzero(bridged):
+        for p in {int(part[edges[e, 0]]), int(part[edges[e, 1]])}:
+            via.setdefault(p, []).append(int(e))
+    out = np.flatnonzero(cams & (part != main))
+    add(out, [f"joined to the rest only through {len(via.get(int(part[k]), []))} pair(s) that no cycle confirms, "
+              f"kept so that its part of the graph is not lost: "
+              + ", ".join(pair(e) for e in via.get(int(part[k]), [])[:3])
+              + ("…" if len(via.get(int(part[k]), [])) > 3 else "") for k in out])
+
+
 def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarray, inconsistent: np.ndarray,
-                names: list[str], cameras: np.ndarray | None = None, cycles_checked: bool = True) -> GraphFlags:
+                names: list[str], cameras: np.ndarray | None = None, cycles_checked: bool = True,
+                bridged: np.ndarray | None = None) -> GraphFlags:
     """Flag the cameras whose rotation rests on unchecked or disputed evidence (module docstring).
 
     Args:
@@ -171,6 +193,7 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
             and the messages are those of the kept edges among them.
         cycles_checked: False when no cycle was tested (``confirmed`` means nothing): the
             structural flags only (single pair, bridge).
+        bridged: (M,) bool kept edges that the checks kept only because they join cameras to the rest.
     Returns:
         :class:`GraphFlags`.
     """
@@ -203,6 +226,8 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
+    if bridged is not None and (kept & bridged).any():
+        _flag_bridged(edges, n, kept, kept & np.asarray(bridged, bool), cams, pair, add)
     rej = np.bincount(edges[np.asarray(inconsistent, bool)].ravel(), minlength=n)
     disputed = np.flatnonzero(cams & (rej > 0))
     add(disputed, [f"{rej[k]} of its {rej[k] + deg[k]} pairs disagree with the others and were rejected"

@@ -49,7 +49,7 @@ SUMMARY = "viewgraph.json"
 def _unchecked(vg: ViewGraph) -> GraphChecks:
     M = vg.n_edges
     return GraphChecks(np.ones(M, bool), np.full(M, "", object), np.full(M, "", object), np.full(M, "", object),
-                       np.zeros(M, bool), np.zeros(M, bool), {"checks": False})
+                       np.zeros(M, bool), np.zeros(M, bool), np.zeros(M, bool), {"checks": False})
 
 
 def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], ba_dropped: list[dict]
@@ -63,7 +63,8 @@ def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], b
     for k, (a, b) in enumerate(vg.edges.tolist()):  # one JSON row per pair: I/O, not a hot path
         rows.append({"pair": [vg.names[a], vg.names[b]], "status": "kept" if chk.kept[k] else "rejected",
                      "step": str(chk.step[k]), "reason": str(chk.reason[k]), "tier": str(chk.tier[k]),
-                     "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k])})
+                     "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k]),
+                     "bridged": bool(chk.bridged is not None and chk.bridged[k])})
     return rows
 
 
@@ -107,7 +108,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
         solved = np.zeros(vg_all.n_cameras, bool)
         solved[info.kept] = True
         fl = graph_flags(vg_all.edges, vg_all.n_cameras, chk.kept, chk.confirmed, chk.inconsistent, vg_all.names,
-                         cameras=solved, cycles_checked=self.config.checks)
+                         cameras=solved, cycles_checked=self.config.checks, bridged=chk.bridged)
         flags = {vg_all.names[k]: v for k, v in sorted(fl.cameras.items())}
         messages = list(fl.messages)
         self._log(vg_all, sub, chk, left_out, flags, messages)
@@ -129,6 +130,10 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
             logger.info("view graph checks: %d of %d pairs kept, %d confirmed by a cycle; rejected by step: %s",
                         int(chk.kept.sum()), vg_all.n_edges, int(chk.confirmed.sum()),
                         ", ".join(f"{k} {v}" for k, v in steps.items() if v) or "none")
+            if chk.info.get("bridged"):
+                logger.warning("view graph checks: %d pair(s) confirmed by no cycle kept only because they alone join "
+                               "cameras to the rest (a pan on the spot, a low-parallax step); the cameras they join "
+                               "are flagged", chk.info["bridged"])
         if left_out:
             logger.warning("the view graph is not connected: using the largest component (%d of %d images); "
                            "left out: %s", sub.n_cameras, vg_all.n_cameras,

@@ -22,6 +22,11 @@ loop test can check.
   baseline. Kept even when no cycle confirms it (and then flagged). A rotation-only
   pair claims that its cameras share a centre; static content and repeated structure fit
   that model well, so it is never strong on its own;
+- *standalone* (a wider set than strong): the same gates on inliers, ratio, σ_weak and
+  conditioning, with any parallax up to ``wide_parallax_deg``, rotation-only pairs
+  included (a pan on the spot). Such a pair, confirmed by no cycle, is kept only where it
+  alone joins cameras to the rest (:func:`pipeline.graph.checks.check_view_graph`, step 5),
+  and the cameras it joins are flagged;
 - *normal*: passes the gates; kept only when a consistent cycle confirms it;
 - *provisional*: ``provisional_min_inliers`` ≤ inliers < ``min_inliers``, the other gates
   passed, parallax at most ``wide_parallax_deg``: kept only when confirmed.
@@ -106,12 +111,15 @@ class Tiers:
         candidate: enters the loop test (normal or provisional).
         provisional: kept only when confirmed, as ``normal`` pairs are; counted apart.
         strong: kept even when unconfirmed.
+        standalone: strong but for the parallax (low, or a rotation-only fit): kept unconfirmed only where
+            it alone joins cameras to the rest.
         reason: why a pair is not a candidate ("" otherwise).
     """
 
     candidate: np.ndarray
     provisional: np.ndarray
     strong: np.ndarray
+    standalone: np.ndarray
     reason: np.ndarray
 
 
@@ -126,9 +134,10 @@ def evidence_tiers(ev: PairEvidence, config: Any) -> Tiers:
     candidate = ok | provisional
     reason = np.where(candidate, "", np.where(ok_relaxed & wide, "weak and wide parallax", relaxed))
     tri = ev.triangulation_deg
-    strong = (ok & (ev.n_inliers >= cfg.strong_min_inliers) & (ev.inlier_ratio >= cfg.strong_min_ratio)
-              & (tri >= cfg.min_parallax_deg) & (tri <= cfg.wide_parallax_deg) & ~ev.small_baseline)
     has_H = np.isfinite(ev.sigma_weak_deg)
-    strong &= ~has_H | ((cfg.h_inflation * ev.sigma_weak_deg <= cfg.strong_max_sigma_deg)
-                        & (ev.cond <= cfg.strong_max_cond))
-    return Tiers(candidate, provisional, strong, reason.astype(object))
+    standalone = (ok & (ev.n_inliers >= cfg.strong_min_inliers) & (ev.inlier_ratio >= cfg.strong_min_ratio)
+                  & (tri <= cfg.wide_parallax_deg)
+                  & (~has_H | ((cfg.h_inflation * ev.sigma_weak_deg <= cfg.strong_max_sigma_deg)
+                               & (ev.cond <= cfg.strong_max_cond))))
+    strong = standalone & (tri >= cfg.min_parallax_deg) & ~ev.small_baseline
+    return Tiers(candidate, provisional, strong, standalone, reason.astype(object))

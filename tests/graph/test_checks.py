@@ -9,6 +9,7 @@ from pipeline.core import so3
 from pipeline.core.errors import ConfigError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.graph.checks import ViewGraphConfig, check_view_graph
+from pipeline.graph.flags import graph_flags
 from pipeline.graph.tiers import evidence_tiers, pair_evidence
 
 
@@ -51,6 +52,8 @@ def test_gates_and_tiers():
         t = evidence_tiers(pair_evidence(vg), ViewGraphConfig())
         got = "strong" if t.strong[0] else "provisional" if t.provisional[0] else "normal" if t.candidate[0] else ""
         assert (got, t.reason[0]) == (tier, why), (inl, m, tri, sig, sb)
+        # standalone: strong but for the parallax (rotation-only and low-parallax pairs), never a wide or weak one
+        assert t.standalone[0] == (tier == "strong" or (inl, m, sig) == (100, 160, 0.3) and tri < 75), (inl, tri, sb)
 
 
 def test_wrong_pairs_are_removed_with_their_reason():
@@ -87,6 +90,51 @@ def test_provisional_and_unconfirmed_pairs():
     vg.stats["n_matches"][-1] = 160
     chk = check_view_graph(vg)
     assert chk.kept[-1] and not chk.confirmed[-1] and chk.tier[-1] == "strong"
+
+
+def _blocks_joined_by_pans(pans=((9, 10),), seed=2):
+    """Cameras 0-9 and 10-19, each block densely paired, joined only through one pan camera per ``(a, b)`` of
+    ``pans`` (20, 21, ...) by the rotation-only pairs (a, 20) and (b, 20): a walk that turns on the spot, each
+    pan view overlapping only its two neighbours."""
+    n = 20 + len(pans)
+    rng = np.random.default_rng(seed)
+    R = so3.random_rotations(n, rng)
+    E = np.stack(np.triu_indices(10, 1), 1)
+    E = np.r_[E, E + 10, np.array([[a, 20 + k] for k, ab in enumerate(pans) for a in ab]).reshape(-1, 2)]
+    Rm = so3.exp(np.deg2rad(0.1) * rng.standard_normal((len(E), 3))) @ (R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2))
+    small = np.arange(len(E)) >= 90
+    vg = _vg(E, Rm, n, small=small)
+    vg.stats["median_triangulation_deg"][small] = 0.0
+    return vg
+
+
+def test_a_pan_that_alone_joins_two_blocks_is_kept_and_flagged():
+    vg = _blocks_joined_by_pans()
+    chk = check_view_graph(vg)
+    assert chk.kept[-2:].all() and chk.bridged[-2:].all() and not chk.confirmed[-2:].any()
+    assert chk.kept[:-2].all() and not chk.bridged[:-2].any() and chk.info["bridged"] == 2
+    fl = graph_flags(vg.edges, 21, chk.kept, chk.confirmed, chk.inconsistent, vg.names, bridged=chk.bridged)
+    joined = {k for k, w in fl.cameras.items() if any("no cycle confirms" in x for x in w)}
+    assert joined == set(range(10, 21))  # the first block is the main part; the second hangs on the pan
+    assert "(c09, c20)" in next(x for x in fl.cameras[20] if "no cycle confirms" in x)
+    assert "(c10, c20)" in next(x for x in fl.cameras[15] if "no cycle confirms" in x)
+    # dropped when keep_bridges is off, or when the pair is weak (it could be anything)
+    assert not check_view_graph(vg, ViewGraphConfig(keep_bridges=False)).kept[-2:].any()
+    vg.stats["n_inliers_E"][-1], vg.stats["n_matches"][-1] = 20, 30
+    chk = check_view_graph(vg)
+    assert chk.kept[-2] and not chk.kept[-1] and chk.step[-1] == "unconfirmed"
+
+
+def test_two_pans_close_a_loop_that_checks_them():
+    # the loop through both pans is short enough for the path check: confirmed, not merely kept
+    vg = _blocks_joined_by_pans(((9, 10), (0, 11)))
+    chk = check_view_graph(vg)
+    assert chk.kept.all() and chk.confirmed[-4:].all() and chk.info["bridged"] == 0
+    # one pan 20° wrong: the loop shows it but cannot tell which pan: both go, and the second block with them
+    vg.R_rel[-1] = so3.exp(np.deg2rad(20.0) * np.array([0.0, 0.0, 1.0])) @ vg.R_rel[-1]
+    chk = check_view_graph(vg)
+    assert not chk.kept[-4:].any() and chk.kept[:-4].all() and chk.info["bridged_dropped"] >= 2
+    assert set(chk.step[-4:]) == {"robust"} and not chk.bridged.any()
 
 
 def test_config_checks():
