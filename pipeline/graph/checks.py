@@ -87,6 +87,9 @@ class ViewGraphConfig(Config):
     path_max_deg: float = option(15.0, "paths whose threshold would exceed this check nothing, degrees", gt=0)
     colocation_max_deg: float = option(10.0, "a small-baseline pair whose third cameras see its two centres this "
                                              "far apart (median, degrees) is rejected", gt=0)
+    colocation_min_parallax_deg: float = option(3.0, "a third camera witnesses a small-baseline pair only through "
+                                                     "pairs with at least this median triangulation angle, degrees",
+                                                ge=0)
     robust_filter: bool = option(True, "reject the edges the robust solution (IRLS-ℓ½) leaves far off")
     robust_floor_deg: float = option(5.0, "robust filter: reject residuals above max(this, k·h_inflation·σ_weak)",
                                      gt=0)
@@ -153,7 +156,8 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     info["acceptance"] = _reject(chk, ~tiers.candidate, "acceptance", tiers.reason)
     sw = np.nan_to_num(ev.sigma_weak_deg, nan=cfg.sigma_floor_deg)
     t = np.asarray(vg.stats.get("t", np.ones((M, 3))), float).reshape(M, 3)
-    n_wit, med, bad = colocation_check(vg.edges, vg.R_rel, t, ev.small_baseline, chk.kept, N, cfg.colocation_max_deg)
+    n_wit, med, bad = colocation_check(vg.edges, vg.R_rel, t, ev.small_baseline, chk.kept, N, cfg.colocation_max_deg,
+                                       witness=ev.triangulation_deg >= cfg.colocation_min_parallax_deg)
     info["colocation"] = _reject(chk, bad, "colocation", lambda ix: [
         f"its small baseline claims one camera centre; {n_wit[k]} third camera(s) see the two centres "
         f"{med[k]:.0f}° apart (median)" for k in ix])

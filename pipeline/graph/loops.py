@@ -269,7 +269,7 @@ def group_median(groups: np.ndarray, values: np.ndarray, n: int) -> tuple[np.nda
 
 
 def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotation_only: np.ndarray,
-                     kept: np.ndarray, n_cameras: int, max_deg: float = 10.0
+                     kept: np.ndarray, n_cameras: int, max_deg: float = 10.0, witness: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Test the claim of every rotation-only pair that its two cameras stand at one place.
 
@@ -280,9 +280,15 @@ def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotati
     two claims make the baselines v₁ → v₂ and v₀ → v₃ parallel (a ring around two copies of an
     object has such cycles and no triangle).
 
+    A witness's own pairs must have a baseline that is large against the claim's (``witness``):
+    a third view of the same pan on the spot, a few centimetres from both, sees their centres
+    in directions that say nothing (a rendered street's pan views, 5 cm of hand motion apart,
+    saw each other's centres 20° apart through a pair with 1° of parallax).
+
     Args:
         edges: (M, 2); R_rel: (M, 3, 3); t: (M, 3) translations (zeros for rotation-only pairs).
         rotation_only: (M,) bool; kept: (M,) bool; n_cameras: N; max_deg: largest median angle accepted.
+        witness: (M,) bool the pairs a witness may use (default: every pair that is not rotation-only).
     Returns:
         number of witnesses (M,), their median angle (M,) in degrees (NaN: none), reject (M,) bool.
     """
@@ -291,6 +297,7 @@ def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotati
     t = np.asarray(t, float)
     tn = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
     ro = np.asarray(rotation_only, bool) | (np.linalg.norm(t, axis=1) < 1e-9)
+    wit = ~ro if witness is None else ~ro & np.asarray(witness, bool)
     if not (ro & kept).any():
         return np.zeros(M, np.int64), np.full(M, np.nan), np.zeros(M, bool)
 
@@ -307,7 +314,7 @@ def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotati
             break
         others = [c for c in range(3) if c != pos]
         e_ro, e1, e2 = tri[:, pos], tri[:, others[0]], tri[:, others[1]]
-        sel = ro[e_ro] & ~ro[e1] & ~ro[e2]
+        sel = ro[e_ro] & wit[e1] & wit[e2]
         e_ro, e1, e2 = e_ro[sel], e1[sel], e2[sel]
         cu, cv = ends(e_ro)
         ea = np.where((edges[e1] == cu[:, None]).any(1), e1, e2)  # the witness's edge to cu
@@ -320,7 +327,7 @@ def colocation_check(edges: np.ndarray, R_rel: np.ndarray, t: np.ndarray, rotati
     E4, F4 = cyc.edges[q], cyc.forward[q]
     for shift in (0, 1):
         Es, Fs = np.roll(E4, -shift, axis=1), np.roll(F4, -shift, axis=1)
-        sel = ro[Es[:, 0]] & ro[Es[:, 2]] & ~ro[Es[:, 1]] & ~ro[Es[:, 3]]
+        sel = ro[Es[:, 0]] & ro[Es[:, 2]] & wit[Es[:, 1]] & wit[Es[:, 3]]
         Es, Fs = Es[sel], Fs[sel]
         v = np.where(Fs, edges[Es, 0], edges[Es, 1])  # start camera of each walked edge
         d_a = centre_dir(v[:, 2], Es[:, 1])  # centre of v₂ in v₁'s frame

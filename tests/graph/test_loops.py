@@ -132,6 +132,24 @@ def test_colocation_claims_are_tested_by_third_cameras():
     assert not rej[k] and med[k] < 1e-6
 
 
+def test_a_view_of_the_same_pan_is_no_witness():
+    # a pan on the spot: cameras 0, 1, 2 within 5 cm of one place, 12 m from the wall they look at; camera 3 is
+    # 4 m away. The claim (1, 2) is true at the scale of the scene, but camera 0, 5 cm from both, sees their centres
+    # in unrelated directions: only a witness with a real baseline (camera 3) may judge it
+    rng = np.random.default_rng(4)
+    C = np.r_[rng.normal(0, 0.05, (3, 3)), [[4.0, 0, 0]]]
+    R = so3.random_rotations(4, rng)
+    E = np.array([[0, 1], [0, 2], [1, 2], [0, 3], [1, 3], [2, 3]])
+    Rm, T = _translations(R, C, E)
+    ro = np.zeros(len(E), bool)
+    ro[2], T[2] = True, 0
+    n_w, med, rej = colocation_check(E, Rm, T, ro, np.ones(len(E), bool), 4)
+    assert n_w[2] == 2 and med[2] > 10 and rej[2]  # camera 0's direction pulls the median of two over the limit
+    wide = np.array([False, False, False, True, True, True])  # the pairs with a real baseline (parallax)
+    n_w, med, rej = colocation_check(E, Rm, T, ro, np.ones(len(E), bool), 4, witness=wide)
+    assert n_w[2] == 1 and med[2] < 2 and not rej[2]
+
+
 def test_colocation_witnesses_from_4_cycles():
     # a chain plus two false claims (0, 4), (1, 5) with the true rotations: no triangle, one 4-cycle 0-1-5-4
     rng = np.random.default_rng(3)
