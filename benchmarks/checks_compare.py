@@ -4,7 +4,8 @@ The checks are a pure function of the two-view BA graph (``pipeline.graph.checks
 of rules can be compared on one front-end run, with nothing else varying. This script reads the
 runs that ``benchmarks/front_end_checks.py --work W --label after`` left in ``W/runs/<scene>_after``
 (fountain-P11, castle-P30, templeSparseRing, the low-texture turntables, the injected static and
-repeated scenes and their controls) and applies to each BA graph
+repeated scenes and their controls; each run's truth is the ``--gt`` its ``metrics.json`` records)
+and applies to each BA graph
 
 - ``before``: the rules of 534a003 (no bridge exception, every non-rotation-only pair a co-location
   witness): ``keep_bridges: false``, ``colocation_min_parallax_deg: 0``;
@@ -30,10 +31,6 @@ import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from front_end_checks import scene_specs  # noqa: E402
 
 from pipeline.averaging.solve import average  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
@@ -73,12 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     rows = {}
-    for name, spec in scene_specs(a.work).items():
-        out = a.work / "runs" / f"{name}_after"
-        if not (out / "work").is_dir():
+    for out in sorted((a.work / "runs").glob("*_after")):
+        gt = json.loads((out / "metrics.json").read_text())["input"].get("gt") if (out / "metrics.json").is_file() \
+            else None
+        if not gt or not (out / "work").is_dir():
             continue
+        name = out.name.removesuffix("_after")
         vg = load_ba_viewgraph(out / "work")
-        truth = read_reference(spec["gt"])
+        truth = read_reference(gt)
         R_ref, mask = match_reference(vg.names, truth.names, truth.R)
         rows[name] = compare(vg, R_ref, mask)
     cols = ("kept", "kept_gt5", "max_err_deg", "solved", "bridged", "colocation", "irls_median_deg",

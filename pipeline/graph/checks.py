@@ -125,7 +125,7 @@ class GraphChecks:
     tier: np.ndarray
     confirmed: np.ndarray
     inconsistent: np.ndarray
-    bridged: np.ndarray | None = None
+    bridged: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -150,7 +150,7 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     tier = np.where(tiers.strong, "strong", np.where(tiers.provisional, "provisional",
                                                      np.where(tiers.candidate, "normal", ""))).astype(object)
     chk = GraphChecks(np.ones(M, bool), np.full(M, "", object), np.full(M, "", object), tier, np.zeros(M, bool),
-                      np.zeros(M, bool))
+                      np.zeros(M, bool), np.zeros(M, bool))
     info: dict[str, Any] = {"n_pairs": M, "tiers": {t: int((tier == t).sum()) for t in ("strong", "normal",
                                                                                        "provisional")}}
     info["acceptance"] = _reject(chk, ~tiers.candidate, "acceptance", tiers.reason)
@@ -180,8 +180,8 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     info["unconfirmed"] = _reject(chk, unconf, "unconfirmed", np.where(
         tiers.provisional, "provisional (few inliers) and confirmed by no cycle",
         "confirmed by no cycle and not strong enough to stand alone").astype(object))
-    chk.bridged = _keep_bridges(vg, chk, unconf & tiers.standalone & ~tiers.provisional) if cfg.keep_bridges \
-        else np.zeros(M, bool)
+    if cfg.keep_bridges:
+        chk.bridged = _keep_bridges(vg, chk, unconf & tiers.standalone & ~tiers.provisional)
     info["bridged"] = int(chk.bridged.sum())
     info["robust"] = _robust_filter(vg, chk, sw, cfg) if cfg.robust_filter else 0
     if chk.bridged.any():

@@ -172,10 +172,12 @@ def _flag_bridged(edges: np.ndarray, n: int, kept: np.ndarray, bridged: np.ndarr
         for p in {int(part[edges[e, 0]]), int(part[edges[e, 1]])}:
             via.setdefault(p, []).append(int(e))
     out = np.flatnonzero(cams & (part != main))
-    add(out, [f"joined to the rest only through {len(via.get(int(part[k]), []))} pair(s) that no cycle confirms, "
-              f"kept so that its part of the graph is not lost: "
-              + ", ".join(pair(e) for e in via.get(int(part[k]), [])[:3])
-              + ("…" if len(via.get(int(part[k]), [])) > 3 else "") for k in out])
+    add(out, [_bridged_reason(via.get(int(part[k]), []), pair) for k in out])
+
+
+def _bridged_reason(pairs: list[int], pair: Callable[[int], str]) -> str:
+    return (f"joined to the rest only through {len(pairs)} pair(s) that no cycle confirms, kept so that its part of "
+            "the graph is not lost: " + ", ".join(pair(e) for e in pairs[:3]) + ("…" if len(pairs) > 3 else ""))
 
 
 def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarray, inconsistent: np.ndarray,

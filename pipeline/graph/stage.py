@@ -64,7 +64,7 @@ def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], b
         rows.append({"pair": [vg.names[a], vg.names[b]], "status": "kept" if chk.kept[k] else "rejected",
                      "step": str(chk.step[k]), "reason": str(chk.reason[k]), "tier": str(chk.tier[k]),
                      "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k]),
-                     "bridged": bool(chk.bridged is not None and chk.bridged[k])})
+                     "bridged": bool(chk.bridged[k])})
     return rows
 
 
