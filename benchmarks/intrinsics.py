@@ -1,6 +1,6 @@
 """Unknown intrinsics and lens distortion (issue 13, acceptance items 1, 2 and 5).
 
-    python benchmarks/intrinsics.py [--only fountain,castle,temple,nees,lens] [--modes none,shared,per_camera]
+    python benchmarks/intrinsics.py [--only fountain,castle,temple,nees,lens] [--modes none,auto,shared,per_camera]
                                     [--draws 500] [--keep DIR]
 
 1. **Scenes without K** (fountain-P11, castle-P30, templeSparseRing from ``../shared/data``):
@@ -54,7 +54,7 @@ REPO = Path(__file__).resolve().parents[1]
 # ../shared/data beside the checkout (a git worktree sits one level deeper)
 DATA = next((p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir()), REPO.parent / "shared" / "data")
 RESULTS = REPO / "benchmarks" / "results" / "intrinsics.json"
-MODES = ("none", "shared", "per_camera")
+MODES = ("none", "auto", "shared", "per_camera")
 
 
 def _scenes(data: Path) -> dict[str, tuple[Path, Path, np.ndarray]]:

@@ -106,6 +106,11 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return next(a for a in allowed if str(a).lower() == value.strip().lower())
         if not isinstance(value, bool) and value in allowed:
             return value
+        # YAML 1.1 reads an unquoted off / on (no / yes) as a boolean: give back the word where it is a choice
+        words = {False: ("off", "no", "false"), True: ("on", "yes", "true")}.get(value) if isinstance(value, bool) else ()
+        for word in words:
+            if word in allowed:
+                return word
         raise ConfigError(f"{where}={value!r} but expected one of {', '.join(repr(a) for a in allowed)}")
     if origin is tuple:
         (elem, *rest) = get_args(tp)

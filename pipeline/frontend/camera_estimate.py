@@ -85,6 +85,13 @@ class CamerasConfig(Config):
                                        "exceeds this is flagged as poorly determined (the jackknife is "
                                        "conservative: 1.6% on a clean 6-view graph whose error is 0.8%)", gt=0)
     min_pairs: int = option(3, "fewer usable pairs leave a camera group's focal at its prior", ge=1)
+    per_image_focal: Literal["auto", "off"] = option(
+        "auto", "auto: pycolmap's view-graph calibration also gives every estimated image its own focal, from all "
+                "its pairs (images of different cameras or zooms); those replace the group focal lengths where "
+                "the pairs' rotations are more consistent around the graph with them; off: group focal lengths only")
+    per_image_gain: float = option(0.5, "per-image focal lengths replace the group ones only where their rotation-"
+                                        "consistency cost is at most this share of the group one (they have more "
+                                        "parameters: on one camera they fit a little better by chance)", gt=0, le=1)
     radial_range: float = option(0.4, "κ searched in [-radial_range, radial_range] (κ at the scale max(w, h))", gt=0)
     radial_grid_points: int = option(33, "points of the coarse κ grid", ge=5)
     radial_refine: tuple[float, ...] = option((0.05, 21), "half-width and points of the fine κ grid")

@@ -79,10 +79,11 @@ class BAConfig(ExecutorOptions):
     tol: float = option(1e-6, "stop when the relative cost decrease falls below this", ge=0)
     min_points: int = option(12, "pairs with fewer (inlier) points are rejected (5 pose unknowns + σ² need "
                                  ">= 6)", ge=6)
-    refine_focal: Literal["none", "shared", "per_camera"] = option(
-        "none", "refine the focal length of cameras whose intrinsics are not known (estimated, EXIF or default), "
+    refine_focal: Literal["auto", "none", "shared", "per_camera"] = option(
+        "auto", "refine the focal length of cameras whose intrinsics are not known (estimated, EXIF or default), "
                 "marginalized into H with the translation: none, one shared by the pair, or one per camera; "
-                "known intrinsics are never refined")
+                "auto: per camera for the images whose focal the cameras stage estimated on its own (per-image "
+                "view-graph calibration), none for the others; known intrinsics are never refined")
     workers: int = option(2, "processes refining pairs (1 = in this process)", ge=1, runtime=True)
     chunk_size: int = option(8, "pairs per task sent to a worker (and per resumable chunk)", ge=1, runtime=True)
     progress: bool = option(True, "show a progress bar", runtime=True)
@@ -269,7 +270,9 @@ def refine_pair(
     if n < cfg.min_points:
         raise TwoViewBAError(f"pair has {n} correspondences but min_points={cfg.min_points}; lower min_points or drop the pair")
     xi, xj = np.ascontiguousarray(xi.T), np.ascontiguousarray(xj.T)
-    A = focal_columns(cfg.refine_focal) if focal is None else np.asarray(focal, np.float64).reshape(2, -1)
+    # "auto" is the stage's to resolve per camera (it passes ``focal``); a pair alone has no per-image estimate
+    A = (focal_columns("none" if cfg.refine_focal == "auto" else cfg.refine_focal) if focal is None
+         else np.asarray(focal, np.float64).reshape(2, -1))
     if A.shape[1] and cfg.refine_focal == "shared" and focal is None and not np.allclose(Ki, Kj):
         raise ValueError("refine_focal='shared' needs K_i == K_j at the start; use per_camera for two cameras")
     fu = FocalUnknowns(A, Ki, Kj) if A.shape[1] and cfg.enabled else None

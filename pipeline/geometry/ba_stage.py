@@ -76,15 +76,22 @@ def _refine_chunk(tasks: list[Task], config: BAConfig) -> list[dict[str, Any]]:
     return out
 
 
-def _known_intrinsics(work: Path, n: int) -> np.ndarray:
-    """(n,) True where K comes from a file (never refined); all True without a cameras result."""
-    from pipeline.frontend.camera_stage import NAME as CAMERAS, load_cameras  # noqa: PLC0415
+def _known_intrinsics(work: Path, n: int, per_image_only: bool = False) -> np.ndarray:
+    """(n,) True where K comes from a file (never refined); all True without a cameras result.
+
+    ``per_image_only`` (``refine_focal: auto``): also True for every image whose focal was not estimated on its
+    own by the cameras stage (``K_source`` ``estimated:view-graph…``), so that only those are refined.
+    """
+    from pipeline.frontend.camera_stage import NAME as CAMERAS, PER_IMAGE_SOURCE, load_cameras  # noqa: PLC0415
 
     if read_record(work, CAMERAS) is None:
         logger.info("two-view BA: no cameras result in %s; every K is taken as known (refine_focal has no effect)",
                     work)
         return np.ones(n, bool)
-    known = load_cameras(work).known
+    cams = load_cameras(work)
+    known = cams.known
+    if per_image_only:
+        known = known | ~np.array([src.startswith(PER_IMAGE_SOURCE) for src in cams.K_source], bool)
     if len(known) != n:
         raise CacheError(f"the cameras of {work} are of {len(known)} images, the two-view result of {n}; re-run "
                          "the front end")
@@ -147,13 +154,15 @@ class TwoViewBAStage(PairStage[BAConfig]):
         logger.info("two-view BA config: %s", cfg.as_dict())
         M = vg_in.n_edges
         t_in = np.asarray(vg_in.stats["t"], dtype=np.float64).reshape(M, 3)
-        known = _known_intrinsics(work, vg_in.n_cameras) if cfg.refine_focal != "none" else np.ones(vg_in.n_cameras, bool)
+        mode = "per_camera" if cfg.refine_focal == "auto" else cfg.refine_focal
+        known = (_known_intrinsics(work, vg_in.n_cameras, per_image_only=cfg.refine_focal == "auto")
+                 if mode != "none" else np.ones(vg_in.n_cameras, bool))
         tasks: list[Task] = []
         for k in range(M):  # gathering the per-edge arrays: I/O, not the hot path
             xi, xj = data.correspondences(k)
             i, j = vg_in.edges[k]
-            A = focal_columns(cfg.refine_focal if np.allclose(K[i], K[j]) or cfg.refine_focal != "shared"
-                              else "per_camera", bool(known[i]), bool(known[j]))
+            A = focal_columns(mode if np.allclose(K[i], K[j]) or mode != "shared" else "per_camera", bool(known[i]),
+                              bool(known[j]))
             tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k],
                           A))
         fp = cfg.fingerprint()

@@ -797,3 +797,17 @@ def test_pycolmap_reference_leaves_out_a_png_claiming_60000x60000(cli, tiny_scen
     handled(r, r"pycolmap reference: leaving out .*huge.png: it claims 60000x60000")
     assert "registered 6/7 images" in r.stdout and "huge.png: not given to pycolmap" in r.stdout, r.stdout
     nothing_half_written(tmp_path / "ref", folder)
+
+
+def test_yaml_off_is_the_word_where_it_is_a_choice(tmp_path) -> None:
+    """YAML 1.1 reads an unquoted ``off`` as False; where "off" is one of a setting's choices it means "off"."""
+    from pipeline.core.errors import ConfigError  # noqa: PLC0415
+    from pipeline.plan import load_configs  # noqa: PLC0415
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("cameras:\n  radial: off\n  per_image_focal: off\n")
+    cams = load_configs(cfg)[1]["cameras"]
+    assert cams.radial == "off" and cams.per_image_focal == "off"
+    cfg.write_text("two_view_ba:\n  refine_focal: off\n")  # no "off" among its choices: still refused
+    with pytest.raises(ConfigError, match=r"refine_focal=False but expected one of 'auto', 'none'"):
+        load_configs(cfg)
