@@ -89,9 +89,10 @@ class CamerasConfig(Config):
         "auto", "auto: pycolmap's view-graph calibration also gives every estimated image its own focal, from all "
                 "its pairs (images of different cameras or zooms); those replace the group focal lengths where "
                 "the pairs' rotations are more consistent around the graph with them; off: group focal lengths only")
-    per_image_gain: float = option(0.5, "per-image focal lengths replace the group ones only where their rotation-"
-                                        "consistency cost is at most this share of the group one (they have more "
-                                        "parameters: on one camera they fit a little better by chance)", gt=0, le=1)
+    per_image_level: float = option(0.999, "per-image focal lengths replace the group ones only where they lower "
+                                           "the rotation-consistency cost significantly at this level (an F test "
+                                           "for their extra parameters: on one camera they fit a little better by "
+                                           "chance)", gt=0, lt=1)
     radial_range: float = option(0.4, "κ searched in [-radial_range, radial_range] (κ at the scale max(w, h))", gt=0)
     radial_grid_points: int = option(33, "points of the coarse κ grid", ge=5)
     radial_refine: tuple[float, ...] = option((0.05, 21), "half-width and points of the fine κ grid")

@@ -52,7 +52,7 @@ from pipeline.frontend.distortion import (COLMAP_OFFSET, CameraModel, is_camera_
                                           undistort_points)
 from pipeline.frontend.focal import K_from_focal
 from pipeline.frontend.intrinsics import camera_models_for_names
-from pipeline.frontend.vg_calibration import calibrate_focals, consistency_cost
+from pipeline.frontend.vg_calibration import calibrate_focals, consistency_cost, per_image_test
 from pipeline.stage import Stage, StageRecord, file_fingerprint, fingerprint_of, read_record
 
 __all__ = ["CamerasStage", "CameraSet", "load_cameras", "cameras_for", "given_source", "intrinsics_summary", "main", "main_cli", "MANIFEST",
@@ -252,33 +252,35 @@ class CamerasStage(Stage[CamerasConfig]):
                         f", {est.prior} prior" if est.prior else "", len(members), g[0], g[1], est.n_pairs)
         if cfg.per_image_focal == "auto" and ev is not None and focal_set.sum() >= 2 and len(ev.pairs):
             prior = known | np.array([e is not None for e in exif])
-            self._per_image_focal(fs, ev.pairs, ev.matches, ekp, K, sources, focal_set, prior, estimate)
+            self._per_image_focal(fs, ev.pairs, ev.matches, ekp, K, sources, focal_set, prior, gkey, estimate)
         final = [self._final_model(models[k], K[k], kappa[k], fs.sizes[k]) for k in range(n)]
         return self._write(fs, K, sources, final, dist_src, kp, any(undistorted), estimate)
 
     def _per_image_focal(self, fs: Any, pairs: np.ndarray, matches: list[np.ndarray], kp: list[np.ndarray],
                          K: np.ndarray, sources: list[str], focal_set: np.ndarray, prior: np.ndarray,
-                         estimate: dict[str, Any]) -> None:
+                         gkey: list[Any], estimate: dict[str, Any]) -> None:
         """Per-image focal lengths by pycolmap's view-graph calibration, kept where the view graph prefers them.
 
         The calibrator starts from the group focal lengths and, where those differ from the features' start
         values (EXIF or 1.2·max(w, h)), also from the latter: a group focal that is far off can hold it in a
-        wrong minimum. Of the group focal lengths and each calibration, the one whose pairs' rotations are
-        most consistent around the graph is kept, the per-image ones only if their cost is at most
-        ``per_image_gain`` × the group one (:mod:`pipeline.frontend.vg_calibration`). ``K`` and
-        ``sources`` are updated in place for the images of ``focal_set``; the costs and the decision go into
-        ``estimate["per_image"]``.
+        wrong minimum. An image gets a focal of its own only if the calibrator moved it and it has a verified
+        pair with a fundamental matrix (else nothing constrains it). Of the calibrations, the one whose pairs'
+        rotations are most consistent around the graph replaces the group focal lengths if it lowers that cost
+        significantly for its extra parameters (:func:`~pipeline.frontend.vg_calibration.per_image_test` at
+        ``per_image_level``). ``K`` and ``sources`` are updated in place for the images of ``focal_set``; the
+        costs and the decision go into ``estimate["per_image"]``.
         """
         cfg = self.config
         starts = {"group": K} | ({"start": fs.K} if not np.allclose(K[focal_set], fs.K[focal_set]) else {})
-        c_group, cal = float("nan"), None
+        cals = calibrate_focals(list(fs.names), fs.sizes, list(starts.values()), prior, kp, pairs, matches,
+                                self.folder, cfg.seed)
+        c_group = consistency_cost(cals[0], K, kp, cfg.rotation_loss_deg)
+        in_graph = np.zeros(len(K), bool)
+        in_graph[cals[0].edges.ravel()] = True
         tried: dict[str, Any] = {}
-        best: tuple[float, str, np.ndarray] | None = None
-        for name, K0 in starts.items():
-            cal = calibrate_focals(list(fs.names), fs.sizes, K0, prior, kp, pairs, matches, self.folder, cfg.seed)
-            if name == "group":
-                c_group = consistency_cost(cal, K, kp, cfg.rotation_loss_deg)
-            use = focal_set & np.isfinite(cal.f)
+        best: tuple[float, str, np.ndarray, np.ndarray] | None = None
+        for (name, K0), cal in zip(starts.items(), cals):
+            use = focal_set & in_graph & np.isfinite(cal.f) & (cal.f != K0[:, 0, 0])
             K_img = K.copy()
             for k in np.flatnonzero(use):
                 K_img[k] = K_from_focal(float(cal.f[k]), K[k, :2, 2])
@@ -286,21 +288,30 @@ class CamerasStage(Stage[CamerasConfig]):
             tried[f"from_{name}"] = {"calibrator_ok": cal.ok, "consistency": cost,
                                      "focal": {fs.names[k]: float(cal.f[k]) for k in np.flatnonzero(use)}}
             if np.isfinite(cost) and (best is None or cost < best[0]):
-                best = (cost, name, K_img)
-        chosen = best is not None and not best[0] > cfg.per_image_gain * c_group
-        estimate["per_image"] = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cal.edges)) if cal
-                                 else 0, "consistency_group": c_group, "calibrations": tried,
-                                 "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen else "group"}
+                best = (cost, name, K_img, use)
+        verdict: tuple[bool, float, float] = (False, float("nan"), float("nan"))
+        if best is not None:
+            use = best[3]
+            n_extra = int(use.sum()) - len({gkey[k] for k in np.flatnonzero(use) if sources[k] != "default"})
+            verdict = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra,
+                                     cfg.per_image_level)
+        chosen = verdict[0]
+        estimate["per_image"] = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
+                                 "consistency_group": c_group, "calibrations": tried,
+                                 "F": verdict[1], "F_critical": verdict[2], "level": cfg.per_image_level,
+                                 "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen and best
+                                 else "group"}
         logger.info("cameras: view-graph calibration (%d pairs): rotation consistency %s with per-image focal "
-                    "lengths, %.4g with the group ones: %s", estimate["per_image"]["n_pairs"],
-                    " / ".join(f"{v['consistency']:.4g}" for v in tried.values()), c_group,
+                    "lengths, %.4g with the group ones (F %.3g vs %.3g): %s", len(cals[0].edges),
+                    " / ".join(f"{v['consistency']:.4g}" for v in tried.values()), c_group, verdict[1], verdict[2],
                     "per-image kept" if chosen else "group focal lengths kept")
-        if not chosen:
+        if not chosen or best is None:
             return
-        cost, _, K_img = best
-        changed = np.flatnonzero(focal_set & (K_img[:, 0, 0] != K[:, 0, 0]))
+        cost, _, K_img, use = best
+        changed = np.flatnonzero(use)
         why = (f"superseded by per-image focal lengths (pycolmap's view-graph calibration): the pairs' rotations "
-               f"are more consistent with them ({cost:.3g} vs {c_group:.3g})")
+               f"are significantly more consistent with them ({cost:.3g} vs {c_group:.3g}, F {verdict[1]:.3g} > "
+               f"{verdict[2]:.3g})")
         for g in estimate["groups"]:
             if "focal" in g and any(fs.names.index(nm) in set(changed) for nm in g["images"]):
                 g["focal"] = g["focal"] | {"determined": None, "group_note": g["focal"].get("note", ""), "note": why}

@@ -64,8 +64,8 @@ def cams():
 def calibrated(cams, tmp_path_factory):
     sizes, K, start, kps, pairs, matches = cams
     names = [f"im{k}.png" for k in range(len(sizes))]
-    return vgc.calibrate_focals(names, sizes, start, np.zeros(len(sizes), bool), kps, pairs, matches,
-                                tmp_path_factory.mktemp("vgc"))
+    return vgc.calibrate_focals(names, sizes, [start], np.zeros(len(sizes), bool), kps, pairs, matches,
+                                tmp_path_factory.mktemp("vgc"))[0]
 
 
 def test_every_image_gets_its_own_focal(cams, calibrated) -> None:
@@ -102,7 +102,7 @@ def test_no_database_is_left_behind(cams, tmp_path) -> None:
     stale = tmp_path / f"{vgc.TMP_PREFIX}killed"
     stale.mkdir()
     (stale / "calibration.db").write_bytes(b"half")
-    vgc.calibrate_focals([f"im{k}.png" for k in range(len(sizes))], sizes, start, np.zeros(len(sizes), bool),
+    vgc.calibrate_focals([f"im{k}.png" for k in range(len(sizes))], sizes, [start], np.zeros(len(sizes), bool),
                          kps, pairs[:6], matches[:6], tmp_path)
     assert not list(tmp_path.glob(f"{vgc.TMP_PREFIX}*"))
 
@@ -117,15 +117,18 @@ def _stage_call(cams, tmp_path, monkeypatch, focal: np.ndarray | None, group: np
         real = vgc.calibrate_focals
 
         def fake(*args, **kwargs):
-            cal = real(*args, **kwargs)
-            cal.f = focal.copy()
-            return cal
+            cals = real(*args, **kwargs)
+            for cal in cals:
+                cal.f = focal.copy()
+            return cals
 
         monkeypatch.setattr("pipeline.frontend.camera_stage.calibrate_focals", fake)
     stage = CamerasStage(tmp_path, CamerasConfig(progress=False, workers=1))
     fs = SimpleNamespace(names=names, sizes=sizes, K=start.copy())
     K_cur, sources, estimate = (start if group is None else group).copy(), ["default"] * n, {"groups": []}
-    stage._per_image_focal(fs, pairs, matches, kps, K_cur, sources, np.ones(n, bool), np.zeros(n, bool), estimate)
+    gkey = [tuple(sz) for sz in sizes.tolist()]
+    stage._per_image_focal(fs, pairs, matches, kps, K_cur, sources, np.ones(n, bool), np.zeros(n, bool), gkey,
+                           estimate)
     return K_cur, sources, estimate
 
 
@@ -181,12 +184,21 @@ def test_rendered_images_of_different_cameras(tmp_path) -> None:
 
 def test_one_camera_keeps_its_shared_focal(tmp_path, monkeypatch) -> None:
     """One camera, its shared focal right: per-image focal lengths fit a little better or worse by chance, never
-    by the margin ``per_image_gain`` asks for."""
+    significantly (the F test of ``per_image_level``)."""
     cams = _cameras(seed=1, one_camera=True)
     K = cams[1]
     K_cur, sources, est = _stage_call(cams, tmp_path, monkeypatch, None, group=K)
     pi = est["per_image"]
     assert sources == ["default"] * len(K) and pi["chosen"] == "group", pi
-    ratio = min(c["consistency"] for c in pi["calibrations"].values()) / pi["consistency_group"]
-    assert 0.5 < ratio, ratio
+    assert not pi["F"] > pi["F_critical"]
     np.testing.assert_array_equal(K_cur, K)
+
+
+def test_F_test_of_the_per_image_focal_lengths() -> None:
+    # 40 pairs, 10 images: 120 − 27 − 5 = 88 degrees of freedom for 5 extra focal lengths
+    assert vgc.per_image_test(0.050, 0.005, 40, 10, 5)[0]  # ten times more consistent
+    sig, F, crit = vgc.per_image_test(0.0343, 0.0342, 55, 11, 10)  # fountain: 0.3% by chance
+    assert not sig and F < crit
+    assert not vgc.per_image_test(2.1e-6, 6.4e-7, 8, 5, 4)[0]  # 3× lower, but 8 pairs leave 7 degrees of freedom
+    assert not vgc.per_image_test(0.01, 0.02, 40, 10, 5)[0] and not vgc.per_image_test(0.05, 0.005, 3, 4, 3)[0]
+    assert not vgc.per_image_test(float("nan"), 0.005, 40, 10, 5)[0]
