@@ -309,11 +309,12 @@ class CamerasStage(Stage[CamerasConfig]):
             return
         cost, _, K_img, use = best
         changed = np.flatnonzero(use)
+        changed_names = {fs.names[k] for k in changed}
         why = (f"superseded by per-image focal lengths (pycolmap's view-graph calibration): the pairs' rotations "
                f"are significantly more consistent with them ({cost:.3g} vs {c_group:.3g}, F {verdict[1]:.3g} > "
                f"{verdict[2]:.3g})")
         for g in estimate["groups"]:
-            if "focal" in g and any(fs.names.index(nm) in set(changed) for nm in g["images"]):
+            if "focal" in g and changed_names.intersection(g["images"]):
                 g["focal"] = g["focal"] | {"determined": None, "group_note": g["focal"].get("note", ""), "note": why}
         for k in changed:
             K[k] = K_img[k]
