@@ -3,8 +3,8 @@
 Rendered scenes (``pipeline.synthetic.mixed``: each view its own focal, 0.8–1.25× the scene's, and with
 ``sizes: mixed`` its own image size among 7) run through ``run.py``'s ``main`` with no K and with the pycolmap
 incremental reference in the same run (also without K: one camera per image). Each scene runs twice on the same
-features, matches and pycolmap reference: ``cameras.per_image_focal: off`` (the group focal lengths alone, as before) and ``auto``
-(the default). Reported per run: the focal error of every image against its own (median and max |%|), each
+features, matches and pycolmap reference: ``cameras.per_image_focal: off`` (the group focal lengths alone, as
+before) and ``auto`` (the default). Reported per run: the focal error of every image against its own (median and max |%|), each
 method's median rotation error against the truth, pycolmap's, and the ratio of the refined rotations' median to
 pycolmap's.
 
@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
                     first = first or out
                     rows.append(r)
                     meds = {k: round(v, 4) for k, v in r["methods_median_deg"].items() if v is not None}
-                    print(f"{name:9s} per_image_focal={per_image:4s} focal |err| median {r['focal_abs_error_pct_median']:6.2f}% "
+                    print(f"{name:9s} per_image_focal={per_image:4s} focal |err| median "
+                          f"{r['focal_abs_error_pct_median']:6.2f}% "
                           f"max {r['focal_abs_error_pct_max']:6.2f}%  ours {meds}  pycolmap "
                           f"{r['pycolmap_median_deg']:.4f} ({r['pycolmap_registered']}/{a.views})", flush=True)
     finally:

@@ -107,7 +107,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if not isinstance(value, bool) and value in allowed:
             return value
         # YAML 1.1 reads an unquoted off / on (no / yes) as a boolean: give back the word where it is a choice
-        words = {False: ("off", "no", "false"), True: ("on", "yes", "true")}.get(value) if isinstance(value, bool) else ()
+        words = ({False: ("off", "no", "false"), True: ("on", "yes", "true")}[value] if isinstance(value, bool)
+                 else ())
         for word in words:
             if word in allowed:
                 return word

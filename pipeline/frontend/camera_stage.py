@@ -292,7 +292,9 @@ class CamerasStage(Stage[CamerasConfig]):
         verdict: tuple[bool, float, float] = (False, float("nan"), float("nan"))
         if best is not None:
             use = best[3]
-            n_extra = int(use.sum()) - len({gkey[k] for k in np.flatnonzero(use) if sources[k] != "default"})
+            # a group focal fitted to the pairs is one parameter; an EXIF or default focal is none
+            fitted = {gkey[k] for k in np.flatnonzero(use) if sources[k].startswith("estimated:")}
+            n_extra = int(use.sum()) - len(fitted)
             verdict = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra,
                                      cfg.per_image_level)
         chosen = verdict[0]

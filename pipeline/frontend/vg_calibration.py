@@ -1,4 +1,4 @@
-"""Per-image focal lengths from the whole view graph: pycolmap's view-graph calibration, checked by rotation consistency.
+"""Per-image focal lengths from the whole view graph: pycolmap's view-graph calibration, checked by rotations.
 
 The cameras stage estimates one focal per group of images that share a size and an EXIF focal, from the pairs
 inside the group (:mod:`pipeline.frontend.camera_estimate`). That cannot serve images of different cameras:
