@@ -51,8 +51,8 @@ from pipeline.frontend.camera_evidence import Evidence, features_evidence, stage
 from pipeline.frontend.distortion import (COLMAP_OFFSET, CameraModel, is_camera_model_file, radial_undistort,
                                           undistort_points)
 from pipeline.frontend.focal import K_from_focal
-from pipeline.frontend.intrinsics import camera_models_for_names
-from pipeline.frontend.vg_calibration import calibrate_focals, consistency_cost, per_image_test
+from pipeline.frontend.intrinsics import camera_models_for_names, focal_summary, intrinsics_summary
+from pipeline.frontend.vg_calibration import calibrate_focals, choose_focal_lengths
 from pipeline.stage import Stage, StageRecord, file_fingerprint, fingerprint_of, read_record
 
 __all__ = ["CamerasStage", "CameraSet", "load_cameras", "cameras_for", "given_source", "intrinsics_summary", "main", "main_cli", "MANIFEST",
@@ -263,63 +263,30 @@ class CamerasStage(Stage[CamerasConfig]):
 
         The calibrator starts from the group focal lengths and, where those differ from the features' start
         values (EXIF or 1.2·max(w, h)), also from the latter: a group focal that is far off can hold it in a
-        wrong minimum. An image gets a focal of its own only if the calibrator moved it and it has a verified
-        pair with a fundamental matrix (else nothing constrains it). Of the calibrations, the one whose pairs'
-        rotations are most consistent around the graph replaces the group focal lengths if it lowers that cost
-        significantly for its extra parameters (:func:`~pipeline.frontend.vg_calibration.per_image_test` at
-        ``per_image_level``). ``K`` and ``sources`` are updated in place for the images of ``focal_set``; the
-        costs and the decision go into ``estimate["per_image"]``.
+        wrong minimum. The choice is :func:`~pipeline.frontend.vg_calibration.choose_focal_lengths`. ``K`` and
+        ``sources`` are updated in place for the images of ``focal_set``; the costs and the decision go into
+        ``estimate["per_image"]``.
         """
         cfg = self.config
         starts = {"group": K} | ({"start": fs.K} if not np.allclose(K[focal_set], fs.K[focal_set]) else {})
         cals = calibrate_focals(list(fs.names), fs.sizes, list(starts.values()), prior, kp, pairs, matches,
                                 self.folder, cfg.seed)
-        c_group = consistency_cost(cals[0], K, kp, cfg.rotation_loss_deg)
-        in_graph = np.zeros(len(K), bool)
-        in_graph[cals[0].edges.ravel()] = True
-        tried: dict[str, Any] = {}
-        best: tuple[float, str, np.ndarray, np.ndarray] | None = None
-        for (name, K0), cal in zip(starts.items(), cals):
-            use = focal_set & in_graph & np.isfinite(cal.f) & (cal.f != K0[:, 0, 0])
-            K_img = K.copy()
-            for k in np.flatnonzero(use):
-                K_img[k] = K_from_focal(float(cal.f[k]), K[k, :2, 2])
-            cost = consistency_cost(cal, K_img, kp, cfg.rotation_loss_deg) if cal.ok and use.any() else float("nan")
-            tried[f"from_{name}"] = {"calibrator_ok": cal.ok, "consistency": cost,
-                                     "focal": {fs.names[k]: float(cal.f[k]) for k in np.flatnonzero(use)}}
-            if np.isfinite(cost) and (best is None or cost < best[0]):
-                best = (cost, name, K_img, use)
-        verdict: tuple[bool, float, float] = (False, float("nan"), float("nan"))
-        if best is not None:
-            use = best[3]
-            # a group focal fitted to the pairs is one parameter; an EXIF or default focal is none
-            fitted = {gkey[k] for k in np.flatnonzero(use) if sources[k].startswith("estimated:")}
-            n_extra = int(use.sum()) - len(fitted)
-            verdict = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra,
-                                     cfg.per_image_level)
-        chosen = verdict[0]
-        estimate["per_image"] = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
-                                 "consistency_group": c_group, "calibrations": tried,
-                                 "F": verdict[1], "F_critical": verdict[2], "level": cfg.per_image_level,
-                                 "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen and best
-                                 else "group"}
+        fitted = [gkey[k] if sources[k].startswith("estimated:") else None for k in range(len(K))]
+        choice = choose_focal_lengths(cals, list(starts), list(starts.values()), K, kp, list(fs.names), focal_set,
+                                      fitted, cfg.per_image_level, cfg.rotation_loss_deg)
+        estimate["per_image"] = choice.record
         logger.info("cameras: view-graph calibration (%d pairs): rotation consistency %s with per-image focal "
-                    "lengths, %.4g with the group ones (F %.3g vs %.3g): %s", len(cals[0].edges),
-                    " / ".join(f"{v['consistency']:.4g}" for v in tried.values()), c_group, verdict[1], verdict[2],
-                    "per-image kept" if chosen else "group focal lengths kept")
-        if not chosen or best is None:
-            return
-        cost, _, K_img, use = best
-        changed = np.flatnonzero(use)
-        changed_names = {fs.names[k] for k in changed}
-        why = (f"superseded by per-image focal lengths (pycolmap's view-graph calibration): the pairs' rotations "
-               f"are significantly more consistent with them ({cost:.3g} vs {c_group:.3g}, F {verdict[1]:.3g} > "
-               f"{verdict[2]:.3g})")
+                    "lengths, %.4g with the group ones (F %.3g vs %.3g): %s", choice.record["n_pairs"],
+                    " / ".join(f"{v['consistency']:.4g}" for v in choice.record["calibrations"].values()),
+                    choice.record["consistency_group"], choice.record["F"], choice.record["F_critical"],
+                    "per-image kept" if choice.chosen else "group focal lengths kept")
+        changed_names = {fs.names[k] for k in choice.changed}
         for g in estimate["groups"]:
             if "focal" in g and changed_names.intersection(g["images"]):
-                g["focal"] = g["focal"] | {"determined": None, "group_note": g["focal"].get("note", ""), "note": why}
-        for k in changed:
-            K[k] = K_img[k]
+                g["focal"] = g["focal"] | {"determined": None, "group_note": g["focal"].get("note", ""),
+                                           "note": choice.why}
+        for k in choice.changed:
+            K[k] = choice.K[k]
             sources[k] = PER_IMAGE_SOURCE + (" (exif prior)" if prior[k] else "")
 
     def _evidence(self, fs: Any, ms: Any) -> Evidence:
@@ -376,7 +343,7 @@ class CamerasStage(Stage[CamerasConfig]):
         paths += self._store.write_index(self._keys)
         summary = {"n_images": len(fs.names), "n_estimated": sum(s.startswith("estimated") for s in sources),
                    "n_file": sum(s.startswith("file") for s in sources), "n_undistorted": int(undistorted and sum(
-                       d != "none" for d in dist_src)), "focal_px": _focal_summary(K, sources),
+                       d != "none" for d in dist_src)), "focal_px": focal_summary(K, sources),
                    "groups": intrinsics_summary(CameraSet(list(fs.names), fs.sizes, K, sources, models, dist_src,
                                                           estimate=estimate))["estimates"]}
         return paths, summary
@@ -387,41 +354,6 @@ class CamerasStage(Stage[CamerasConfig]):
 
         if cams.names != list(load_manifest(self.folder)["names"]):
             raise CacheError(f"{self.folder / MANIFEST} describes other images than the current features")
-
-
-def intrinsics_summary(cams: CameraSet) -> dict[str, Any]:
-    """What metrics.json and the report say about the intrinsics: the focal used, where it came from, the distortion.
-
-    Returns:
-        ``{"focal": [{source, n_images, median_px, min_px, max_px}], "distortion": [{source,
-        n_images, models}], "per_image": {name: {...}}, "estimates": [...]}``.
-    """
-    focal = [{"source": s} | v for s, v in _focal_summary(cams.K, cams.K_source).items()]
-    dist = []
-    for s in sorted(set(cams.distortion_source)):
-        idx = [k for k, d in enumerate(cams.distortion_source) if d == s]
-        dist.append({"source": s, "n_images": len(idx), "models": sorted({cams.models[k].model for k in idx}),
-                     "extra_params": sorted({cams.models[k].extra_params for k in idx})[:5]})
-    per = {nm: {"focal_px": [float(cams.K[k, 0, 0]), float(cams.K[k, 1, 1])],
-                "principal_point_px": [float(cams.K[k, 0, 2]), float(cams.K[k, 1, 2])], "source": cams.K_source[k],
-                "camera": cams.models[k].as_dict(), "distortion_source": cams.distortion_source[k]}
-           for k, nm in enumerate(cams.names)}
-    groups = [{k: v for k, v in g.items() if k != "images"} | {"n_images": len(g.get("images", []))}
-              for g in cams.estimate.get("groups", [])]
-    for g in groups:
-        if "focal" in g:
-            g["focal"] = {k: v for k, v in g["focal"].items() if k not in ("grid", "cost")}
-    return {"focal": focal, "distortion": dist, "per_image": per, "estimates": groups}
-
-
-def _focal_summary(K: np.ndarray, sources: list[str]) -> dict[str, Any]:
-    """The focal used per source, for the record and the report."""
-    out: dict[str, Any] = {}
-    for s in sorted(set(sources)):
-        f = K[[k for k, x in enumerate(sources) if x == s], 0, 0]
-        out[s] = {"n_images": int(len(f)), "median_px": float(np.median(f)), "min_px": float(f.min()),
-                  "max_px": float(f.max())}
-    return out
 
 
 def _read(work: Path, rec: StageRecord | None) -> CameraSet:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +39,8 @@ from pipeline.frontend.distortion import CameraModel, is_camera_model_file, pinh
 logger = logging.getLogger(__name__)
 
 __all__ = ["DEFAULT_FOCAL_FACTOR", "parse_intrinsics_file", "check_K", "find_intrinsics_file", "exif_focal",
-           "default_K", "read_intrinsics", "resolve_intrinsics", "intrinsics_for_names", "camera_models_for_names"]
+           "default_K", "read_intrinsics", "resolve_intrinsics", "intrinsics_for_names", "camera_models_for_names",
+           "intrinsics_summary", "focal_summary"]
 
 DEFAULT_FOCAL_FACTOR = 1.2
 MAX_FILE_BYTES = 64 << 20
@@ -256,3 +258,40 @@ def resolve_intrinsics(folder: Path, names: list[str], sizes: np.ndarray, K_path
             len(missing_default), ", ".join(missing_default[:5]) + (" ..." if len(missing_default) > 5 else ""),
             DEFAULT_FOCAL_FACTOR)
     return K, sources
+
+
+def intrinsics_summary(cams: Any) -> dict[str, Any]:
+    """What metrics.json and the report say about the intrinsics: the focal used, where it came from, the distortion.
+
+    ``cams``: the cameras stage's :class:`~pipeline.frontend.camera_stage.CameraSet`.
+
+    Returns:
+        ``{"focal": [{source, n_images, median_px, min_px, max_px}], "distortion": [{source,
+        n_images, models}], "per_image": {name: {...}}, "estimates": [...]}``.
+    """
+    focal = [{"source": s} | v for s, v in focal_summary(cams.K, cams.K_source).items()]
+    dist = []
+    for s in sorted(set(cams.distortion_source)):
+        idx = [k for k, d in enumerate(cams.distortion_source) if d == s]
+        dist.append({"source": s, "n_images": len(idx), "models": sorted({cams.models[k].model for k in idx}),
+                     "extra_params": sorted({cams.models[k].extra_params for k in idx})[:5]})
+    per = {nm: {"focal_px": [float(cams.K[k, 0, 0]), float(cams.K[k, 1, 1])],
+                "principal_point_px": [float(cams.K[k, 0, 2]), float(cams.K[k, 1, 2])], "source": cams.K_source[k],
+                "camera": cams.models[k].as_dict(), "distortion_source": cams.distortion_source[k]}
+           for k, nm in enumerate(cams.names)}
+    groups = [{k: v for k, v in g.items() if k != "images"} | {"n_images": len(g.get("images", []))}
+              for g in cams.estimate.get("groups", [])]
+    for g in groups:
+        if "focal" in g:
+            g["focal"] = {k: v for k, v in g["focal"].items() if k not in ("grid", "cost")}
+    return {"focal": focal, "distortion": dist, "per_image": per, "estimates": groups}
+
+
+def focal_summary(K: np.ndarray, sources: list[str]) -> dict[str, Any]:
+    """The focal used per source, for the record and the report."""
+    out: dict[str, Any] = {}
+    for s in sorted(set(sources)):
+        f = K[[k for k, x in enumerate(sources) if x == s], 0, 0]
+        out[s] = {"n_images": int(len(f)), "median_px": float(np.median(f)), "min_px": float(f.min()),
+                  "max_px": float(f.max())}
+    return out

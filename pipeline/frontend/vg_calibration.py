@@ -38,7 +38,8 @@ from pipeline.frontend.distortion import COLMAP_OFFSET
 from pipeline.frontend.focal import rotation_consistency_cost
 from pipeline.geometry.epipolar import pose_from_essential
 
-__all__ = ["ViewGraphCalibration", "calibrate_focals", "consistency_cost", "per_image_test", "TMP_PREFIX"]
+__all__ = ["ViewGraphCalibration", "PerImageChoice", "calibrate_focals", "consistency_cost", "choose_focal_lengths",
+           "per_image_test", "TMP_PREFIX"]
 
 logger = logging.getLogger(__name__)
 
@@ -208,3 +209,62 @@ def per_image_test(c_group: float, c_img: float, n_edges: int, n_images: int, n_
     F = ((c_group - c_img) / d1) / max(c_img / d2, 1e-300)
     crit = float(f_dist.ppf(level, d1, d2))
     return bool(F > crit), float(F), crit
+
+
+@dataclass
+class PerImageChoice:
+    """The cameras stage's decision between the group focal lengths and a calibration's per-image ones.
+
+    Attributes:
+        chosen: whether the per-image focal lengths replace the group ones.
+        K: (N, 3, 3) the K's to use (the group ones where not chosen).
+        changed: indices of the images that take a focal of their own.
+        record: what ``cameras.json`` keeps (``estimate.per_image``): costs, calibrations, F test, decision.
+        why: the note for the superseded group estimates ("" when not chosen).
+    """
+
+    chosen: bool
+    K: np.ndarray
+    changed: np.ndarray
+    record: dict[str, Any]
+    why: str = ""
+
+
+def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str], starts: list[np.ndarray],
+                         K: np.ndarray, keypoints: list[np.ndarray], names: list[str], focal_set: np.ndarray,
+                         fitted_group: list[Any], level: float = 0.999, loss_deg: float = 2.0) -> PerImageChoice:
+    """The group focal lengths ``K`` or the most consistent of the calibrations ``cals`` (one per start).
+
+    An image gets a focal of its own only if it is in ``focal_set``, the calibrator moved it from its start and it
+    has a verified pair with an F (else nothing constrains it). The calibration whose pairs' rotations are most
+    consistent around the graph replaces the group focal lengths if it lowers that cost significantly for its extra
+    parameters (:func:`per_image_test` at ``level``). ``fitted_group[k]`` is the key of image k's group when its
+    group focal was fitted to the pairs (one parameter per group), else None (an EXIF or default focal: none).
+    """
+    c_group = consistency_cost(cals[0], K, keypoints, loss_deg)
+    in_graph = np.zeros(len(K), bool)
+    in_graph[cals[0].edges.ravel()] = True
+    tried: dict[str, Any] = {}
+    best: tuple[float, str, np.ndarray, np.ndarray] | None = None
+    for name, K0, cal in zip(start_names, starts, cals):
+        use = focal_set & in_graph & np.isfinite(cal.f) & (cal.f != K0[:, 0, 0])
+        K_img = K.copy()
+        K_img[use, 0, 0] = K_img[use, 1, 1] = cal.f[use]
+        cost = consistency_cost(cal, K_img, keypoints, loss_deg) if cal.ok and use.any() else float("nan")
+        tried[f"from_{name}"] = {"calibrator_ok": cal.ok, "consistency": cost,
+                                 "focal": {names[k]: float(cal.f[k]) for k in np.flatnonzero(use)}}
+        if np.isfinite(cost) and (best is None or cost < best[0]):
+            best = (cost, name, K_img, use)
+    chosen, F, crit = False, float("nan"), float("nan")
+    if best is not None:
+        use = best[3]
+        n_extra = int(use.sum()) - len({fitted_group[k] for k in np.flatnonzero(use)} - {None})
+        chosen, F, crit = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra, level)
+    record = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
+              "consistency_group": c_group, "calibrations": tried, "F": F, "F_critical": crit, "level": level,
+              "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen and best else "group"}
+    if not chosen or best is None:
+        return PerImageChoice(False, K, np.zeros(0, np.int64), record)
+    why = (f"superseded by per-image focal lengths (pycolmap's view-graph calibration): the pairs' rotations are "
+           f"significantly more consistent with them ({best[0]:.3g} vs {c_group:.3g}, F {F:.3g} > {crit:.3g})")
+    return PerImageChoice(True, best[2], np.flatnonzero(best[3]), record, why)
