@@ -123,8 +123,13 @@ def test_exif_is_a_prior_not_the_truth(scene, tmp_path) -> None:
     work = _front(img, tmp_path / "w")
     fs = features.load_features(work)
     assert set(fs.K_source) == {"exif"} and fs.K[0, 0, 0] > 1.05 * CFG.focal
+    # the principal point at the image centre in OUR convention (pixel centres at integers): the renderer's
+    # ((w − 1)/2, (h − 1)/2); w/2 would put every EXIF or default camera half a pixel off
+    centre = [(CFG.width - 1) / 2, (CFG.height - 1) / 2]
+    np.testing.assert_allclose(fs.K[:, :2, 2], np.broadcast_to(centre, (len(scene.names), 2)), atol=1e-12)
     CamerasStage(work, Q).run()
     cams = load_cameras(work)
+    np.testing.assert_allclose(cams.K[:, :2, 2], np.broadcast_to(centre, (len(scene.names), 2)), atol=1e-12)
     assert len(set(cams.K_source)) == 1 and cams.K_source[0].startswith("estimated:profile+rotcons (exif ")
     assert cams.K_source[0].endswith(" px prior)") and not cams.known.any()
     assert np.all(np.abs(cams.K[:, 0, 0] / CFG.focal - 1) < 0.03), cams.K[:, 0, 0]
