@@ -142,7 +142,7 @@ class _Reader:
         self.path, self.data, self.pos = path, path.read_bytes(), 0
 
     def take(self, fmt: str) -> tuple:
-        n = struct.calcsize(fmt)
+        n = struct.calcsize("<" + fmt)  # the file's packed size: a native calcsize pads "i7d" to 64 bytes, not 60
         if self.pos + n > len(self.data):
             raise InputFileError(f"{self.path} is truncated (a COLMAP binary file)")
         out = struct.unpack_from("<" + fmt, self.data, self.pos)

@@ -89,6 +89,27 @@ def test_colmap_model_written_by_pycolmap(tmp_path: Path) -> None:
     assert m["*"].model == "RADIAL" and m["*"].params == (350.0, 200.0, 150.0, -0.1, 0.02)
 
 
+def test_colmap_model_of_several_cameras_written_by_pycolmap(tmp_path: Path) -> None:
+    """Per-image cameras (as the refinement writes OUT/sparse for images without a K): images.bin says which
+    image has which camera; its records are packed (a native-aligned read of ``i7d`` slips 4 bytes per image)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    cams = [pycolmap.Camera(model="SIMPLE_RADIAL", width=400, height=300, params=[350, 200, 150, -0.05], camera_id=1),
+            pycolmap.Camera(model="SIMPLE_PINHOLE", width=300, height=400, params=[410, 150, 200], camera_id=2)]
+    for cam in cams:
+        rec.add_camera_with_trivial_rig(cam)
+    for k, (name, cid) in enumerate([("a.png", 2), ("b.png", 1), ("c.png", 2)]):
+        im = pycolmap.Image(name=name, camera_id=cid, image_id=k + 1,
+                            points2D=pycolmap.Point2DList([pycolmap.Point2D(np.array([10.0 * k, 5.0]))] * (k + 1)))
+        rec.add_image_with_trivial_frame(im, pycolmap.Rigid3d())
+    rec.write(str(tmp_path))
+    m = D.read_camera_models(tmp_path)
+    assert sorted(m) == ["a.png", "b.png", "c.png"]
+    assert m["a.png"] == m["c.png"] and m["a.png"].model == "SIMPLE_PINHOLE" and m["a.png"].params == (410.0, 150.0, 200.0)
+    assert m["b.png"].model == "SIMPLE_RADIAL" and m["b.png"].params == (350.0, 200.0, 150.0, -0.05)
+
+
 def test_opencv_files(tmp_path: Path) -> None:
     import cv2
 
