@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.refine.mapper import ba_config
 
 __all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance",
-           "principal_point_sd"]
+           "camera_covariances", "param_sd", "principal_point_sd", "radial_corner_sd"]
 
 
 def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
@@ -59,29 +59,71 @@ def _final_problem(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> tuple[Any, 
     return adjuster, 2.0 * float(cs.final_cost) / dof
 
 
-def principal_point_sd(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> dict[int, float]:
-    """Camera id → the standard deviation (px, along its worst direction) of each refined camera's principal point.
+def camera_covariances(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> dict[int, np.ndarray | None]:
+    """Camera id → the covariance (σ²-scaled as the rotations') of each refined camera's parameters, in COLMAP's
+    parameter order, NaN in the rows and columns of the parameters the BA held constant.
 
-    From pycolmap's BA covariance of the camera parameters (every variable block, points
-    eliminated), scaled by the residual variance as the rotations' is; ``inf`` where
-    pycolmap cannot estimate it (a singular problem: the point is not determined).
+    From pycolmap's BA covariance of every variable block (points eliminated); ``None`` where pycolmap cannot
+    estimate it (a singular problem: the parameters are not determined).
     """
     adjuster, sigma2 = _final_problem(pc, rec, ba, known)
     opts = pc.BACovarianceOptions()
     opts.params = pc.BACovarianceOptionsParams.ALL
     bacov = pc.estimate_ba_covariance(opts, rec, adjuster)
     known_ids = {int(rec.image(i).camera_id) for i in rec.reg_image_ids() if known[i - 1]}
-    out: dict[int, float] = {}
+    out: dict[int, np.ndarray | None] = {}
     for cid in sorted({int(rec.image(i).camera_id) for i in rec.reg_image_ids()} - known_ids):  # per camera: few
         cam = rec.camera(cid)
         C = bacov.get_other_params_cov(cam.params) if bacov is not None else None
-        idx = list(cam.principal_point_idxs())
-        if C is None or C.shape != (len(cam.params), len(cam.params)):
-            out[cid] = float("inf")
+        # pycolmap returns the covariance of the parameters the BA refined (a constant principal point is left out)
+        free = [i for i in range(len(cam.params))
+                if (i in cam.focal_length_idxs() and ba.refine_focal_length)
+                or (i in cam.principal_point_idxs() and ba.refine_principal_point)
+                or (i in cam.extra_params_idxs() and ba.refine_extra_params)]
+        if C is None or np.shape(C) not in ((len(free),) * 2, (len(cam.params),) * 2) or not np.all(np.isfinite(C)):
+            out[cid] = None
             continue
-        S = sigma2 * C[np.ix_(idx, idx)]
-        out[cid] = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S + S.T))[-1], 0.0))) if np.all(np.isfinite(S)) \
-            else float("inf")
+        full = np.full((len(cam.params),) * 2, np.nan)  # NaN: a constant parameter
+        at = free if len(C) == len(free) else list(range(len(cam.params)))
+        full[np.ix_(at, at)] = sigma2 * np.asarray(C)
+        out[cid] = full
+    return out
+
+
+def param_sd(C: np.ndarray | None, idx: list[int]) -> float:
+    """Standard deviation along the worst direction of the parameters ``idx`` of a camera covariance (inf if None
+    or if one of them was constant)."""
+    if C is None:
+        return float("inf")
+    S = C[np.ix_(idx, idx)]
+    if not np.all(np.isfinite(S)):
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S + S.T))[-1], 0.0)))
+
+
+def principal_point_sd(pc: Any, rec: Any, ba: Any, known: np.ndarray,
+                       covs: dict[int, np.ndarray | None] | None = None) -> dict[int, float]:
+    """Camera id → the standard deviation (px, along its worst direction) of each refined camera's principal point
+    (``inf`` where it is not determined); ``covs``: :func:`camera_covariances`, computed here if None."""
+    covs = camera_covariances(pc, rec, ba, known) if covs is None else covs
+    return {cid: param_sd(C, list(rec.camera(cid).principal_point_idxs())) for cid, C in covs.items()}
+
+
+def radial_corner_sd(rec: Any, covs: dict[int, np.ndarray | None]) -> dict[int, float]:
+    """Camera id → the standard deviation (px) of the radial term's displacement at the image corner.
+
+    SIMPLE_RADIAL moves a point at normalized radius ``r`` by ``k1 r³`` focal lengths; at the corner
+    (``r = d/f``, ``d`` the half-diagonal in pixels) that is ``k1 d³/f²`` px, so ``sd(k1) d³/f²``.
+    Cameras without a radial term are left out.
+    """
+    out = {}
+    for cid, C in covs.items():
+        cam = rec.camera(cid)
+        idx = list(cam.extra_params_idxs())
+        if len(idx) != 1:
+            continue
+        d = 0.5 * float(np.hypot(cam.width, cam.height))
+        out[cid] = param_sd(C, idx) * d**3 / float(cam.mean_focal_length()) ** 2
     return out
 
 

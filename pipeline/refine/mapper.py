@@ -29,13 +29,14 @@ __all__ = ["ba_options", "ba_config", "run_bundle_adjustment", "global_positioni
            "retriangulate"]
 
 
-def ba_options(pc: Any, cfg: Any, known: np.ndarray, principal_point: bool = False) -> Any:
-    """GLOMAP's bundle-adjustment options (Huber loss), focal (and, with ``principal_point``, the principal point)
-    refined only when some K is unknown; known cameras are constant in :func:`ba_config`."""
+def ba_options(pc: Any, cfg: Any, known: np.ndarray, principal_point: bool = False, radial: bool = False) -> Any:
+    """GLOMAP's bundle-adjustment options (Huber loss), focal (and, with ``principal_point``, the principal point;
+    with ``radial``, the radial term) refined only when some K is unknown; known cameras are constant in
+    :func:`ba_config`."""
     ba = pc.GlobalMapperOptions().get_bundle_adjustment()
     ba.print_summary = False
     ba.refine_principal_point = bool(principal_point) and not bool(np.all(known))
-    ba.refine_extra_params = False
+    ba.refine_extra_params = bool(radial) and not bool(np.all(known))
     ba.refine_focal_length = not bool(np.all(known))
     ba.ceres.loss_function_type = pc.LossFunctionType.HUBER
     ba.ceres.loss_function_scale = cfg.huber_px

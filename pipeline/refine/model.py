@@ -34,7 +34,8 @@ __all__ = ["camera_groups", "correspondence_cache", "write_binary_model", "start
            "model_rotations", "INVALID_POINT3D_ID"]
 
 INVALID_POINT3D_ID = np.iinfo(np.uint64).max  # COLMAP's kInvalidPoint3DId
-_SIMPLE_PINHOLE, _PINHOLE = 0, 1  # COLMAP's model ids
+_SIMPLE_PINHOLE, _PINHOLE, _SIMPLE_RADIAL = 0, 1, 2  # COLMAP's model ids
+_MODEL_NAMES = {_SIMPLE_PINHOLE: "SIMPLE_PINHOLE", _PINHOLE: "PINHOLE", _SIMPLE_RADIAL: "SIMPLE_RADIAL"}
 
 
 def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -45,9 +46,10 @@ def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray) -> tuple[
     return inverse.reshape(-1) + 1, first
 
 
-def colmap_camera(K: np.ndarray, known: bool) -> tuple[int, list[float]]:
+def colmap_camera(K: np.ndarray, known: bool, radial: bool = False) -> tuple[int, list[float]]:
     """COLMAP's model id and parameters of our K: PINHOLE where known; where refined, SIMPLE_PINHOLE (one focal
-    length, as COLMAP's mappers model an uncalibrated camera) when K has one focal length.
+    length) when K has one focal length, or with ``radial`` SIMPLE_RADIAL with k1 = 0 (one focal length and
+    the radial term that the cameras stage's undistortion left, as COLMAP's mappers model an unknown camera).
 
     Refined separately, fx and fy let the bundle adjustment trade one against the rotations: on the
     templeSparseRing without K (a turntable ring, a critical motion for the focal length), fx drifted by 80%
@@ -55,14 +57,14 @@ def colmap_camera(K: np.ndarray, known: bool) -> tuple[int, list[float]]:
     """
     p = pinhole_params(K)
     if not known and K[0, 0] == K[1, 1]:
-        return _SIMPLE_PINHOLE, [p[0], p[2], p[3]]
+        return (_SIMPLE_RADIAL, [p[0], p[2], p[3], 0.0]) if radial else (_SIMPLE_PINHOLE, [p[0], p[2], p[3]])
     return _PINHOLE, p
 
 
-def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: bool) -> Any:
-    model, params = colmap_camera(K, known)
-    cam = pc.Camera(model="SIMPLE_PINHOLE" if model == _SIMPLE_PINHOLE else "PINHOLE", width=int(size[0]),
-                    height=int(size[1]), params=params, camera_id=int(camera_id))
+def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: bool, radial: bool) -> Any:
+    model, params = colmap_camera(K, known, radial)
+    cam = pc.Camera(model=_MODEL_NAMES[model], width=int(size[0]), height=int(size[1]), params=params,
+                    camera_id=int(camera_id))
     cam.has_prior_focal_length = bool(known)
     return cam
 
@@ -70,7 +72,7 @@ def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: boo
 def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np.ndarray, known: np.ndarray,
                          keypoints: Sequence[np.ndarray], images: np.ndarray, edges: np.ndarray,
                          match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
-                         t_cam2_from_cam1: np.ndarray) -> Any:
+                         t_cam2_from_cam1: np.ndarray, radial: bool = False) -> Any:
     """A ``pycolmap.DatabaseCache`` of the images ``images`` and the given pairs (an in-memory database).
 
     Args:
@@ -78,6 +80,7 @@ def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np
         images: indices of the images to include (the others are left out).
         edges: (M, 2) pairs among ``images``; match_offsets (M+1,), matches (T, 2): their inlier
             keypoint indices; cam2_from_cam1 (M, 3, 3) and t_cam2_from_cam1 (M, 3): relative poses.
+        radial: unknown cameras as SIMPLE_RADIAL (:func:`colmap_camera`).
     """
     cam_id, _ = camera_groups(K, sizes, known)
     db = pc.Database.open(":memory:")
@@ -86,7 +89,7 @@ def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np
         for k in np.asarray(images, np.int64).tolist():  # one call per image: no batch writer exists
             c = int(cam_id[k])
             if c not in written:
-                cam = _camera(pc, c, K[k], sizes[k], bool(known[k]))
+                cam = _camera(pc, c, K[k], sizes[k], bool(known[k]), radial)
                 db.write_camera(cam, use_camera_id=True)
                 rig = pc.Rig(rig_id=c)
                 rig.add_ref_sensor(cam.sensor_id)
@@ -188,7 +191,7 @@ def write_binary_model(folder: Path, *, camera_ids: np.ndarray, camera_models: n
 
 def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np.ndarray, known: np.ndarray,
                             keypoints: Sequence[np.ndarray], images: np.ndarray, cam_from_world: np.ndarray,
-                            tracks: Tracks, scratch: Path | None = None) -> Any:
+                            tracks: Tracks, scratch: Path | None = None, radial: bool = False) -> Any:
     """The reconstruction to refine: the images ``images`` registered at ``cam_from_world``, every track a point.
 
     Args:
@@ -196,12 +199,13 @@ def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes:
         images: indices of the images in the reconstruction (the tracks only observe these).
         cam_from_world: (N, 3, 3) starting rotations.
         scratch: folder for the temporary binary model (tagged, removed at once); default: system temp.
+        radial: unknown cameras as SIMPLE_RADIAL (:func:`colmap_camera`).
     """
     images = np.asarray(images, np.int64)
     cam_id, first = camera_groups(K, sizes, known)
     used = np.unique(cam_id[images])
     rep = first[used - 1]  # one image of each used camera
-    models, params = zip(*(colmap_camera(K[k], bool(known[k])) for k in rep)) if len(rep) else ((), ())
+    models, params = zip(*(colmap_camera(K[k], bool(known[k]), radial) for k in rep)) if len(rep) else ((), ())
     pos = np.full(len(names), -1, np.int64)
     pos[images] = np.arange(len(images))
     local = Tracks(tracks.offsets, pos[tracks.image], tracks.keypoint)

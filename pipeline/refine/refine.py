@@ -9,14 +9,21 @@ as GLOMAP does after its own rotation averaging (:mod:`pipeline.refine.mapper`):
    image with fewer than ``min_image_observations`` track observations is not refined;
 3. an in-memory COLMAP database and the starting reconstruction (:mod:`pipeline.refine.model`);
 4. global positioning, iterative bundle adjustment, retriangulation and a final BA;
-5. checks: an image the final model lost, or one whose refined rotation is more than
-   ``max_change_deg`` from the averaged one (after one global alignment), keeps its
-   averaged rotation, and the warnings say so; both sets are returned;
+5. checks: an image the final model lost, or one of known K whose refined rotation is more
+   than ``max_change_deg`` from the averaged one (after one global alignment), keeps its
+   averaged rotation, and the warnings say so; both sets are returned. An image without a K
+   file keeps its refined rotation however far it moved (``max_change_known_only``): its
+   averaged rotation rested on the cameras stage's focal, which the model re-estimated, and
+   the warning gives both focal lengths (rendered cameras with focal lengths 34–71% off:
+   4.5–15.6° averaged, 0.43–2.2° refined, where the guard had kept the averaged ones);
 6. the per-camera rotation covariance (:mod:`pipeline.refine.covariance`).
 
 **Unknown intrinsics** (estimated, EXIF or default focal lengths; a K read from a file is
-constant). Each such camera has one focal length (COLMAP's SIMPLE_PINHOLE, as its own
-mappers model an uncalibrated camera) and, with ``principal_point: auto``, its principal
+constant). Each such camera has one focal length and one radial term k1 (COLMAP's
+SIMPLE_RADIAL, as its mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE),
+k1 starting at 0 on the cameras stage's undistorted keypoints (the lens that stage left:
+rendered views each with its own lens, 0.090 → 0.018° and 0.091 → 0.012°; on views without
+a lens it costs 0–25%), and, with ``principal_point: auto``, its principal
 point refined too when every such camera has ``min_principal_point_images`` images (one
 image cannot tell its principal point from its pose); the principal point is kept only
 where the final model determines it
@@ -48,7 +55,7 @@ from pipeline.core import so3
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
-from pipeline.refine.covariance import principal_point_sd, rotation_covariance
+from pipeline.refine.covariance import camera_covariances, principal_point_sd, radial_corner_sd, rotation_covariance
 from pipeline.refine.model import camera_groups, correspondence_cache, model_rotations, starting_reconstruction
 from pipeline.refine.tracks import build_tracks, filter_edges, restrict_tracks, select_matches, select_tracks, \
     subset_tracks
@@ -79,6 +86,14 @@ class RefineConfig(Config):
                                                  "(null: the preset's)", ge=0)
     max_change_deg: float = option(5.0, "a refined rotation farther than this from the averaged one keeps the "
                                         "averaged one (both are reported)", gt=0)
+    max_change_known_only: bool = option(True, "max_change_deg applies only to images whose K came from a file: "
+                                               "an image whose intrinsics the refinement estimated keeps its refined "
+                                               "rotation however far it moved (its averaged rotation rested on the "
+                                               "cameras stage's focal), and the warnings say so")
+    radial: Literal["auto", "off"] = option("auto", "cameras without a K file: auto = SIMPLE_RADIAL, one k1 refined "
+                                                    "from 0 on the cameras stage's undistorted keypoints (the lens "
+                                                    "that stage left; COLMAP's mappers model an unknown camera so), "
+                                                    "off = SIMPLE_PINHOLE")
     edge_filter_deg: float | None = option(5.0, "pairs farther than this from the averaged rotations are not "
                                                 "used (null: every pair)", gt=0)
     min_track_views: int = option(3, "images a track must be seen in", ge=2)
@@ -98,6 +113,9 @@ class RefineConfig(Config):
                 "them, else fixed at the image centre), refined, or fixed")
     min_principal_point_images: int = option(3, "principal_point auto: refined only when every camera without a K "
                                                 "file has at least this many images", ge=1)
+    max_radial_sd: float = option(0.01, "radial auto: largest standard deviation of the radial term's displacement "
+                                        "at the image corner, as a fraction of the image's longest side; above "
+                                        "it the refinement runs again without one", gt=0)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
     covariance: bool = option(True, "estimate each camera's rotation covariance")
@@ -261,19 +279,21 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     # 3. the in-memory database (correspondence graph) and the starting reconstruction; 4. pycolmap's steps
     pc = _pycolmap()
     state: dict[str, Any] = {}
+    radial = cfg.radial == "auto" and not known.all()
 
     def setup() -> tuple[bool, str]:
         images = np.flatnonzero(active)
         pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
         p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
         state["cache"] = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off,
-                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok])
+                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok], radial=radial)
         state["pose_graph"] = pc.PoseGraph()
         state["pose_graph"].load(state["cache"].correspondence_graph)
         tr = tracks
         if schedule["positioning_tracks_per_image"] > 0:
             tr = subset_tracks(tr, select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
-        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch)
+        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch,
+                                              radial=radial)
         stats["n_points_start"] = int(state["rec"].num_points3D())
         return True, ""
 
@@ -286,7 +306,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             refine_pp = False
             stats["principal_point_fixed_why"] = (f"a camera without a K file has {few} image(s) "
                                                   f"(< min_principal_point_images = {cfg.min_principal_point_images})")
-    ba = mapper.ba_options(pc, cfg, known, principal_point=refine_pp)
+    ba = mapper.ba_options(pc, cfg, known, principal_point=refine_pp, radial=radial)
     steps = [("setup", setup),
              ("global_positioning", lambda: mapper.global_positioning(pc, state["rec"], state["pose_graph"], cfg)),
              ("bundle_adjustment", lambda: mapper.iterative_bundle_adjustment(pc, state["rec"], ba, known, cfg))]
@@ -318,24 +338,49 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             str(cid): {"px": [c.principal_point_x - 0.5, c.principal_point_y - 0.5], "sd_px": sd[cid],
                        "max_sd_px": limit[cid]} for cid, c in cams.items()}
         loose = [cid for cid in sd if not sd[cid] <= limit[cid]]
-        if loose and cfg.principal_point == "auto":  # not determined: again, with every principal point fixed
+        if loose and cfg.principal_point == "auto":  # not determined: again, without what trades against it
+            # first without the radial term, which trades against the principal point; then with it fixed
             again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                     R_init, known, replace(cfg, principal_point="fixed"), scratch)
+                                     R_init, known, replace(cfg, radial="off") if radial else
+                                     replace(cfg, principal_point="fixed"), scratch)
             msg = (f"the principal point of {len(loose)} camera(s) is not determined by the model (standard deviation "
-                   f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px): every principal "
-                   "point kept at the image centre")
+                   f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px)" +
+                   (" with a radial term: refined again without one (SIMPLE_PINHOLE)" if radial else
+                    ": every principal point kept at the image centre"))
             logger.warning("refine: %s", msg)
             again.warnings.insert(0, msg)
             again.stats["principal_point_rejected"] = stats["principal_point"]
             again.stats["times"]["total"] = time.perf_counter() - t_all
             return again
+    if radial:  # k1 kept only where the model determines it
+        try:
+            corner = radial_corner_sd(rec, camera_covariances(pc, rec, ba, known))
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
+            logger.warning("refine: the radial terms' covariance failed (%s)", " ".join(str(exc).split())[:100])
+            corner = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not known[i - 1]}
+        cams = {cid: rec.camera(cid) for cid in corner}
+        limit = {cid: cfg.max_radial_sd * max(c.width, c.height) for cid, c in cams.items()}
+        stats["radial"] = {str(cid): {"k1": float(c.params[3]), "corner_sd_px": corner[cid],  # COLMAP's k1, on
+                                      "max_sd_px": limit[cid]} for cid, c in cams.items()}  # the stage's lens
+        loose = [cid for cid in corner if not corner[cid] <= limit[cid]]
+        if loose:
+            again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
+                                     R_init, known, replace(cfg, radial="off"), scratch)
+            msg = (f"the radial term of {len(loose)} camera(s) is not determined by the model (its displacement at "
+                   f"the image corner has a standard deviation of {max(corner[c] for c in loose):.1f} px > "
+                   f"{min(limit[c] for c in loose):.1f} px): every camera refined without one")
+            logger.warning("refine: %s", msg)
+            again.warnings.insert(0, msg)
+            again.stats["radial_rejected"] = stats["radial"]
+            again.stats["times"]["total"] = time.perf_counter() - t_all
+            return again
     rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))
-    return _checked(pc, rec, ba, known, cfg, names, R_init, has_R, active, why, warnings, stats, times, result)
+    return _checked(pc, rec, ba, known, K, cfg, names, R_init, has_R, active, why, warnings, stats, times, result)
 
 
-def _checked(pc: Any, rec: Any, ba: Any, known: np.ndarray, cfg: RefineConfig, names: Sequence[str],
+def _checked(pc: Any, rec: Any, ba: Any, known: np.ndarray, K: np.ndarray, cfg: RefineConfig, names: Sequence[str],
              R_init: np.ndarray, has_R: np.ndarray, active: np.ndarray, why: list[str], warnings: list[str],
              stats: dict[str, Any], times: dict[str, float], result: Any) -> RefineResult:
     """Step 5 and 6: which images keep a refined rotation (lost, moved too far), and their covariance."""
@@ -357,11 +402,20 @@ def _checked(pc: Any, rec: Any, ba: Any, known: np.ndarray, cfg: RefineConfig, n
     R_ref = R_model @ G.T
     change = np.full(n, np.nan)
     change[in_model] = np.degrees(so3.angle_between(R_ref[in_model], R_init[in_model]))
-    moved = supported & (change > cfg.max_change_deg)
+    far = supported & (change > cfg.max_change_deg)
+    # an unknown camera's averaged rotation rests on the cameras stage's focal, which the model re-estimated
+    moved = far & (known if cfg.max_change_known_only else True)
     for k in np.flatnonzero(moved):
         why[k] = (f"refined rotation {change[k]:.2f}° from the averaged one (> max_change_deg = "
                   f"{cfg.max_change_deg}°)")
         warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation (both are reported)")
+    for k in np.flatnonzero(far & ~moved):
+        f0, f1 = float(K[k, 0, 0]), float(rec.camera(rec.image(int(k) + 1).camera_id).mean_focal_length())
+        warnings.append(f"{names[k]}: refined rotation {change[k]:.2f}° from the averaged one (> max_change_deg = "
+                        f"{cfg.max_change_deg}°); its K is not known and the averaged rotation rested on the cameras "
+                        f"stage's focal {f0:.0f} px, which the bundle adjustment moved to {f1:.0f} px "
+                        f"({100 * (f1 / f0 - 1):+.1f}%): the refined rotation is kept (both are reported)")
+    stats["n_moved_refined"] = int(np.sum(far & ~moved))
     refined = supported & ~moved
     stats["change_deg_median"] = float(np.median(change[supported]))
     stats["change_deg_max"] = float(np.max(change[supported]))

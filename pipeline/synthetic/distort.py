@@ -21,6 +21,7 @@ Output folder::
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -32,7 +33,48 @@ from pipeline.frontend.distortion import COLMAP_OFFSET, simple_radial, undistort
 from pipeline.synthetic.render import RenderedScene, SceneConfig, render_view, write_cameras_txt
 from pipeline.synthetic.scene import make_planes, ring_cameras
 
-__all__ = ["render_distorted_scene"]
+__all__ = ["render_distorted_scene", "LensWarp"]
+
+
+@dataclass(frozen=True)
+class LensWarp:
+    """One ``SIMPLE_RADIAL`` lens (pinhole ``K``, ``k1``, size ``w × h``) as a resampling of a 2× pinhole render.
+
+    The distorted image's pixel ``x_d`` shows what the pinhole camera sees at ``undistort(x_d)``: the pinhole
+    view is rendered on a 2× canvas with a margin (``Kb``), remapped by ``mapx, mapy`` and area-averaged to
+    full size (module docstring). ``k1 = 0`` is the same resampling with no lens.
+    """
+
+    K: np.ndarray
+    w: int
+    h: int
+    margin: int
+    Kb: np.ndarray
+    mapx: np.ndarray
+    mapy: np.ndarray
+
+    @classmethod
+    def of(cls, K: np.ndarray, k1: float, w: int, h: int) -> "LensWarp":
+        lens = simple_radial(float(K[0, 0]), K[:2, 2], k1, w, h)
+        # the 2× grid of distorted pixel centres (x1 = (x2 + ½)/2 − ½) and the pinhole pixels they see
+        u2, v2 = np.meshgrid(np.arange(2 * w, dtype=np.float64), np.arange(2 * h, dtype=np.float64))
+        xd = np.column_stack([(u2.ravel() + 0.5) / 2 - 0.5, (v2.ravel() + 0.5) / 2 - 0.5])
+        xu = undistort_points(lens, xd) if k1 != 0.0 else xd
+        if not np.isfinite(xu).all():
+            raise PipelineError(f"k1={k1} folds the image over (no inverse at the corners); use a smaller |k1|")
+        margin = int(np.ceil(max(0.0, -xu.min(), xu[:, 0].max() - w, xu[:, 1].max() - h))) + 4
+        big = 2 * (xu + margin + 0.5) - 0.5  # pixels of the 2× canvas with the margin
+        Kb = np.diag([2.0, 2.0, 1.0]) @ K
+        Kb[:2, 2] = 2.0 * (K[:2, 2] + margin + 0.5) - 0.5  # the 2× canvas: x2 = 2(x1 + margin + ½) − ½
+        return cls(K, int(w), int(h), margin, Kb, big[:, 0].reshape(2 * h, 2 * w).astype(np.float32),
+                   big[:, 1].reshape(2 * h, 2 * w).astype(np.float32))
+
+    def render(self, planes: list, R: np.ndarray, t: np.ndarray, supersample: int) -> np.ndarray:
+        """The (h, w, 3) uint8 RGB view through the lens of a camera at cam_from_world ``R``, ``t`` (no noise)."""
+        w, h, m = self.w, self.h, self.margin
+        canvas, _ = render_view(planes, self.Kb, R, t, 2 * (w + 2 * m), 2 * (h + 2 * m), supersample)
+        return cv2.resize(cv2.remap(canvas, self.mapx, self.mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                    borderValue=(90, 90, 90)), (w, h), interpolation=cv2.INTER_AREA)
 
 
 def render_distorted_scene(n_views: int, seed: int, out: str | Path, k1: float, *,
@@ -55,26 +97,13 @@ def render_distorted_scene(n_views: int, seed: int, out: str | Path, k1: float, 
     noise_rng = np.random.default_rng(int(rng.integers(2**31)))
     w, h = cfg.width, cfg.height
     lens = simple_radial(cfg.focal, K[0][:2, 2], k1, w, h)
-    # the 2× grid of distorted pixel centres (x1 = (x2 + ½)/2 − ½) and the pinhole pixels they see
-    u2, v2 = np.meshgrid(np.arange(2 * w, dtype=np.float64), np.arange(2 * h, dtype=np.float64))
-    xd = np.column_stack([(u2.ravel() + 0.5) / 2 - 0.5, (v2.ravel() + 0.5) / 2 - 0.5])
-    xu = undistort_points(lens, xd) if k1 != 0.0 else xd
-    if not np.isfinite(xu).all():
-        raise PipelineError(f"k1={k1} folds the image over (no inverse at the corners); use a smaller |k1|")
-    margin = int(np.ceil(max(0.0, -xu.min(), xu[:, 0].max() - w, xu[:, 1].max() - h))) + 4
-    big = 2 * (xu + margin + 0.5) - 0.5  # pixels of the 2× canvas with the margin
-    mapx = big[:, 0].reshape(2 * h, 2 * w).astype(np.float32)
-    mapy = big[:, 1].reshape(2 * h, 2 * w).astype(np.float32)
-    Kb = np.diag([2.0, 2.0, 1.0]) @ K[0]
-    Kb[:2, 2] = 2.0 * (K[0][:2, 2] + margin + 0.5) - 0.5  # the 2× canvas: x2 = 2(x1 + margin + ½) − ½
+    warp = LensWarp.of(K[0], k1, w, h)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     names = [f"view_{i:03d}.png" for i in range(cfg.n_views)]
     images = []
     for i, name in enumerate(names):  # one view at a time: each is a full render
-        canvas, _ = render_view(planes, Kb, R[i], t[i], 2 * (w + 2 * margin), 2 * (h + 2 * margin), cfg.supersample)
-        img = cv2.resize(cv2.remap(canvas, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                   borderValue=(90, 90, 90)), (w, h), interpolation=cv2.INTER_AREA)
+        img = warp.render(planes, R[i], t[i], cfg.supersample)
         if cfg.noise_sigma > 0:
             img = np.clip(img + noise_rng.normal(0, cfg.noise_sigma, img.shape), 0, 255).astype(np.uint8)
         images.append(img)

@@ -84,6 +84,44 @@ def test_change_guard_keeps_both():
     assert "max_change_deg" in res.why[2] and any("keeps its averaged rotation" in w for w in res.warnings)
 
 
+def test_an_unknown_camera_keeps_its_refined_rotation_however_far_it_moved():
+    """Without a K file the averaged rotation rested on the cameras stage's focal: a camera the model moves 3°
+    (above a 1° guard) keeps the refined rotation, back at the truth, and the warning names both focal lengths;
+    with ``max_change_known_only: false`` it keeps the averaged one, as a camera of known K does."""
+    inp, R_true = synthetic_problem(3)
+    R0 = R_true.copy()
+    R0[2] = so3.exp(np.radians([0.0, 3.0, 0.0])) @ R0[2]
+    cfg = ONE_THREAD.replace(edge_filter_deg=None, max_change_deg=1.0, principal_point="fixed")
+    res = refine_rotations(**inp, R_init=R0, known_K=False, config=cfg)
+    assert res.status == "ok" and res.refined.all() and res.stats["n_moved_refined"] == 1
+    assert np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1)).max() < 0.1
+    (w,) = [w for w in res.warnings if "max_change_deg" in w]
+    assert w.startswith(f"{inp['names'][2]}: refined rotation") and "its K is not known" in w and "px" in w
+    strict = refine_rotations(**inp, R_init=R0, known_K=False, config=cfg.replace(max_change_known_only=False))
+    assert strict.status == "partial" and not strict.refined[2] and np.array_equal(strict.R[2], R0[2])
+
+
+def test_radial_off_gives_one_focal_length_and_no_lens(problem0):
+    inp, _ = problem0
+    res = refine_rotations(**dict(inp, K=_shifted_intrinsics(inp)), R_init=problem0[1], known_K=False,
+                           config=ONE_THREAD.replace(radial="off", principal_point="fixed"))
+    (cam,) = res.reconstruction.cameras.values()
+    assert res.status == "ok" and cam.model.name == "SIMPLE_PINHOLE" and "radial" not in res.stats
+
+
+def test_undetermined_radial_term_is_dropped(problem0):
+    """A radial term whose corner displacement the model does not determine (here: a limit no estimate meets) is
+    not kept: the refinement runs again without one, says so, and records what was rejected."""
+    inp, R_true = problem0
+    res = refine_rotations(**dict(inp, K=_shifted_intrinsics(inp)), R_init=R_true, known_K=False,
+                           config=ONE_THREAD.replace(principal_point="fixed", max_radial_sd=1e-9))
+    (cam,) = res.reconstruction.cameras.values()
+    assert res.status == "ok" and cam.model.name == "SIMPLE_PINHOLE" and "radial" not in res.stats
+    assert any("radial term of 1 camera(s) is not determined" in w for w in res.warnings), res.warnings
+    rej = res.stats["radial_rejected"]["1"]
+    assert rej["corner_sd_px"] > rej["max_sd_px"]
+
+
 def test_the_fast_preset_and_an_image_without_a_start(problem0):
     inp, R_true = problem0
     R0 = R_true.copy()
@@ -126,8 +164,9 @@ def _shifted_intrinsics(inp: dict) -> np.ndarray:
 
 
 def test_unknown_principal_point_is_refined_where_the_model_determines_it(problem0):
-    """Unknown K: one focal length (SIMPLE_PINHOLE) and the principal point refined back to the truth, kept because
-    its standard deviation is small; fixed at the given one, the rotations are worse."""
+    """Unknown K: one focal length and k1 (SIMPLE_RADIAL; the problem has no lens, so k1 stays near 0) and the
+    principal point refined back to the truth, kept because its standard deviation is small; fixed at the given
+    one, the rotations are worse."""
     inp, R_true = problem0
     K = _shifted_intrinsics(inp)
     err = lambda res: np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1)).max()  # noqa: E731
@@ -136,7 +175,10 @@ def test_unknown_principal_point_is_refined_where_the_model_determines_it(proble
                              config=RefineConfig(num_threads=1, min_image_observations=10, principal_point="fixed"))
     assert auto.status == fixed.status == "ok" and not auto.warnings, auto.warnings
     (cam,) = auto.reconstruction.cameras.values()
-    assert cam.model.name == "SIMPLE_PINHOLE"  # one focal length: fx and fy cannot trade against the rotations
+    assert cam.model.name == "SIMPLE_RADIAL"  # one focal length: fx and fy cannot trade against the rotations
+    # no lens: k1 within what 0.5 px noise allows (under 1 px at the corners; a real lens is 0.02–0.2)
+    assert abs(cam.params[3]) < 0.005 and auto.stats["radial"]["1"]["k1"] == cam.params[3]
+    assert 0 < auto.stats["radial"]["1"]["corner_sd_px"] < auto.stats["radial"]["1"]["max_sd_px"] == 0.01 * 1024
     pp = auto.stats["principal_point"]["1"]
     true_pp = inp["K"][0, :2, 2]
     assert np.abs(np.array(pp["px"]) - true_pp).max() < 2.0, pp  # 20 and 15 px off at the start
@@ -174,7 +216,7 @@ def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
     assert auto.status == "ok" and "principal_point" not in auto.stats
     assert "1 image(s)" in auto.stats["principal_point_fixed_why"]
     for cid, cam in auto.reconstruction.cameras.items():
-        assert cam.model.name == "SIMPLE_PINHOLE"
+        assert cam.model.name == "SIMPLE_RADIAL"  # one focal length and k1 per image, as COLMAP's mappers
         np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
     forced = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
                               config=RefineConfig(num_threads=1, min_image_observations=10, principal_point="refined"))
