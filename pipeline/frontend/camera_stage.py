@@ -272,8 +272,9 @@ class CamerasStage(Stage[CamerasConfig]):
         cals = calibrate_focals(list(fs.names), fs.sizes, list(starts.values()), prior, kp, pairs, matches,
                                 self.folder, cfg.seed)
         fitted = [gkey[k] if sources[k].startswith("estimated:") else None for k in range(len(K))]
+        guessed = np.array([sources[k] == "default" for k in range(len(K))])  # no file, no EXIF, no estimate
         choice = choose_focal_lengths(cals, list(starts), list(starts.values()), K, kp, list(fs.names), focal_set,
-                                      fitted, cfg.per_image_level, cfg.rotation_loss_deg)
+                                      fitted, cfg.per_image_level, cfg.rotation_loss_deg, guessed)
         estimate["per_image"] = choice.record
         logger.info("cameras: view-graph calibration (%d pairs): rotation consistency %s with per-image focal "
                     "lengths, %.4g with the group ones (F %.3g vs %.3g): %s", choice.record["n_pairs"],

@@ -232,7 +232,8 @@ class PerImageChoice:
 
 def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str], starts: list[np.ndarray],
                          K: np.ndarray, keypoints: list[np.ndarray], names: list[str], focal_set: np.ndarray,
-                         fitted_group: list[Any], level: float = 0.999, loss_deg: float = 2.0) -> PerImageChoice:
+                         fitted_group: list[Any], level: float = 0.999, loss_deg: float = 2.0,
+                         guessed: np.ndarray | None = None, guess_level: float = 0.5) -> PerImageChoice:
     """The group focal lengths ``K`` or the most consistent of the calibrations ``cals`` (one per start).
 
     An image gets a focal of its own only if it is in ``focal_set``, the calibrator moved it from its start and it
@@ -240,12 +241,19 @@ def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str
     consistent around the graph replaces the group focal lengths if it lowers that cost significantly for its extra
     parameters (:func:`per_image_test` at ``level``). ``fitted_group[k]`` is the key of image k's group when its
     group focal was fitted to the pairs (one parameter per group), else None (an EXIF or default focal: none).
+
+    ``guessed`` (N,) marks the images whose focal is only the default guess (no K file, no EXIF, no group
+    estimate). Where the calibration gives such an image a focal, the test is at ``guess_level`` (0.5: better
+    than chance) instead of ``level``: the high level protects an *estimate* against a per-image set that fits
+    the noise, and a guess needs no such protection. On a rendered scene of several cameras, each with its own
+    lens, the default focal lengths (55% off) left every method 7.5° off; the calibrated set (16% off, F = 1.85
+    against 3.49 at 99.9%) lets the refinement reach 0.010° (pycolmap 0.009°).
     """
     c_group = consistency_cost(cals[0], K, keypoints, loss_deg)
     in_graph = np.zeros(len(K), bool)
     in_graph[cals[0].edges.ravel()] = True
     tried: dict[str, Any] = {}
-    best: tuple[float, str, np.ndarray, np.ndarray] | None = None
+    best: tuple[float, str, np.ndarray, np.ndarray, ViewGraphCalibration] | None = None
     for name, K0, cal in zip(start_names, starts, cals):
         use = focal_set & in_graph & np.isfinite(cal.f) & (cal.f != K0[:, 0, 0])
         K_img = K.copy()
@@ -254,14 +262,17 @@ def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str
         tried[f"from_{name}"] = {"calibrator_ok": cal.ok, "consistency": cost,
                                  "focal": {names[k]: float(cal.f[k]) for k in np.flatnonzero(use)}}
         if np.isfinite(cost) and (best is None or cost < best[0]):
-            best = (cost, name, K_img, use)
+            best = (cost, name, K_img, use, cal)
     chosen, F, crit = False, float("nan"), float("nan")
     if best is not None:
         use = best[3]
         n_extra = int(use.sum()) - len({fitted_group[k] for k in np.flatnonzero(use)} - {None})
+        if guessed is not None and np.any(use & np.asarray(guessed, bool)):
+            level = guess_level
         chosen, F, crit = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra, level)
     record = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
               "consistency_group": c_group, "calibrations": tried, "F": F, "F_critical": crit, "level": level,
+              "n_guessed": 0 if guessed is None or best is None else int(np.sum(best[3] & np.asarray(guessed, bool))),
               "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen and best else "group"}
     if not chosen or best is None:
         return PerImageChoice(False, K, np.zeros(0, np.int64), record)

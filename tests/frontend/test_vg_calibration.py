@@ -202,3 +202,23 @@ def test_F_test_of_the_per_image_focal_lengths() -> None:
     assert not vgc.per_image_test(2.1e-6, 6.4e-7, 8, 5, 4)[0]  # 3× lower, but 8 pairs leave 7 degrees of freedom
     assert not vgc.per_image_test(0.01, 0.02, 40, 10, 5)[0] and not vgc.per_image_test(0.05, 0.005, 3, 4, 3)[0]
     assert not vgc.per_image_test(float("nan"), 0.005, 40, 10, 5)[0]
+
+
+def test_guessed_focal_lengths_need_no_high_significance(cams, calibrated, monkeypatch) -> None:
+    """Where the group focal lengths are only the default guess, the per-image set is tested at guess_level (better
+    than chance), not at the level that protects an estimate."""
+    sizes, K, start, kps, pairs, matches = cams
+    names = [f"im{k}.png" for k in range(len(sizes))]
+    args = ([calibrated], ["start"], [start], start, kps, names, np.ones(len(sizes), bool), [None] * len(sizes))
+    levels = []
+    real = vgc.per_image_test
+    monkeypatch.setattr(vgc, "per_image_test", lambda *a: levels.append(a[-1]) or real(*a))
+    strict = vgc.choose_focal_lengths(*args, level=0.999)
+    assert levels == [0.999] and strict.record["level"] == 0.999 and strict.record["n_guessed"] == 0
+    guessed = vgc.choose_focal_lengths(*args, level=0.999, guessed=np.ones(len(sizes), bool))
+    assert levels[-1] == 0.5 and guessed.record["level"] == 0.5 and guessed.record["n_guessed"] == len(sizes)
+    assert guessed.chosen and np.all(np.abs(guessed.K[:, 0, 0] / K[:, 0, 0] - 1) < 0.02)
+    some = np.arange(len(sizes)) < 2  # a guess among estimates: the whole set is tested at guess_level
+    assert vgc.choose_focal_lengths(*args, level=0.999, guessed=some).record["n_guessed"] == 2 and levels[-1] == 0.5
+    none = vgc.choose_focal_lengths(*args, level=0.999, guessed=np.zeros(len(sizes), bool))
+    assert levels[-1] == 0.999 and none.record["n_guessed"] == 0
