@@ -11,8 +11,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import (LaplacianSolver, cg_with_factor, edge_residuals, effective_weights,
-                                       factor_symmetric)
+from pipeline.averaging.kernel import (DenseCholesky, LaplacianSolver, SymmetricFactorizer, cg_with_factor,
+                                       effective_weights, graph_residuals)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -24,7 +24,8 @@ class BlockLaplacianSolver:
 
     The (3N, 3N) sparsity pattern and the map from the (M, 3, 3) blocks to matrix
     entries are built once; :meth:`factor` scatters the blocks with
-    ``np.bincount`` and calls SuperLU once. The gauge is fixed as in
+    ``np.bincount`` and factors it once (SuperLU, or a dense Cholesky on a dense graph:
+    :class:`~pipeline.averaging.kernel.SymmetricFactorizer`). The gauge is fixed as in
     :class:`pipeline.averaging.kernel.LaplacianSolver`: one pinned camera per
     connected component of the edges with a nonzero block.
 
@@ -32,9 +33,10 @@ class BlockLaplacianSolver:
         edges: (M, 2) camera indices.
         n: number of cameras N.
         ref: the camera pinned when the weighted graph is connected.
+        dense: the factorization (:class:`~pipeline.averaging.kernel.SymmetricFactorizer`; None: decided by fill).
     """
 
-    def __init__(self, edges: np.ndarray, n: int, ref: int = 0) -> None:
+    def __init__(self, edges: np.ndarray, n: int, ref: int = 0, dense: bool | None = None) -> None:
         edges = np.asarray(edges, dtype=np.int64)
         M = edges.shape[0]
         self.n, self.edges = int(n), edges
@@ -62,7 +64,8 @@ class BlockLaplacianSolver:
         self._nnz = ukeys.size
         self._indptr = np.searchsorted(self._col, np.arange(N3 + 1)).astype(np.int32)
         self._indices = self._row.astype(np.int32)
-        self._lu: sla.SuperLU | None = None
+        self._lu: sla.SuperLU | DenseCholesky | None = None
+        self._factor = SymmetricFactorizer(dense)
         self.pinned = np.zeros(n, dtype=bool)
         self._lu_pinned = self.pinned
         self.n_factorizations = 0
@@ -86,7 +89,7 @@ class BlockLaplacianSolver:
         self._factorize(self.matrix(B))
 
     def _factorize(self, A: sp.csc_matrix) -> None:
-        self._lu = factor_symmetric(A)
+        self._lu = self._factor(A)
         self._lu_pinned = self.pinned.copy()
         self.n_factorizations += 1
 
@@ -155,7 +158,7 @@ def jl_inv(w: np.ndarray) -> np.ndarray:
 def left_errors(vg: ViewGraph, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per edge: the residual ``r = log(R_jᵀ R̃ R_i)`` (M, 3), ``R_j`` (M, 3, 3) and ``Δω = −R_j r`` (M, 3),
     the left perturbation of ``R_j R_iᵀ = exp([Δω]×) R̃`` in which H is a precision."""
-    r = edge_residuals(vg.edges, vg.R_rel, R)
+    r = graph_residuals(vg, R)
     Rj = R[vg.edges[:, 1]]
     return r, Rj, -np.einsum("mab,mb->ma", Rj, r)
 

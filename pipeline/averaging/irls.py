@@ -57,7 +57,7 @@ import numpy as np
 
 from pipeline.averaging.certificate import certify_weights
 from pipeline.averaging.init import initial_rotations
-from pipeline.averaging.kernel import LaplacianSolver, check_graph, edge_residuals
+from pipeline.averaging.kernel import LaplacianSolver, check_graph, graph_residuals
 from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
 from pipeline.averaging.polish import mixture_polish, residual_angles, reweighted, selection_cost, talwar_polish
@@ -187,7 +187,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
     elif cfg.refine:
         R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
-    r = edge_residuals(vg.edges, vg.R_rel, R)
+    r = graph_residuals(vg, R)
     theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
         w = (theta <= tau).astype(np.float64)

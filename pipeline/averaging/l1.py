@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.averaging.init import StartConfig, initial_rotations
-from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, edge_residuals
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, check_graph, graph_residuals
 from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.core.config import option
 from pipeline.core.viewgraph import ViewGraph
@@ -179,7 +179,7 @@ def l1_averaging(
     z = u = None
     rho = None
     for _ in range(max_iterations):
-        r = edge_residuals(vg.edges, vg.R_rel, R)
+        r = graph_residuals(vg, R)
         # Warm start: after a step, the new optimum has x ≈ 0 and the same split.
         st = l1_step(solver, r, max_iterations=admm_max_iterations, eps_rel=admm_eps_rel, z0=z, u0=u, rho=rho)
         z, u, rho = st.z, st.u, st.rho
@@ -239,7 +239,7 @@ def solve_l1(vg: ViewGraph, config: L1Config | None = None, *, init: str | np.nd
     R0 = initial_rotations(vg, start_of(init, cfg), weights=init_weights, seed=cfg.seed)
     R, hist = l1_averaging(vg, R0, max_iterations=cfg.max_iterations, tol_rad=cfg.tol_rad,
                            admm_max_iterations=cfg.admm_max_iterations)
-    theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, R), axis=1)
+    theta = np.linalg.norm(graph_residuals(vg, R), axis=1)
     return AveragingResult(
         method="l1", names=list(vg.names), R=R, time_s=time.perf_counter() - t0, iterations=len(hist),
         edge_index=np.arange(vg.n_edges), residuals_rad=theta, weights=None, history=hist,

@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.averaging.kernel import LaplacianSolver, apply_update, edge_residuals
+from pipeline.averaging.kernel import LaplacianSolver, apply_update, graph_residuals
 from pipeline.averaging.losses import get_loss
 from pipeline.averaging.mixture import NU_GRID, MixtureModel, em_update, fit_mixture
 from pipeline.averaging.stopping import StopRule, converged, robust_scale
@@ -38,7 +38,7 @@ History = list[dict[str, float]]
 
 def residual_angles(vg: ViewGraph, R: np.ndarray) -> np.ndarray:
     """(M,) residual angles ``‖log(R_jᵀ R̃_ij R_i)‖`` in radians."""
-    r = edge_residuals(vg.edges, vg.R_rel, R)
+    r = graph_residuals(vg, R)
     return np.sqrt(np.einsum("ma,ma->m", r, r))
 
 
@@ -74,7 +74,7 @@ def reweighted(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, weight_fn:
     f_prev = np.inf
     it = 0
     for it in range(1, rule.max_iterations + 1):
-        r = edge_residuals(vg.edges, vg.R_rel, R)
+        r = graph_residuals(vg, R)
         theta = np.sqrt(np.einsum("ma,ma->m", r, r))
         f = float(cost_fn(theta))
         phi = weight_fn(theta)

@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from pipeline.averaging.init import StartConfig, initial_rotations
-from pipeline.averaging.kernel import check_graph, edge_residuals
+from pipeline.averaging.kernel import check_graph, graph_residuals
 from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.core import so3
 from pipeline.core.config import option
@@ -171,7 +171,7 @@ def weiszfeld(vg: ViewGraph, config: WeiszfeldConfig | None = None, *, init: str
                     break
             steps[cams] = so3.angle_between(Rc, R[cams])
             R[cams] = Rc
-        r = edge_residuals(vg.edges, vg.R_rel, R)
+        r = graph_residuals(vg, R)
         history.append(
             {
                 "stage": "weiszfeld",
@@ -184,7 +184,7 @@ def weiszfeld(vg: ViewGraph, config: WeiszfeldConfig | None = None, *, init: str
         if steps.max() < tol_rad:
             converged = True
             break
-    r = edge_residuals(vg.edges, vg.R_rel, R)
+    r = graph_residuals(vg, R)
     theta = np.linalg.norm(r, axis=1)
     elapsed = time.perf_counter() - t0
     if not converged:

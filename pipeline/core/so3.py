@@ -21,6 +21,8 @@ __all__ = [
     "project_to_so3",
     "quat_from_matrix",
     "matrix_from_quat",
+    "quat_multiply",
+    "log_quat",
     "chordal_mean",
     "karcher_mean",
     "random_rotations",
@@ -322,6 +324,33 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
         ],
         axis=-2,
     )
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton products ``p ⊗ q`` of quaternions ``(w, x, y, z)`` (..., 4): the quaternion of ``R(p) R(q)``."""
+    pw, px, py, pz = np.moveaxis(np.asarray(p, dtype=np.float64), -1, 0)
+    qw, qx, qy, qz = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    return np.stack([pw * qw - px * qx - py * qy - pz * qz,
+                     pw * qx + px * qw + py * qz - pz * qy,
+                     pw * qy - px * qz + py * qw + pz * qx,
+                     pw * qz + px * qy - py * qx + pz * qw], -1)
+
+
+def log_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3) of unit quaternions ``(w, x, y, z)`` (..., 4), ``|w| <= π``, the same as
+    :func:`log` of their matrices.
+
+    ``θ = 2 atan2(|v|, |w|)`` is accurate for every angle, and so is the axis ``v/|v|`` (no cancellation near
+    π, unlike a matrix's antisymmetric part); below ``|v|`` = 1e-8 the factor ``2 atan2(|v|, |w|)/|v|`` is
+    ``2/|w|`` to rounding (its relative error is ``|v|²/3``).
+    """
+    q = np.asarray(q, dtype=np.float64)
+    w, v = q[..., 0], q[..., 1:]
+    n = np.sqrt(np.einsum("...i,...i->...", v, v))
+    aw = np.abs(w)
+    tiny = n < 1e-8
+    scale = np.where(tiny, 2.0 / np.where(tiny, aw, 1.0), 2.0 * np.arctan2(n, aw) / np.where(tiny, 1.0, n))
+    return (np.where(w < 0, -scale, scale))[..., None] * v
 
 
 def chordal_mean(R: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

@@ -27,7 +27,9 @@ Generators (all in the project conventions: cam_from_world ``R_i``, edge (i, j) 
   270° (± a few degrees);
 * :data:`PROTOCOLS` — the named settings of issue 15's benchmark (``benchmarks/robust_averaging.py``);
 * :func:`miscalibrated_h_graph` — H overconfident by edge-varying factors, exaggerating the
-  anisotropy (what the truth shows on the real scenes), for the IRLS-H calibration.
+  anisotropy (what the truth shows on the real scenes), for the IRLS-H calibration;
+* :func:`dense_graph` — a dense graph of internet photos, as 1DSfM's: most pairs measured, cameras of
+  different popularity, noise and outlier rates.
 
 Every generator is seeded and deterministic; the edge set is redrawn until connected.
 """
@@ -43,7 +45,7 @@ from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.synthetic.graphs import SyntheticGraph, _is_connected
 
-__all__ = ["heavy_tailed_noise", "realistic_graph", "PROTOCOLS", "make_protocol", "BlockInfo",
+__all__ = ["heavy_tailed_noise", "realistic_graph", "PROTOCOLS", "make_protocol", "BlockInfo", "dense_graph",
            "synthetic_inlier_counts", "miscalibrated_h_graph"]
 
 
@@ -384,3 +386,47 @@ def miscalibrated_h_graph(
     inl = np.where(out, 30.0 * rng.lognormal(0, 0.6, M), 300.0 * qual * rng.lognormal(0, 0.5, M))
     vg = ViewGraph(vg0.names, vg0.edges, R_rel, H=H_rep, inliers=np.clip(inl, 15, 5000).astype(np.int64))
     return SyntheticGraph(vg, g.R_true, out), H_true
+
+
+def dense_graph(n: int = 247, target_edges: int = 20000, quality_deg: float = 0.7, quality_sigma_ln: float = 0.7,
+                nu: float = 3.0, outlier_mean: float = 0.15, outlier_concentration: float = 2.0,
+                popularity_sigma_ln: float = 1.0, seed: int = 0) -> tuple[SyntheticGraph, np.ndarray]:
+    """A dense view graph of internet photos of one landmark, as 1DSfM's (Ellis Island: 247 cameras, 20,297 edges).
+
+    What sets such graphs apart from the kNN protocols: most pairs are measured, and the cameras differ. Some
+    photos are in many pairs, some in few; some are sharp and well calibrated, some not; some are mostly matched
+    to the wrong side of a symmetric building.
+
+    1. Haar rotations; camera ``i`` has a popularity ``p_i`` (LogNormal(0, ``popularity_sigma_ln``)), a noise
+       level ``q_i`` (``quality_deg`` · LogNormal(0, ``quality_sigma_ln``)) and an outlier rate ``o_i``
+       (Beta with mean ``outlier_mean`` and concentration ``outlier_concentration``: a few cameras mostly wrong).
+    2. Pair (i, j) is measured with probability min(1, c p_i p_j), c set so that about ``target_edges`` are.
+    3. Its noise is a multivariate Student-t (``nu``) of scale √((q_i² + q_j²)/2); it is a Haar-random outlier
+       with probability 1 − (1 − o_i)(1 − o_j).
+
+    No inlier counts and no H (1DSfM's files have neither). The graph may leave a camera of few pairs
+    unconnected; the averaging solves the largest component.
+
+    Returns:
+        SyntheticGraph and the (M,) per-edge noise scale (degrees).
+    """
+    rng = np.random.default_rng(seed)
+    R = so3.random_rotations(n, rng)
+    pop = rng.lognormal(0.0, popularity_sigma_ln, n)
+    i, j = np.triu_indices(n, 1)
+    p = pop[i] * pop[j]
+    c = 1.0
+    for _ in range(60):  # the expected edge count is increasing in c: a fixed-point on it
+        c *= target_edges / max(float(np.minimum(1.0, c * p).sum()), 1.0)
+    keep = rng.random(i.size) < np.minimum(1.0, c * p)
+    i, j = i[keep], j[keep]
+    M = i.size
+    q = np.deg2rad(quality_deg) * rng.lognormal(0.0, quality_sigma_ln, n)
+    s = np.sqrt(0.5 * (q[i] ** 2 + q[j] ** 2))
+    dw = rng.standard_normal((M, 3)) * (s / np.sqrt(rng.gamma(nu / 2.0, 2.0 / nu, M)))[:, None]
+    o = rng.beta(outlier_mean * outlier_concentration, (1.0 - outlier_mean) * outlier_concentration, n)
+    out = rng.random(M) > (1.0 - o[i]) * (1.0 - o[j])
+    R_rel = so3.exp(dw) @ R[j] @ np.swapaxes(R[i], 1, 2)
+    R_rel[out] = so3.random_rotations(int(out.sum()), rng)
+    vg = ViewGraph([f"c{k}" for k in range(n)], np.stack([i, j], 1), R_rel, allow_isolated=True)
+    return SyntheticGraph(vg, R, out), np.rad2deg(s)

@@ -289,3 +289,21 @@ def test_anisotropic_lmi_certificate_matches_cso3_sdp(seed):
     v, lam, _ = _sdp(vg, C, D, cso3=True)
     assert v == pytest.approx(cert.cost, rel=1e-4)
     assert lam[3] < 1e-3 * lam[0]
+
+
+def test_inertia_of_a_dense_matrix_by_cholesky_or_superlu():
+    """A dense matrix (a dense view graph's certificate) is tried by a dense Cholesky: positive-definite gives no
+    negative pivot and that factor; indefinite falls back to SuperLU, whose negative pivots are counted."""
+    import scipy.sparse as sp
+
+    from pipeline.averaging.certificate.eigen import ldl_inertia
+    from pipeline.averaging.kernel import DenseCholesky
+
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.standard_normal((40, 40)))
+    for eig, n_neg in ((np.linspace(0.5, 3.0, 40), 0), (np.r_[-2.0, -1.0, np.linspace(0.5, 3.0, 38)], 2)):
+        A = sp.csc_matrix((Q * eig) @ Q.T)
+        lu, neg, msg = ldl_inertia(A)
+        assert msg == "" and neg == n_neg and isinstance(lu, DenseCholesky) == (n_neg == 0)
+        b = rng.standard_normal(40)
+        np.testing.assert_allclose(A @ lu.solve(b), b, atol=1e-10)

@@ -8,7 +8,7 @@ import pytest
 from pipeline.core import so3
 from pipeline.averaging.init import initial_rotations, rotations_from_tree, spanning_tree
 from pipeline.averaging.irls import irls
-from pipeline.averaging.kernel import LaplacianSolver, apply_update, edge_residuals
+from pipeline.averaging.kernel import DenseCholesky, LaplacianSolver, apply_update, edge_residuals
 from pipeline.averaging.solve import average
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -206,3 +206,76 @@ def test_unknown_loss_and_method_rejected():
         average(vg, loss="nope")
     with pytest.raises(ValueError, match="unknown method 'foo'; valid methods: irls, irls-h, l1, weiszfeld, sdp"):
         average(vg, method="foo")
+
+
+def test_dense_graph_factors_densely_and_solves_the_same_system():
+    """A dense view graph (1DSfM-like: most pairs measured) fills SuperLU's factor; the factorizer then switches to a
+    dense Cholesky, which solves the same system to rounding; a sparse chain stays with SuperLU."""
+    from pipeline.averaging.block import BlockLaplacianSolver
+
+    vg, _, _ = _graph(60, 0.7, seed=3)
+    w = np.random.default_rng(1).uniform(0.1, 2.0, vg.n_edges)
+    b = np.random.default_rng(2).standard_normal((60, 3))
+    auto, sparse = LaplacianSolver(vg.edges, 60, ref=5), LaplacianSolver(vg.edges, 60, ref=5, dense=False)
+    auto.factor(w)
+    assert auto._factor.dense is True and not isinstance(auto._lu, DenseCholesky)  # decided from the first factor
+    auto.factor(w)
+    sparse.factor(w)
+    assert isinstance(auto._lu, DenseCholesky) and not isinstance(sparse._lu, DenseCholesky)
+    np.testing.assert_allclose(auto.solve(b), sparse.solve(b), rtol=0, atol=1e-12 * np.abs(sparse.solve(b)).max())
+    # the block (IRLS-H) solver likewise, and through the CG-with-factor path of solve_reusing
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((vg.n_edges, 3, 3))
+    B = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    blk, blk_sparse = BlockLaplacianSolver(vg.edges, 60, ref=5), BlockLaplacianSolver(vg.edges, 60, ref=5, dense=False)
+    for s in (blk, blk_sparse):
+        s.factor(B)
+        s.factor(B)
+    assert isinstance(blk._lu, DenseCholesky) and not isinstance(blk_sparse._lu, DenseCholesky)
+    x1, x2 = blk.solve_reusing(1.01 * B, b), blk_sparse.solve_reusing(1.01 * B, b)
+    np.testing.assert_allclose(x1, x2, rtol=0, atol=1e-6 * np.abs(x2).max())
+    chain = np.stack([np.arange(59), np.arange(1, 60)], 1)
+    s = LaplacianSolver(chain, 60)
+    s.factor(np.ones(59))
+    s.factor(np.ones(59))
+    assert s._factor.dense is False and not isinstance(s._lu, DenseCholesky)
+
+
+def test_dense_and_sparse_factors_give_the_same_irls_result(monkeypatch):
+    import pipeline.averaging.kernel as kernel
+
+    vg, R, _ = _graph(50, 0.8, sigma_deg=1.0, outlier_frac=0.1, seed=5)
+    runs = {}
+    for dense in (True, False):
+        monkeypatch.setattr(kernel.SymmetricFactorizer, "__init__", lambda self, d=None, _m=dense: setattr(self, "dense", _m))
+        runs[dense] = average(vg, "irls").R
+    assert np.max(np.rad2deg(so3.angle_between(runs[True], runs[False]))) < 1e-8
+    assert np.median(_err_deg(runs[True], R)) < 1.0
+
+
+def test_a_matrix_that_is_not_positive_definite_falls_back_to_superlu():
+    import scipy.sparse as sp
+
+    from pipeline.averaging.kernel import SymmetricFactorizer
+
+    A = sp.csc_matrix(np.diag([2.0, -1.0, 3.0]))  # symmetric, nonsingular, indefinite
+    with pytest.raises(np.linalg.LinAlgError):
+        DenseCholesky(A)
+    lu = SymmetricFactorizer(dense=True)(A)
+    assert not isinstance(lu, DenseCholesky)
+    np.testing.assert_allclose(lu.solve(np.array([2.0, 1.0, 3.0])), [1.0, -1.0, 1.0])
+
+
+def test_graph_residuals_equal_edge_residuals_and_follow_the_graph_when_it_changes():
+    from pipeline.averaging.kernel import graph_residuals
+
+    vg, R, _ = _graph(40, 0.5, sigma_deg=3.0, outlier_frac=0.3, seed=8)
+    R_now = R @ so3.exp(np.random.default_rng(9).standard_normal((40, 3)) * 0.2)
+    a, b = edge_residuals(vg.edges, vg.R_rel, R_now), graph_residuals(vg, R_now)
+    ok = np.linalg.norm(a, axis=1) < np.pi - 1e-6  # at π, r and −r are the same rotation
+    assert ok.sum() > 0.9 * vg.n_edges and np.abs(a - b)[ok].max() < 1e-14
+    # the quaternions kept on the graph are converted again after an in-place change of R_rel
+    vg.R_rel[3] = so3.exp(np.array([0.0, 0.0, 0.5])) @ vg.R_rel[3]
+    np.testing.assert_allclose(graph_residuals(vg, R_now)[3], edge_residuals(vg.edges, vg.R_rel, R_now)[3],
+                               atol=1e-14)
+    assert np.linalg.norm(graph_residuals(vg, R_now)[3] - b[3]) > 0.1

