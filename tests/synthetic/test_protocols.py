@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.core import so3
-from pipeline.synthetic.protocols import PROTOCOLS, heavy_tailed_noise, make_protocol, miscalibrated_h_graph
+from pipeline.synthetic.protocols import PROTOCOLS, dense_graph, heavy_tailed_noise, make_protocol, miscalibrated_h_graph
 
 
 @pytest.mark.parametrize("name", sorted(PROTOCOLS))
@@ -44,3 +44,21 @@ def test_miscalibrated_h_is_overconfident_by_edge():
     ok = ~g.outlier_mask
     ratio = np.trace(g.vg.H, axis1=1, axis2=2)[ok] / np.trace(H_true, axis1=1, axis2=2)[ok]
     assert np.median(ratio) > 5 and np.std(np.log10(ratio)) > 0.5
+
+
+def test_dense_graph_is_dense_seeded_and_its_cameras_differ():
+    g, sig = dense_graph(n=120, target_edges=4000, seed=2)
+    assert np.array_equal(g.vg.R_rel, dense_graph(n=120, target_edges=4000, seed=2)[0].vg.R_rel)
+    assert abs(g.vg.n_edges - 4000) < 200 and g.vg.inliers is None and g.vg.H is None  # as 1DSfM's files
+    err = np.rad2deg(so3.angle_between(so3.relative(g.R_true, g.vg.edges), g.vg.R_rel))
+    good = ~g.outlier_mask
+    assert 0.1 < g.outlier_mask.mean() < 0.5 and np.median(err[g.outlier_mask]) > 60  # Haar outliers
+    # the noise scale is per camera: the edges of the noisiest camera are noisier than those of the cleanest
+    s = np.full(120, np.nan)
+    for k in range(120):  # per camera, in a test
+        at = np.any(g.vg.edges == k, axis=1) & good
+        s[k] = np.median(err[at]) if at.sum() > 5 else np.nan
+    assert np.nanmax(s) > 3 * np.nanmin(s)
+    assert np.corrcoef(np.log(sig[good]), np.log(err[good] + 1e-9))[0, 1] > 0.3
+    degree = np.bincount(g.vg.edges.ravel(), minlength=120)
+    assert degree.max() > 3 * max(np.percentile(degree, 10), 1)  # popular and rare cameras
