@@ -37,6 +37,12 @@ on every graph measured, yet less accurate on the three real graphs and on most 
 ``"talwar"``: least squares on the
 edges under τ = max(3.76 σ̂, ``refine_min_deg``) (earlier versions).
 
+**Rescue** (``rescue``, after the mixture polish): a camera that fewer than a quarter of its
+edges support (a dense graph's camera matched mostly wrong, left by the ℓ1 start where its
+outliers outvoted it) is moved to the rotation that most of its edges' proposals agree on, and
+the polish runs again; the result is kept if the polish's likelihood is higher
+(:mod:`~pipeline.averaging.rescue`). ``stats["rescue"]`` names the cameras moved.
+
 **Certificate** (``certify``): the final reweighted problem (fixed weights) is checked
 for global optimality by a dual certificate (:mod:`~pipeline.averaging.certificate`):
 "verified", "not verified" or "could not decide", with the cost, the edge set and the
@@ -61,6 +67,7 @@ from pipeline.averaging.kernel import LaplacianSolver, check_graph, graph_residu
 from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
 from pipeline.averaging.polish import mixture_polish, residual_angles, reweighted, selection_cost, talwar_polish
+from pipeline.averaging.rescue import rescue_cameras
 from pipeline.averaging.result import AveragingResult, method_config, start_of
 from pipeline.averaging.stopping import StopConfig, StopRule, robust_scale
 from pipeline.core.config import option
@@ -70,6 +77,11 @@ from pipeline.core.viewgraph import ViewGraph
 __all__ = ["IRLSConfig", "irls", "isotropic_start"]
 
 logger = logging.getLogger(__name__)
+
+#: Agreement radius of the rescue: max(5°, 4 s), s the polish's per-axis noise scale (two proposals of one camera
+#: each carry an edge's noise and a neighbour's error).
+RESCUE_TOL_DEG = 5.0
+RESCUE_TOL_SCALE = 4.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -92,6 +104,9 @@ class IRLSConfig(L1StartConfig, StopConfig):
     refine_iterations: int = option(50, "iteration cap of the polish", ge=0)
     refine_min_deg: float = option(1.0, "Talwar polish: lower bound of the trimming threshold, degrees", ge=0)
     certify: bool = option(True, "dual certificate of the final reweighted problem (stats['certificate'])")
+    rescue: bool = option(True, "mixture polish: then move each camera that fewer than a quarter of its edges "
+                                "support to the rotation most of its edges agree on, and polish again; kept if the "
+                                "polish's likelihood is higher (rescue.py)")
 
     def check(self) -> None:
         try:
@@ -187,6 +202,25 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
     elif cfg.refine:
         R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
+    rescue_stats = None
+    if cfg.refine and model is not None and cfg.rescue:
+        th = residual_angles(vg, R)
+        tol = max(np.deg2rad(RESCUE_TOL_DEG), RESCUE_TOL_SCALE * model.s)
+        res = rescue_cameras(vg, R, th, tol)
+        rescue_stats = {"tol_deg": float(np.rad2deg(tol)),
+                        "moved": [vg.names[k] for k in res.cameras], "support_before": res.support_before.tolist(),
+                        "support_after": res.support_after.tolist(), "degree": res.degree[res.cameras].tolist(),
+                        "kept": False}
+        if res.cameras.size:
+            hist: list[dict[str, float]] = []
+            again = _mixture(vg, res.R, solver, cfg, polish_rule, t0, hist)
+            rescue_stats["loglik"] = [model.loglik, again[1].loglik]  # the polish's own objective decides
+            if again[1].loglik > model.loglik:
+                R, model, trust_used, w, gamma, fits, trust = again
+                history.extend(hist)
+                rescue_stats["kept"] = True
+                logger.info("IRLS: %d camera(s) moved to the rotation their edges agree on (%s)", res.cameras.size,
+                            ", ".join(rescue_stats["moved"][:5]))
     r = graph_residuals(vg, R)
     theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
@@ -218,13 +252,14 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
             "trust": trust_used, "nu": model.nu, "s_deg": float(np.rad2deg(model.s)), "eps": model.eps,
             "loglik": {k: v[1].loglik for k, v in fits.items()}, "n_outliers": int(np.sum(model.gamma < 0.5))},
         "normalized_residuals": None if model is None else normalized.tolist(),
+        "rescue": rescue_stats,
         "n_kept": int(kept.sum()), "solve_s": t_solve,
         "config": {"loss": lossf.name, "alpha_deg": cfg.alpha_deg, "eps_rad": lossf.eps_rad,
                    "max_iterations": cfg.max_iterations, "ftol": cfg.ftol, "xtol_scale": cfg.xtol_scale,
                    "tol_rad": cfg.tol_rad, "l1_iterations": cfg.l1_iterations, "l1_tol_rad": cfg.l1_tol_rad,
                    "admm_max_iterations": cfg.admm_max_iterations, "start": cfg.start, "polish": cfg.polish,
                    "init": cfg.init if isinstance(start_of(init, cfg), str) else "user",
-                   "seed": cfg.seed or 0, "refine": cfg.refine},
+                   "seed": cfg.seed or 0, "refine": cfg.refine, "rescue": cfg.rescue},
     }
     if cfg.certify:
         what = _final_problem(lossf, cfg, tau, model, trust_used)

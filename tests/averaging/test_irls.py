@@ -279,3 +279,46 @@ def test_graph_residuals_equal_edge_residuals_and_follow_the_graph_when_it_chang
     np.testing.assert_allclose(graph_residuals(vg, R_now)[3], edge_residuals(vg.edges, vg.R_rel, R_now)[3],
                                atol=1e-14)
     assert np.linalg.norm(graph_residuals(vg, R_now)[3] - b[3]) > 0.1
+
+
+def test_a_camera_matched_mostly_wrong_is_moved_to_the_rotation_its_right_edges_agree_on():
+    """A camera with 80% Haar-outlier edges: its ℓ1 start is outvoted, and the rescue moves it to the rotation its
+    right edges propose; a camera of a repeated-structure block (edges wrong by one rotation, fewer than its right
+    ones) stays."""
+    from pipeline.averaging.rescue import rescue_cameras
+
+    rng = np.random.default_rng(11)
+    n = 60
+    R = so3.random_rotations(n, rng)
+    iu = np.array(np.triu_indices(n, 1)).T
+    vg = ViewGraph.from_absolute([f"c{i}" for i in range(n)], R, iu[rng.random(len(iu)) < 0.6])
+    R_rel = so3.exp(np.deg2rad(0.5) * rng.standard_normal((vg.n_edges, 3))) @ vg.R_rel
+    at0 = np.flatnonzero(np.any(vg.edges == 0, axis=1))
+    bad = rng.choice(at0, size=int(0.8 * at0.size), replace=False)
+    R_rel[bad] = so3.random_rotations(bad.size, rng)
+    vg = ViewGraph(vg.names, vg.edges, R_rel)
+    start = R.copy()
+    start[0] = so3.exp(np.array([0.0, 2.0, 0.0])) @ R[0]  # camera 0 in a wrong basin, 115° off
+    theta = np.linalg.norm(edge_residuals(vg.edges, vg.R_rel, start), axis=1)
+    res = rescue_cameras(vg, start, theta, np.deg2rad(5.0))
+    assert res.cameras.tolist() == [0] and res.support_after[0] == at0.size - bad.size
+    assert np.rad2deg(so3.angle_between(res.R[0], R[0])) < 0.5 and np.array_equal(res.R[1:], start[1:])
+    # the whole IRLS on a dense graph as 1DSfM's: without the rescue a camera is lost, with it not, and the result
+    # says which camera moved
+    from pipeline.synthetic.protocols import dense_graph
+
+    g, _ = dense_graph(seed=0)
+    with_rescue, without = average(g.vg, "irls"), average(g.vg, "irls", rescue=False)
+    lost = np.flatnonzero(_err_deg(without.R, g.R_true) > 30)
+    assert lost.size >= 1 and np.all(_err_deg(with_rescue.R, g.R_true)[lost] < 2.0)
+    assert set(with_rescue.stats["rescue"]["moved"]) >= {g.vg.names[k] for k in lost}
+    assert with_rescue.stats["rescue"]["kept"] and without.stats["rescue"] is None
+    assert np.median(_err_deg(with_rescue.R, g.R_true)) < 0.75 * np.median(_err_deg(without.R, g.R_true))
+    # a block: 5 of camera 1's 30 edges wrong by one common rotation S (repeated structure): it is not moved there
+    e1 = np.flatnonzero(np.any(vg.edges == 1, axis=1) & ~np.isin(np.arange(vg.n_edges), at0))
+    R_rel = vg.R_rel.copy()
+    S = so3.exp(np.array([0.0, 0.0, np.pi / 2]))
+    R_rel[e1[:5]] = R_rel[e1[:5]] @ S
+    vg2 = ViewGraph(vg.names, vg.edges, R_rel)
+    theta2 = np.linalg.norm(edge_residuals(vg2.edges, vg2.R_rel, R), axis=1)
+    assert 1 not in rescue_cameras(vg2, R, theta2, np.deg2rad(5.0)).cameras
