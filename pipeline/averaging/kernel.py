@@ -94,7 +94,7 @@ def _fingerprint(a: np.ndarray) -> tuple[int, tuple[int, ...], float]:
         w = _FINGERPRINT_WEIGHTS[flat.size] = np.random.default_rng(flat.size).standard_normal(flat.size)
         if len(_FINGERPRINT_WEIGHTS) > 8:  # a few graph sizes at a time
             del _FINGERPRINT_WEIGHTS[next(iter(_FINGERPRINT_WEIGHTS))]
-    return a.__array_interface__["data"][0], a.shape, float(flat @ w)
+    return a.__array_interface__["data"][0], a.shape, float(np.sum(flat * w))  # not BLAS: its threads wake slowly
 
 
 def _graph_memo(vg: ViewGraph) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
