@@ -4,7 +4,11 @@ For each camera of a result: its edges in the solved graph, the edges the method
 (the rest it rejected as outliers, or left a negligible weight), the share of its edge
 weight on kept edges, and a verdict on its support:
 
-- ``"redundant"``: two or more kept edges (an error in one shows in the others);
+- ``"redundant"``: two or more kept edges (an error in one shows in the others), and at least
+  :data:`MINORITY_SHARE` of its edges;
+- ``"minority"``: two or more kept edges, but fewer than :data:`MINORITY_SHARE` of its edges:
+  most of its pairs disagree with the rotation (a camera matched mostly wrong, such as one the
+  IRLS rescue moved to where its few right pairs agree: :mod:`pipeline.averaging.rescue`);
 - ``"single edge"``: exactly one kept edge: the rotation is that edge's, unchecked;
 - ``"rejected edges only"``: no kept edge: the rotation rests on rejected or
   low-weight evidence alone.
@@ -22,7 +26,10 @@ import numpy as np
 from pipeline.averaging.result import AveragingResult
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["camera_evidence", "certificate_statement"]
+__all__ = ["MINORITY_SHARE", "camera_evidence", "certificate_statement"]
+
+#: Below this share of a camera's edges kept, its support is a "minority" (the rescue's suspect threshold).
+MINORITY_SHARE = 0.25
 
 
 def certificate_statement(res: AveragingResult) -> tuple[str, Any]:
@@ -44,7 +51,7 @@ def camera_evidence(vg: ViewGraph, res: AveragingResult) -> dict[str, Any]:
         res: the result (``names`` the solved cameras, ``edge_index``, ``kept``, ``weights``).
 
     Returns:
-        ``{"statement", "verdict", "edge_selection", "n_single_edge", "n_rejected_only",
+        ``{"statement", "verdict", "edge_selection", "n_single_edge", "n_rejected_only", "n_minority",
         "cameras": [{"name", "n_edges", "n_kept", "kept_weight_share", "support"}]}``.
     """
     statement, verdict = certificate_statement(res)
@@ -63,11 +70,13 @@ def camera_evidence(vg: ViewGraph, res: AveragingResult) -> dict[str, Any]:
     w_all = np.bincount(ends, weights=np.repeat(w, 2), minlength=n)
     w_kept = np.bincount(ends, weights=np.repeat(w * kept, 2), minlength=n)
     share = np.where(w_all > 0, w_kept / np.where(w_all > 0, w_all, 1.0), 0.0)
-    support = np.where(n_kept >= 2, "redundant", np.where(n_kept == 1, "single edge", "rejected edges only"))
+    support = np.where(n_kept >= 2, np.where(n_kept >= MINORITY_SHARE * deg, "redundant", "minority"),
+                       np.where(n_kept == 1, "single edge", "rejected edges only"))
     return {
         "statement": statement, "verdict": verdict,
         "edge_selection": "the method's kept edges" if res.kept is not None else "none reported (every edge counts)",
         "n_single_edge": int(np.sum(n_kept == 1)), "n_rejected_only": int(np.sum(n_kept == 0)),
+        "n_minority": int(np.sum(support == "minority")),
         "cameras": [{"name": name, "n_edges": int(d), "n_kept": int(k), "kept_weight_share": round(float(s), 6),
                      "support": str(sup)} for name, d, k, s, sup in zip(res.names, deg, n_kept, share, support)],
     }

@@ -148,7 +148,14 @@ class AveragingStage(Stage[Config]):
                 {"i": vg.names[a], "j": vg.names[b], "residual_deg": float(np.rad2deg(res.residuals_rad[k])),
                  "relative_weight": float(w[k])} for (a, b), k in zip(e, order)
             ]
-        stats["evidence"] = camera_evidence(vg, res)
+        stats["evidence"] = ev = camera_evidence(vg, res)
+        weak = [c for c in ev["cameras"] if c["support"] != "redundant"]
+        if weak:  # said on the console too: the stats file alone is easy to miss
+            logger.warning("%s: %d camera(s) rest on weak evidence (%s), e.g. %s; see 'evidence' in %s",
+                           res.method, len(weak), ", ".join(f"{k}: {sum(c['support'] == k for c in weak)}" for k in
+                                                           dict.fromkeys(c["support"] for c in weak)),
+                           ", ".join(f"{c['name']} ({c['n_kept']} of {c['n_edges']} pairs kept)" for c in weak[:3]),
+                           self.stats_path.name)
         if data.R_gt is not None:
             from pipeline.evaluation.metrics import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
 

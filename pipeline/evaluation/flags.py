@@ -2,7 +2,7 @@
 
 :func:`run_evidence` joins the view-graph stage's flags and messages
 (:mod:`pipeline.graph.stage`) with each method's per-camera support
-(:mod:`pipeline.averaging.evidence`: "single edge", "rejected edges only") into
+(:mod:`pipeline.averaging.evidence`: "single edge", "rejected edges only", "minority") into
 ``metrics.json``'s ``evidence``; :func:`evidence_markdown` and :func:`evidence_console`
 word it for the report and the console. A certificate is never shown alone: every
 place that shows one also says what it proves (optimality of a cost on the edges the
@@ -24,7 +24,8 @@ DISAGREEMENT_DEG = 2.0
 CERTIFICATE_NOTE = ("a certificate proves that a method's rotations are optimal for its cost on the pairs it used; "
                     "it does not check that those pairs are right")
 _SUPPORT = {"single edge": "rests on one pair the method kept, the others down-weighted or rejected",
-            "rejected edges only": "the method rejected or down-weighted every pair of it"}
+            "rejected edges only": "the method rejected or down-weighted every pair of it",
+            "minority": "the method kept fewer than a quarter of its pairs: most of them disagree with its rotation"}
 
 
 def method_disagreement(rotations: dict[str, tuple[list[str], np.ndarray]]) -> dict[str, tuple[float, str]]:

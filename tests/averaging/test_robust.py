@@ -172,3 +172,31 @@ def test_every_rotation_carries_its_evidence():
     assert sum(c["n_kept"] for c in ev["cameras"]) == 2 * int(res.kept.sum())
     weak = average(big, "l1")  # no edge selection reported: every edge counts
     assert camera_evidence(big, weak)["statement"].startswith("no certificate: l1")
+
+
+def test_a_camera_kept_by_a_minority_of_its_edges_is_said_so(caplog):
+    """A camera of a dense graph matched mostly wrong, moved by the rescue to where its few right pairs agree: its
+    evidence says that most of its pairs disagree ("minority"), and so does the console of the averaging stage."""
+    import logging
+
+    from pipeline.averaging.cli import main
+    from pipeline.synthetic.protocols import dense_graph
+
+    g, _ = dense_graph(seed=0)
+    res = average(g.vg, "irls")
+    ev = camera_evidence(g.vg, res)
+    cams = {c["name"]: c for c in ev["cameras"]}
+    moved = res.stats["rescue"]["moved"]
+    assert moved and all(cams[n]["support"] == "minority" for n in moved)
+    assert all(cams[n]["n_kept"] < 0.25 * cams[n]["n_edges"] for n in moved) and ev["n_minority"] >= len(moved)
+    assert sum(c["support"] == "redundant" for c in cams.values()) >= 0.9 * len(cams)
+    # python -m pipeline.average says so on the console (a warning), not only in its stats file
+    import pathlib
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d, caplog.at_level(logging.WARNING):
+        path = pathlib.Path(d) / "vg.npz"
+        g.vg.save(path)
+        main(path, pathlib.Path(d) / "rotations.txt", method="irls")
+    said = [r.getMessage() for r in caplog.records if "weak evidence" in r.getMessage()]
+    assert len(said) == 1 and f"minority: {ev['n_minority']}" in said[0]
