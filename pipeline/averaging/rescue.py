@@ -13,8 +13,9 @@ proposed its true rotation to within 0.3–1.8° and *one or two* edges that agr
 most others within ``tol``), and moves a camera there when that cluster has at least ``min_support`` proposals
 and more than twice the current support. By chance alone such a cluster is rare: a Haar-random rotation falls
 within 5° of a given one with probability ≈ (θ − sin θ)/π ≈ 3.5e-5, so among 200 random proposals about 0.7
-pairs agree and a cluster of 4 has odds below 1e-6. A correlated wrong cluster (repeated structure: a block of
-edges wrong by one rotation) is not moved to unless it outnumbers the camera's current support twice over. The
+pairs agree and a cluster of 4 has odds of about 1e-5 (at a 10° radius, 6e-3); the likelihood test below
+refuses a move that does not fit. A correlated wrong cluster (repeated structure: a block of edges wrong by one
+rotation) is not moved to unless it outnumbers the camera's current support twice over. The
 caller re-polishes from the moved rotations and keeps the result only if the polish's mixture likelihood (its own
 objective, in which an outlier edge costs the same wherever its camera is) is higher
 (:func:`pipeline.averaging.irls.irls`).
