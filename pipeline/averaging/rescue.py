@@ -15,7 +15,10 @@ and more than twice the current support. By chance alone such a cluster is rare:
 within 5° of a given one with probability ≈ (θ − sin θ)/π ≈ 3.5e-5, so among 200 random proposals about 0.7
 pairs agree and a cluster of 4 has odds of about 1e-5 (at a 10° radius, 6e-3); the likelihood test below
 refuses a move that does not fit. A correlated wrong cluster (repeated structure: a block of edges wrong by one
-rotation) is not moved to unless it outnumbers the camera's current support twice over. The
+rotation) is not moved to unless it outnumbers the camera's current support twice over, and a camera whose
+proposals form two rival clusters (the second more than half the first: a symmetric building's two sides, seen on
+a synthetic one where 7 mirrored pairs outvoted 6 right ones) is left where it is, its evidence saying how few
+pairs it keeps. The
 caller re-polishes from the moved rotations and keeps the result only if the polish's mixture likelihood (its own
 objective, in which an outlier edge costs the same wherever its camera is) is higher
 (:func:`pipeline.averaging.irls.irls`).
@@ -86,8 +89,10 @@ def rescue_cameras(vg: ViewGraph, R: np.ndarray, theta: np.ndarray, tol: float, 
         agree = np.abs(q @ q.T) >= cos_half
         count = agree.sum(1)
         best = int(np.argmax(count))
-        if count[best] < min_support or count[best] <= 2 * support[k]:
-            continue
+        rest = ~agree[best]  # the proposals outside the best cluster: is there a rival cluster?
+        second = int(agree[np.ix_(rest, rest)].sum(1).max()) if rest.any() else 0
+        if count[best] < min_support or count[best] <= 2 * support[k] or count[best] < 2 * second:
+            continue  # too few, not better than where it is, or ambiguous (a symmetric structure's rival)
         R_new[k] = so3.chordal_mean(prop[agree[best]])
         moved.append(k)
         before.append(support[k])

@@ -390,7 +390,8 @@ def miscalibrated_h_graph(
 
 def dense_graph(n: int = 247, target_edges: int = 20000, quality_deg: float = 0.7, quality_sigma_ln: float = 0.7,
                 nu: float = 3.0, outlier_mean: float = 0.15, outlier_concentration: float = 2.0,
-                popularity_sigma_ln: float = 1.0, seed: int = 0) -> tuple[SyntheticGraph, np.ndarray]:
+                popularity_sigma_ln: float = 1.0, symmetric_cams: int = 0, symmetric_share: float = 0.6,
+                seed: int = 0) -> tuple[SyntheticGraph, np.ndarray]:
     """A dense view graph of internet photos of one landmark, as 1DSfM's (Ellis Island: 247 cameras, 20,297 edges).
 
     What sets such graphs apart from the kNN protocols: most pairs are measured, and the cameras differ. Some
@@ -403,6 +404,9 @@ def dense_graph(n: int = 247, target_edges: int = 20000, quality_deg: float = 0.
     2. Pair (i, j) is measured with probability min(1, c p_i p_j), c set so that about ``target_edges`` are.
     3. Its noise is a multivariate Student-t (``nu``) of scale √((q_i² + q_j²)/2); it is a Haar-random outlier
        with probability 1 − (1 − o_i)(1 − o_j).
+    4. With ``symmetric_cams`` > 0, a symmetric building: two sets A and B of that many cameras (the two sides),
+       and ``symmetric_share`` of the pairs between them measure ``R_j S R_iᵀ`` with S a half turn about one
+       axis (the same for all: correlated outliers that agree with one another), with 1° Gaussian noise.
 
     No inlier counts and no H (1DSfM's files have neither). The graph may leave a camera of few pairs
     unconnected; the averaging solves the largest component.
@@ -428,5 +432,15 @@ def dense_graph(n: int = 247, target_edges: int = 20000, quality_deg: float = 0.
     out = rng.random(M) > (1.0 - o[i]) * (1.0 - o[j])
     R_rel = so3.exp(dw) @ R[j] @ np.swapaxes(R[i], 1, 2)
     R_rel[out] = so3.random_rotations(int(out.sum()), rng)
+    if symmetric_cams > 0:
+        sides = rng.permutation(n)[: 2 * symmetric_cams].reshape(2, -1)
+        a0, b0 = np.isin(i, sides[0]), np.isin(i, sides[1])
+        a1, b1 = np.isin(j, sides[0]), np.isin(j, sides[1])
+        mirror = ((a0 & b1) | (b0 & a1)) & (rng.random(M) < symmetric_share)
+        axis = rng.standard_normal(3)
+        S = so3.exp(np.pi * axis / np.linalg.norm(axis))
+        noise = so3.exp(np.deg2rad(1.0) * rng.standard_normal((int(mirror.sum()), 3)))
+        R_rel[mirror] = noise @ R[j[mirror]] @ S @ np.swapaxes(R[i[mirror]], 1, 2)
+        out = out | mirror
     vg = ViewGraph([f"c{k}" for k in range(n)], np.stack([i, j], 1), R_rel, allow_isolated=True)
     return SyntheticGraph(vg, R, out), np.rad2deg(s)

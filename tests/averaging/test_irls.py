@@ -322,3 +322,17 @@ def test_a_camera_matched_mostly_wrong_is_moved_to_the_rotation_its_right_edges_
     vg2 = ViewGraph(vg.names, vg.edges, R_rel)
     theta2 = np.linalg.norm(edge_residuals(vg2.edges, vg2.R_rel, R), axis=1)
     assert 1 not in rescue_cameras(vg2, R, theta2, np.deg2rad(5.0)).cameras
+    # two rival clusters (a symmetric building): 7 of camera 0's wrong edges become mirrored pairs, all wrong by one
+    # half turn, against its 8 right ones: ambiguous, it is left where it is; with 3 mirrored, the right ones win
+    n_right = at0.size - bad.size
+    for n_mirror, moved in ((7, False), (3, True)):
+        R_rel = vg.R_rel.copy()
+        mirror = bad[:n_mirror]
+        i, j = vg.edges[mirror, 0], vg.edges[mirror, 1]
+        R_rel[mirror] = R[j] @ so3.exp(np.array([0.0, np.pi, 0.0])) @ np.swapaxes(R[i], 1, 2)
+        vg3 = ViewGraph(vg.names, vg.edges, R_rel)
+        theta3 = np.linalg.norm(edge_residuals(vg3.edges, vg3.R_rel, start), axis=1)
+        res3 = rescue_cameras(vg3, start, theta3, np.deg2rad(5.0))
+        assert n_right == 8 and (0 in res3.cameras) == moved
+        if moved:
+            assert np.rad2deg(so3.angle_between(res3.R[0], R[0])) < 0.5

@@ -62,3 +62,15 @@ def test_dense_graph_is_dense_seeded_and_its_cameras_differ():
     assert np.corrcoef(np.log(sig[good]), np.log(err[good] + 1e-9))[0, 1] > 0.3
     degree = np.bincount(g.vg.edges.ravel(), minlength=120)
     assert degree.max() > 3 * max(np.percentile(degree, 10), 1)  # popular and rare cameras
+
+
+def test_dense_graph_symmetric_building_is_one_wrong_rotation():
+    """The symmetric pairs are all wrong by one half turn S about a common axis: S = R_jᵀ R̃ R_i agrees among them."""
+    g, _ = dense_graph(n=100, target_edges=3000, symmetric_cams=15, seed=4)
+    plain, _ = dense_graph(n=100, target_edges=3000, seed=4)
+    mirror = g.outlier_mask & ~plain.outlier_mask
+    assert mirror.sum() > 20
+    e = g.vg.edges[mirror]
+    S = np.swapaxes(g.R_true[e[:, 1]], 1, 2) @ g.vg.R_rel[mirror] @ g.R_true[e[:, 0]]
+    ang = np.rad2deg(so3.angle_between(S, np.broadcast_to(S[0], S.shape)))
+    assert np.median(ang) < 3.0 and abs(np.rad2deg(so3.angle_between(S[:1], np.eye(3)[None]))[0] - 180) < 5
