@@ -202,11 +202,12 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
     elif cfg.refine:
         R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
+    r = graph_residuals(vg, R)
+    theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     rescue_stats = None
     if cfg.refine and model is not None and cfg.rescue:
-        th = residual_angles(vg, R)
         tol = max(np.deg2rad(RESCUE_TOL_DEG), RESCUE_TOL_SCALE * model.s)
-        res = rescue_cameras(vg, R, th, tol)
+        res = rescue_cameras(vg, R, theta, tol)
         rescue_stats = {"tol_deg": float(np.rad2deg(tol)),
                         "moved": [vg.names[k] for k in res.cameras], "support_before": res.support_before.tolist(),
                         "support_after": res.support_after.tolist(), "degree": res.degree[res.cameras].tolist(),
@@ -221,8 +222,8 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
                 rescue_stats["kept"] = True
                 logger.info("IRLS: %d camera(s) moved to the rotation their edges agree on (%s)", res.cameras.size,
                             ", ".join(rescue_stats["moved"][:5]))
-    r = graph_residuals(vg, R)
-    theta = np.sqrt(np.einsum("ma,ma->m", r, r))
+                r = graph_residuals(vg, R)
+                theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
         w = (theta <= tau).astype(np.float64)
         kept = w > 0

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.averaging.evidence import MINORITY_SHARE
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -50,14 +51,15 @@ class Rescue:
 
 
 def rescue_cameras(vg: ViewGraph, R: np.ndarray, theta: np.ndarray, tol: float, min_support: int = 4,
-                   max_share: float = 0.25, max_proposals: int = 400) -> Rescue:
+                   max_share: float = MINORITY_SHARE, max_proposals: int = 400) -> Rescue:
     """Move each camera that its edges do not support to the rotation most of its edges' proposals agree on.
 
     Args:
         vg: the view graph; R: (N, 3, 3) its current rotations; theta: (M,) residual angles at R (radians).
         tol: agreement radius (radians).
         min_support: fewest agreeing proposals to move a camera.
-        max_share: a camera is a suspect when fewer than this share of its edges are within ``tol``.
+        max_share: a camera is a suspect when fewer than this share of its edges are within ``tol`` (the share
+            below which its evidence calls the support a "minority").
         max_proposals: a suspect with more edges uses this many (its edges with the smallest residuals at the
             neighbours' side are not known, so an even stride; the cluster test is O(d²)).
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -151,9 +152,9 @@ class AveragingStage(Stage[Config]):
         stats["evidence"] = ev = camera_evidence(vg, res)
         weak = [c for c in ev["cameras"] if c["support"] != "redundant"]
         if weak:  # said on the console too: the stats file alone is easy to miss
+            kinds = Counter(c["support"] for c in weak)
             logger.warning("%s: %d camera(s) rest on weak evidence (%s), e.g. %s; see 'evidence' in %s",
-                           res.method, len(weak), ", ".join(f"{k}: {sum(c['support'] == k for c in weak)}" for k in
-                                                           dict.fromkeys(c["support"] for c in weak)),
+                           res.method, len(weak), ", ".join(f"{k}: {v}" for k, v in kinds.items()),
                            ", ".join(f"{c['name']} ({c['n_kept']} of {c['n_edges']} pairs kept)" for c in weak[:3]),
                            self.stats_path.name)
         if data.R_gt is not None:
