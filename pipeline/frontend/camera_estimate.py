@@ -137,11 +137,15 @@ def f_ransac_chunk(tasks: list[tuple], config: CamerasConfig) -> list[dict[str, 
 
 
 def focal_profile_chunk(tasks: list[tuple], config: CamerasConfig) -> list[dict[str, Any]]:
-    """Worker: :func:`pipeline.frontend.focal.pair_profile` of each ``(x1, x2, F, pp1, pp2, f1, f2)``."""
+    """Worker: :func:`pipeline.frontend.focal.pair_profile` of each ``(x1, x2, F, pp1, pp2, f1, f2[, ends])``
+    (``ends``: (2, 3, 4) the poses ``[R | t]`` just outside the path, NaN where there is none)."""
     out = []
-    for x1, x2, F, pp1, pp2, f1, f2 in tasks:
-        cost, R, s2 = fk.pair_profile(x1, x2, F, pp1, pp2, f1, f2, config.loss_px)
-        out.append({"cost": cost, "R": R, "sigma2": s2})
+    for x1, x2, F, pp1, pp2, f1, f2, *rest in tasks:
+        ends = None
+        if rest:
+            ends = tuple(None if not np.all(np.isfinite(P)) else (P[:, :3], P[:, 3]) for P in rest[0])
+        cost, R, s2, t = fk.pair_profile(x1, x2, F, pp1, pp2, f1, f2, config.loss_px, ends=ends)
+        out.append({"cost": cost, "R": R, "sigma2": s2, "t": t})
     return out
 
 
@@ -161,6 +165,10 @@ def poselib_chunk(tasks: list[tuple], config: CamerasConfig) -> list[dict[str, A
         f, n = fk.poselib_shared_focal(x1, x2, pp, float(thr), int(seed), config.max_trials)
         out.append({"f": f, "n_inliers": n})
     return out
+
+
+#: The per-pair profile's version, part of its cache keys: 2 sweeps both ways and returns the translations.
+PROFILE_VERSION = "sweep2"
 
 
 # ------------------------------------------------------------------------ helpers
@@ -217,13 +225,21 @@ class FocalEstimate:
 
 
 def _profiles(x1s: list, x2s: list, Fs: list, pp: np.ndarray, grid: np.ndarray, config: CamerasConfig,
-              pmap: PairMap, tag: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              pmap: PairMap, tag: str, ends: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair's profile on ``grid``: cost (M, G), rotations (M, G, 3, 3), σ² (M,), translations (M, G, 3).
+
+    ``ends`` (M, 2, 3, 4): each pair's poses ``[R | t]`` at the points just outside ``grid`` (a finer grid's
+    coarse neighbours), where its sweeps start from too."""
     import functools  # noqa: PLC0415
 
-    tasks = [(a, b, F, pp, pp, grid, grid) for a, b, F in zip(x1s, x2s, Fs)]
+    tag = f"{tag}-{PROFILE_VERSION}"  # results of an earlier sweep (no translations) are not reused
+    tasks = [(a, b, F, pp, pp, grid, grid) + (() if ends is None else (ends[k],))
+             for k, (a, b, F) in enumerate(zip(x1s, x2s, Fs))]
     res = pmap(tag, tasks, functools.partial(focal_profile_chunk, config=config))
     return (np.array([r["cost"] for r in res]).reshape(-1, len(grid)),
-            np.array([r["R"] for r in res]).reshape(-1, len(grid), 3, 3), np.array([float(r["sigma2"]) for r in res]))
+            np.array([r["R"] for r in res]).reshape(-1, len(grid), 3, 3), np.array([float(r["sigma2"]) for r in res]),
+            np.array([r["t"] for r in res]).reshape(-1, len(grid), 3))
 
 
 def _joint(grid, cost, R, s2, edges, n, config, scales=None) -> tuple[float, np.ndarray, tuple[float, float]]:
@@ -257,16 +273,19 @@ def _search(x1s, x2s, Fs, edges, n, pp, lo, hi, config, pmap, tag) -> tuple[floa
     """Coarse grid, then finer grids between the neighbours of the minimum; returns f, the merged grid, its cost,
     the pairs' own argmins and the jackknife sd of log f."""
     grid = fk.log_grid(lo, hi, config.grid_points)
-    cost, R, s2 = _profiles(x1s, x2s, Fs, pp, grid, config, pmap, f"{tag}-coarse")
+    cost, R, s2, t = _profiles(x1s, x2s, Fs, pp, grid, config, pmap, f"{tag}-coarse")
     f, J, scales = _joint(grid, cost, R, s2, edges, n, config)
     for level in range(config.refine_levels):  # each level narrows the spacing by (refine_points + 1) / 2
         k = int(np.argmin(J))
-        fine = fk.log_grid(grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)], config.refine_points + 2)[1:-1]
+        lo_k, hi_k = max(k - 1, 0), min(k + 1, len(grid) - 1)
+        fine = fk.log_grid(grid[lo_k], grid[hi_k], config.refine_points + 2)[1:-1]
         fine = fine[np.abs(np.log(fine[:, None] / grid[None, :])).min(axis=1) > 1e-9]  # no point twice
-        c2, R2, _ = _profiles(x1s, x2s, Fs, pp, fine, config, pmap, f"{tag}-fine{level}")
+        ends = np.concatenate([R[:, [lo_k, hi_k]], t[:, [lo_k, hi_k], :, None]], axis=3)  # (M, 2, 3, 4)
+        c2, R2, _, t2 = _profiles(x1s, x2s, Fs, pp, fine, config, pmap, f"{tag}-fine{level}", ends)
         grid = np.concatenate([grid, fine])
         order = np.argsort(grid, kind="stable")
-        grid, cost, R = grid[order], np.concatenate([cost, c2], 1)[:, order], np.concatenate([R, R2], 1)[:, order]
+        grid, cost = grid[order], np.concatenate([cost, c2], 1)[:, order]
+        R, t = np.concatenate([R, R2], 1)[:, order], np.concatenate([t, t2], 1)[:, order]
         f, J, _ = _joint(grid, cost, R, s2, edges, n, config, scales)
     sd = _jackknife_sd(grid, cost, R, s2, edges, n, config, scales)
     return f, grid, J, grid[np.argmin(cost, axis=1)], sd

@@ -291,12 +291,12 @@ def test_anisotropic_lmi_certificate_matches_cso3_sdp(seed):
     assert lam[3] < 1e-3 * lam[0]
 
 
-def test_inertia_of_a_dense_matrix_by_cholesky_or_superlu():
+def test_inertia_of_a_dense_matrix_by_cholesky_or_dense_ldl():
     """A dense matrix (a dense view graph's certificate) is tried by a dense Cholesky: positive-definite gives no
-    negative pivot and that factor; indefinite falls back to SuperLU, whose negative pivots are counted."""
+    negative pivot and that factor; indefinite is counted by a pivoted dense LDLᵀ, which is then the factor."""
     import scipy.sparse as sp
 
-    from pipeline.averaging.certificate.eigen import ldl_inertia
+    from pipeline.averaging.certificate.eigen import DenseLDL, ldl_inertia
     from pipeline.averaging.kernel import DenseCholesky
 
     rng = np.random.default_rng(3)
@@ -304,6 +304,24 @@ def test_inertia_of_a_dense_matrix_by_cholesky_or_superlu():
     for eig, n_neg in ((np.linspace(0.5, 3.0, 40), 0), (np.r_[-2.0, -1.0, np.linspace(0.5, 3.0, 38)], 2)):
         A = sp.csc_matrix((Q * eig) @ Q.T)
         lu, neg, msg = ldl_inertia(A)
-        assert msg == "" and neg == n_neg and isinstance(lu, DenseCholesky) == (n_neg == 0)
+        assert msg == "" and neg == n_neg and isinstance(lu, DenseCholesky if n_neg == 0 else DenseLDL)
         b = rng.standard_normal(40)
         np.testing.assert_allclose(A @ lu.solve(b), b, atol=1e-10)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_dense_inertia_counts_negative_eigenvalues(seed):
+    """Bunch–Kaufman's 1×1 and 2×2 blocks give the inertia: random symmetric matrices (indefinite, nearly
+    singular, with eigenvalue pairs of opposite sign that force 2×2 pivots), against eigvalsh."""
+    from pipeline.averaging.certificate.eigen import dense_inertia
+
+    rng = np.random.default_rng(seed)
+    for _ in range(60):
+        n = int(rng.integers(1, 60))
+        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        eig = rng.choice([-1.0, 1.0], n) * 10.0 ** rng.uniform(-6, 2, n)
+        A = (Q * eig) @ Q.T
+        if n >= 2 and rng.random() < 0.5:  # zero diagonal entries: 1×1 pivots fail there, 2×2 blocks are needed
+            A[0, 0] = A[1, 1] = 0.0
+        A = 0.5 * (A + A.T)
+        assert dense_inertia(A) == int(np.sum(np.linalg.eigvalsh(A) < 0))

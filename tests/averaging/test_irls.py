@@ -209,16 +209,27 @@ def test_unknown_loss_and_method_rejected():
 
 
 def test_dense_graph_factors_densely_and_solves_the_same_system():
-    """A dense view graph (1DSfM-like: most pairs measured) fills SuperLU's factor; the factorizer then switches to a
-    dense Cholesky, which solves the same system to rounding; a sparse chain stays with SuperLU."""
+    """A view graph whose SuperLU factor fills (random pairs: 3.5% of the Laplacian nonzero, the factor more than
+    DENSE_FILL) switches to a dense Cholesky after the first factor; one whose matrix is itself dense (1DSfM-like:
+    most pairs measured) is factored densely from the first; both solve the same system as SuperLU to rounding;
+    a sparse chain stays with SuperLU."""
+    import pipeline.averaging.kernel as kernel
     from pipeline.averaging.block import BlockLaplacianSolver
+    from pipeline.synthetic.graphs import paper1_graph
 
+    g = paper1_graph(300, 0.03, 1.0, 0.0, seed=3)
+    L = LaplacianSolver(g.vg.edges, 300)
+    assert L.matrix(np.ones(g.vg.n_edges)).nnz < kernel.DENSE_PATTERN * 300**2
+    L.factor(np.ones(g.vg.n_edges))
+    assert L._factor.dense is True and not isinstance(L._lu, DenseCholesky)  # decided from the first factor's fill
+    L.factor(np.ones(g.vg.n_edges))
+    assert isinstance(L._lu, DenseCholesky)
     vg, _, _ = _graph(60, 0.7, seed=3)
     w = np.random.default_rng(1).uniform(0.1, 2.0, vg.n_edges)
     b = np.random.default_rng(2).standard_normal((60, 3))
     auto, sparse = LaplacianSolver(vg.edges, 60, ref=5), LaplacianSolver(vg.edges, 60, ref=5, dense=False)
     auto.factor(w)
-    assert auto._factor.dense is True and not isinstance(auto._lu, DenseCholesky)  # decided from the first factor
+    assert auto._factor.dense is True and isinstance(auto._lu, DenseCholesky)  # decided from the matrix itself
     auto.factor(w)
     sparse.factor(w)
     assert isinstance(auto._lu, DenseCholesky) and not isinstance(sparse._lu, DenseCholesky)

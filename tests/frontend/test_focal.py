@@ -49,7 +49,7 @@ def test_sampson_and_profile_minimum_at_the_truth() -> None:
     assert F is not None and len(F.inliers) > 0.95 * len(x1s[0])
     assert np.median(np.abs(fk.sampson_px(F.F, x1s[0], x2s[0]))) < 1.0
     grid = fk.log_grid(500, 1600, 21)
-    cost, Rs, s2 = fk.pair_profile(x1s[0], x2s[0], F.F, pp, pp, grid, grid)
+    cost, Rs, s2, _ = fk.pair_profile(x1s[0], x2s[0], F.F, pp, pp, grid, grid)
     assert abs(fk.refine_min(grid, cost) / 900 - 1) < 0.03
     g = int(np.argmin(np.abs(grid - 900)))
     assert np.degrees(so3.angle_between(Rs[g], R[1] @ R[0].T)) < 0.5
@@ -126,3 +126,29 @@ def test_focal_jackknife_flags_a_focal_that_rests_on_one_image() -> None:
                          np.full(len(star), 2.0), cfg)
     assert not est.determined and est.sd_rel == np.inf and "poorly determined" in est.note
     assert est.summary()["determined"] is False
+
+
+def test_a_finer_grid_starts_from_its_coarse_neighbours() -> None:
+    """A pair's cost can have several basins; a finer grid's sweep that started only from the decomposition of
+    ``K2ᵀ F K1`` could settle in a worse one than the coarse points beside it (a real pair: 411 px² above them at
+    every fine point), and the joint minimum then fell on a coarse point. Here a pair's matches come from two
+    motions (60% / 40%) and its F from the smaller group: started from F alone, the fine grid stays in the worse
+    basin; started also from its coarse neighbours' poses (``ends``, either one) it has the good basin's costs,
+    and a grid whose every point starts badly recovers backwards from the pose past its last point."""
+    x1s, x2s, _, _, K = _views(3, seed=1)
+    pp = K[:2, 2]
+    m = len(x1s[1]) * 2 // 5
+    x1, x2 = np.r_[x1s[0], x1s[1][:m]], np.r_[x2s[0], x2s[1][:m]]
+    F_major = fk.fundamental_ransac(x1s[0], x2s[0], 2.0, seed=0).F
+    F_minor = fk.fundamental_ransac(x1s[1][:m], x2s[1][:m], 2.0, seed=0).F
+    coarse = fk.log_grid(600, 1400, 15)
+    c_coarse, R_c, _, t_c = fk.pair_profile(x1, x2, F_major, pp, pp, coarse, coarse)
+    fine = fk.log_grid(coarse[6], coarse[8], 6)[1:-1]
+    good, *_ = fk.pair_profile(x1, x2, F_major, pp, pp, fine, fine)
+    alone, *_ = fk.pair_profile(x1, x2, F_minor, pp, pp, fine, fine)
+    assert np.all(alone > 1.5 * good)  # the worse basin at every fine point
+    for ends in (((R_c[6], t_c[6]), None), (None, (R_c[8], t_c[8]))):
+        seeded, *_ = fk.pair_profile(x1, x2, F_minor, pp, pp, fine, fine, ends=ends)
+        np.testing.assert_allclose(seeded, good, rtol=1e-6)
+    back, *_ = fk.pair_profile(x1, x2, F_minor, pp, pp, coarse[:7], coarse[:7], ends=(None, (R_c[7], t_c[7])))
+    np.testing.assert_allclose(back, c_coarse[:7], rtol=1e-6)

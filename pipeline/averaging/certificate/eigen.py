@@ -16,12 +16,17 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import DENSE_FILL, DENSE_MAX_SIZE, DenseCholesky
+import scipy.linalg.lapack as lapack
 
-__all__ = ["EigenResult", "ldl_inertia", "min_eigenvalue", "DENSE_MAX"]
+from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky
+
+__all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX", "DENSE_INERTIA_MAX"]
 
 #: Largest S (3N) whose witness eigenpair is found by a dense eigendecomposition instead of Lanczos.
 DENSE_MAX = 600
+#: Largest S (3N) of a dense view graph factored densely (8000²·8 bytes = 512 MB a copy): 1DSfM's
+#: Piccadilly (2508 cameras, 7524 rows) still is.
+DENSE_INERTIA_MAX = 8000
 
 
 @dataclass
@@ -51,22 +56,67 @@ class EigenResult:
     times: dict[str, float] = field(default_factory=dict)
 
 
-def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | None, int, str]:
+class DenseLDL:
+    """LAPACK's Bunch–Kaufman ``A = P L D Lᵀ Pᵀ`` of a dense symmetric matrix (``sytrf``), its inertia and solves.
+
+    D is block-diagonal (1×1 and 2×2 blocks); by Sylvester's law of inertia A has as many negative eigenvalues as
+    D. A 2×2 block ``[[a, b], [b, c]]`` has one of each sign when ``ac − b² < 0``, else two of the sign of ``a``.
+
+    Attributes:
+        ok: the factorization succeeded; n_negative: negative eigenvalues of A (−1 when not ``ok``).
+    """
+
+    def __init__(self, A: np.ndarray) -> None:
+        self._ldu, self._ipiv, info = lapack.dsytrf(np.array(A, dtype=np.float64, order="F"), lower=1,
+                                                    overwrite_a=1)
+        self.ok = info >= 0
+        self.n_negative = self._count() if self.ok else -1
+
+    def _count(self) -> int:
+        ldu, ipiv = self._ldu, self._ipiv
+        n, k, neg = ldu.shape[0], 0, 0
+        while k < n:
+            if ipiv[k] > 0:  # 1×1 block (LAPACK's 1-based pivot)
+                neg += int(ldu[k, k] < 0)
+                k += 1
+            else:  # 2×2 block in rows k, k+1
+                a, b, c = ldu[k, k], ldu[k + 1, k], ldu[k + 1, k + 1]
+                neg += 1 if a * c - b * b < 0 else 2 * int(a < 0)
+                k += 2
+        return neg
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        x, info = lapack.dsytrs(self._ldu, self._ipiv, np.asarray(b, dtype=np.float64), lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"LAPACK dsytrs failed (info {info})")
+        return x
+
+
+def dense_inertia(A: np.ndarray) -> int:
+    """Number of negative eigenvalues of the symmetric ``A`` (:class:`DenseLDL`); −1 when the factorization fails."""
+    return DenseLDL(A).n_negative
+
+
+def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | DenseLDL | None, int, str]:
     """LDLᵀ-equivalent SuperLU factor (symmetric mode, no off-diagonal pivoting).
 
-    A matrix with more nonzeros than :data:`~pipeline.averaging.kernel.DENSE_FILL` of its n² (a dense view
-    graph's) is first tried by a dense Cholesky: where it succeeds the matrix is positive-definite, no pivot is
-    negative, and that factor serves (ten times faster on a 247-camera graph of 20,000 edges); where it fails,
-    SuperLU counts the negative pivots.
+    A matrix with more nonzeros than :data:`~pipeline.averaging.kernel.DENSE_PATTERN` of its n² (a dense view
+    graph's), up to :data:`DENSE_INERTIA_MAX` rows, is first tried by a dense Cholesky: where it succeeds the
+    matrix is positive-definite, no pivot is negative, and that factor serves (ten times faster on a 247-camera
+    graph of 20,000 edges); where it fails (an eigenvalue below 0, or one at the rounding level), a pivoted
+    dense LDLᵀ (:class:`DenseLDL`) counts the negative eigenvalues and serves as the factor (SuperLU took
+    7.5 s on a 2000-camera graph with 200k edges where the dense LDLᵀ takes 0.6 s).
 
     Returns the factor, the number of negative pivots and an error message ("" if fine).
     """
     n = A.shape[0]
-    if n <= DENSE_MAX_SIZE and A.nnz > DENSE_FILL * n * n:
+    if n <= DENSE_INERTIA_MAX and A.nnz > DENSE_PATTERN * n * n:
         try:
             return DenseCholesky(A), 0, ""
-        except np.linalg.LinAlgError:  # not positive-definite: SuperLU's pivots say how far from it
-            pass
+        except np.linalg.LinAlgError:  # not positive-definite to rounding: a pivoted dense LDLᵀ decides
+            ldl = DenseLDL(A.toarray())
+            if ldl.ok and np.isfinite(ldl._ldu).all():
+                return ldl, ldl.n_negative, ""
     try:
         lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options=dict(SymmetricMode=True))
