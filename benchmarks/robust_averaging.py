@@ -286,7 +286,8 @@ def dense_large(seeds: list[int]) -> dict[str, Any]:
             ours, t_ours = timed(vg, "irls")
             R_col, posed, t_col, _ = run_pycolmap(vg, pycolmap.RotationEstimatorOptions())
             row: dict[str, Any] = {"n": vg.n_cameras, "n_edges": vg.n_edges, "seed": seed, "ours_s": t_ours,
-                                   "colmap_s": t_col, "time_ratio": t_ours / t_col, "colmap_unposed": int((~posed).sum()),
+                                   "colmap_s": t_col, "time_ratio": t_ours / t_col,
+                                   "colmap_unposed": int((~posed).sum()),
                                    "certificate": cert_of(ours)}
             for name, R in (("ours", ours.R), ("colmap", R_col)):
                 e = rotation_errors_deg(R, g.R_true[idx], posed)

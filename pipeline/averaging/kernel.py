@@ -66,8 +66,10 @@ def _one_blas_thread() -> contextlib.AbstractContextManager[Any]:
         _BLAS.append(ThreadpoolController())
     return _BLAS[0].limit(limits=1, user_api="blas")
 
-__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE", "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals",
-           "graph_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor", "DenseCholesky",
+__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
+           "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals",
+           "graph_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor",
+           "DenseCholesky",
            "SymmetricFactorizer"]
 
 
@@ -205,8 +207,8 @@ class SymmetricFactorizer:
     SuperLU (:func:`factor_symmetric`) while its factor stays sparse; once a factor has more nonzeros than
     :data:`DENSE_FILL` of the matrix (a dense view graph), a dense Cholesky from then on, up to
     :data:`DENSE_MAX_SIZE` rows; from the first factor on where the matrix itself has more than
-    :data:`DENSE_PATTERN` of its entries nonzero. Both solve the same system to rounding. A matrix that the dense Cholesky finds
-    not positive-definite (weights near the rounding floor) is factored by SuperLU.
+    :data:`DENSE_PATTERN` of its entries nonzero. Both solve the same system to rounding. A matrix that the dense
+    Cholesky finds not positive-definite (weights near the rounding floor) is factored by SuperLU.
 
     Args:
         dense: True / False forces one factorization; None (default) decides from the first factor's fill.

@@ -20,7 +20,8 @@ import scipy.linalg.lapack as lapack
 
 from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky
 
-__all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX", "DENSE_INERTIA_MAX"]
+__all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX",
+           "DENSE_INERTIA_MAX"]
 
 #: Largest S (3N) whose witness eigenpair is found by a dense eigendecomposition instead of Lanczos.
 DENSE_MAX = 600
