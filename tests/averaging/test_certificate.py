@@ -307,6 +307,10 @@ def test_inertia_of_a_dense_matrix_by_cholesky_or_dense_ldl():
         assert msg == "" and neg == n_neg and isinstance(lu, DenseCholesky if n_neg == 0 else DenseLDL)
         b = rng.standard_normal(40)
         np.testing.assert_allclose(A @ lu.solve(b), b, atol=1e-10)
+    # an exactly singular matrix has no factor to solve with: not ok, no count (ldl_inertia then asks SuperLU,
+    # which reports the singular factor)
+    singular = DenseLDL(np.diag([1.0, 0.0, -2.0]))
+    assert not singular.ok and singular.n_negative == -1
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -64,13 +64,14 @@ class DenseLDL:
     D. A 2×2 block ``[[a, b], [b, c]]`` has one of each sign when ``ac − b² < 0``, else two of the sign of ``a``.
 
     Attributes:
-        ok: the factorization succeeded; n_negative: negative eigenvalues of A (−1 when not ``ok``).
+        ok: the factorization succeeded and A is not exactly singular; n_negative: negative eigenvalues of A
+            (−1 when not ``ok``).
     """
 
     def __init__(self, A: np.ndarray) -> None:
         self._ldu, self._ipiv, info = lapack.dsytrf(np.array(A, dtype=np.float64, order="F"), lower=1,
                                                     overwrite_a=1)
-        self.ok = info >= 0
+        self.ok = info == 0  # > 0: an exactly zero pivot (singular: no solves); < 0: a bad argument
         self.n_negative = self._count() if self.ok else -1
 
     def _count(self) -> int:
@@ -94,7 +95,8 @@ class DenseLDL:
 
 
 def dense_inertia(A: np.ndarray) -> int:
-    """Number of negative eigenvalues of the symmetric ``A`` (:class:`DenseLDL`); −1 when the factorization fails."""
+    """Number of negative eigenvalues of the symmetric ``A`` (:class:`DenseLDL`); −1 when the factorization fails
+    or A is exactly singular."""
     return DenseLDL(A).n_negative
 
 
