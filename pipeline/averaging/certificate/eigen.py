@@ -13,10 +13,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
-
-import scipy.linalg.lapack as lapack
 
 from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky
 
@@ -64,14 +63,15 @@ class DenseLDL:
     D. A 2×2 block ``[[a, b], [b, c]]`` has one of each sign when ``ac − b² < 0``, else two of the sign of ``a``.
 
     Attributes:
-        ok: the factorization succeeded and A is not exactly singular; n_negative: negative eigenvalues of A
-            (−1 when not ``ok``).
+        ok: the factorization succeeded, finite, and A is not exactly singular; n_negative: negative eigenvalues
+            of A (−1 when not ``ok``).
     """
 
     def __init__(self, A: np.ndarray) -> None:
         self._ldu, self._ipiv, info = lapack.dsytrf(np.array(A, dtype=np.float64, order="F"), lower=1,
                                                     overwrite_a=1)
-        self.ok = info == 0  # > 0: an exactly zero pivot (singular: no solves); < 0: a bad argument
+        # info > 0: an exactly zero pivot (singular: no solves); < 0: a bad argument; non-finite: overflow
+        self.ok = info == 0 and bool(np.isfinite(self._ldu).all())
         self.n_negative = self._count() if self.ok else -1
 
     def _count(self) -> int:
@@ -118,7 +118,7 @@ def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | DenseLD
             return DenseCholesky(A), 0, ""
         except np.linalg.LinAlgError:  # not positive-definite to rounding: a pivoted dense LDLᵀ decides
             ldl = DenseLDL(A.toarray())
-            if ldl.ok and np.isfinite(ldl._ldu).all():
+            if ldl.ok:
                 return ldl, ldl.n_negative, ""
     try:
         lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
