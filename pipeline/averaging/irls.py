@@ -206,24 +206,11 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     rescue_stats = None
     if cfg.refine and model is not None and cfg.rescue:
-        tol = max(np.deg2rad(RESCUE_TOL_DEG), RESCUE_TOL_SCALE * model.s)
-        res = rescue_cameras(vg, R, theta, tol)
-        rescue_stats = {"tol_deg": float(np.rad2deg(tol)),
-                        "moved": [vg.names[k] for k in res.cameras], "support_before": res.support_before.tolist(),
-                        "support_after": res.support_after.tolist(), "degree": res.degree[res.cameras].tolist(),
-                        "kept": False}
-        if res.cameras.size:
-            hist: list[dict[str, float]] = []
-            again = _mixture(vg, res.R, solver, cfg, polish_rule, t0, hist)
-            rescue_stats["loglik"] = [model.loglik, again[1].loglik]  # the polish's own objective decides
-            if again[1].loglik > model.loglik:
-                R, model, trust_used, w, gamma, fits, trust = again
-                history.extend(hist)
-                rescue_stats["kept"] = True
-                logger.info("IRLS: %d camera(s) moved to the rotation their edges agree on (%s)", res.cameras.size,
-                            ", ".join(rescue_stats["moved"][:5]))
-                r = graph_residuals(vg, R)
-                theta = np.sqrt(np.einsum("ma,ma->m", r, r))
+        again, rescue_stats = _rescue(vg, R, theta, model, solver, cfg, polish_rule, t0, history)
+        if again is not None:
+            R, model, trust_used, w, gamma, fits, trust = again
+            r = graph_residuals(vg, R)
+            theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
         w = (theta <= tau).astype(np.float64)
         kept = w > 0
@@ -294,6 +281,30 @@ def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSCon
     R, model, hist, w, gamma = fits[best]
     history.extend(hist)
     return R, model, best, w, gamma, fits, trusts[best]
+
+
+def _rescue(vg: ViewGraph, R: np.ndarray, theta: np.ndarray, model: Any, solver: LaplacianSolver, cfg: IRLSConfig,
+            rule: StopRule, t0: float, history: list[dict[str, float]]) -> tuple[Any, dict[str, Any]]:
+    """The rescue after the mixture polish (module docstring): the re-polished :func:`_mixture` result when it
+    moved cameras and the polish's own likelihood is higher (its iterations appended to ``history``), else None;
+    and the rescue's stats."""
+    tol = max(np.deg2rad(RESCUE_TOL_DEG), RESCUE_TOL_SCALE * model.s)
+    res = rescue_cameras(vg, R, theta, tol)
+    stats: dict[str, Any] = {"tol_deg": float(np.rad2deg(tol)), "moved": [vg.names[k] for k in res.cameras],
+                             "support_before": res.support_before.tolist(), "support_after": res.support_after.tolist(),
+                             "degree": res.degree[res.cameras].tolist(), "kept": False}
+    if not res.cameras.size:
+        return None, stats
+    hist: list[dict[str, float]] = []
+    again = _mixture(vg, res.R, solver, cfg, rule, t0, hist)
+    stats["loglik"] = [model.loglik, again[1].loglik]  # the polish's own objective decides
+    if again[1].loglik <= model.loglik:
+        return None, stats
+    history.extend(hist)
+    stats["kept"] = True
+    logger.info("IRLS: %d camera(s) moved to the rotation their edges agree on (%s)", res.cameras.size,
+                ", ".join(stats["moved"][:5]))
+    return again, stats
 
 
 def _final_problem(lossf: Loss, cfg: IRLSConfig, tau: float | None, model: Any, trust: str | None) -> str:

@@ -56,6 +56,12 @@ DENSE_MAX_SIZE = 6000
 #: above: the whole IRLS run 0.89 s with threaded BLAS against 0.44 s with one thread; from about 1500 rows on,
 #: two threads factor faster).
 DENSE_SINGLE_THREAD_SIZE = 1500
+
+__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
+           "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals", "graph_residuals", "apply_update",
+           "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor", "DenseCholesky",
+           "SymmetricFactorizer"]
+
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (0.25 ms per threadpool_limits call, 6 µs per limit)
 
 
@@ -65,12 +71,6 @@ def _one_blas_thread() -> contextlib.AbstractContextManager[Any]:
 
         _BLAS.append(ThreadpoolController())
     return _BLAS[0].limit(limits=1, user_api="blas")
-
-__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
-           "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals",
-           "graph_residuals", "apply_update", "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor",
-           "DenseCholesky",
-           "SymmetricFactorizer"]
 
 
 def edge_residuals(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray) -> np.ndarray:

@@ -138,12 +138,10 @@ def f_ransac_chunk(tasks: list[tuple], config: CamerasConfig) -> list[dict[str, 
 
 def focal_profile_chunk(tasks: list[tuple], config: CamerasConfig) -> list[dict[str, Any]]:
     """Worker: :func:`pipeline.frontend.focal.pair_profile` of each ``(x1, x2, F, pp1, pp2, f1, f2[, ends])``
-    (``ends``: (2, 3, 4) the poses ``[R | t]`` just outside the path, NaN where there is none)."""
+    (``ends``: (2, 3, 4) the poses ``[R | t]`` just before and after the path)."""
     out = []
     for x1, x2, F, pp1, pp2, f1, f2, *rest in tasks:
-        ends = None
-        if rest:
-            ends = tuple(None if not np.all(np.isfinite(P)) else (P[:, :3], P[:, 3]) for P in rest[0])
+        ends = tuple((P[:, :3], P[:, 3]) for P in rest[0]) if rest else None
         cost, R, s2, t = fk.pair_profile(x1, x2, F, pp1, pp2, f1, f2, config.loss_px, ends=ends)
         out.append({"cost": cost, "R": R, "sigma2": s2, "t": t})
     return out

@@ -169,10 +169,15 @@ def pair_profile(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, pp1: np.ndarray,
     c2 = c_px * c_px
     before, after = ends if ends is not None else (None, None)
 
-    def refine(g: int, starts: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    def refine(g: int, starts: list[tuple[np.ndarray, np.ndarray]], decompose: bool = False) -> None:
+        """Refine point g from ``starts`` (and, with ``decompose``, from the decomposition of K2ᵀ F K1)."""
         a, b = float(f1[g]), float(f2[g])
         K1, K2 = K_from_focal(a, pp1), K_from_focal(b, pp2)
         y1, y2 = (x1 - pp1) / a, (x2 - pp2) / b
+        if decompose:
+            U, _, Vt = np.linalg.svd(K2.T @ F @ K1)
+            starts = [pose_from_essential(U @ np.diag([1.0, 1.0, 0.0]) @ Vt, y1, y2, np.ones(len(x1), bool))[:2],
+                      *starts]
         opts = {"loss_type": "CAUCHY", "loss_scale": c_px / np.sqrt(a * b), "max_iterations": iterations}
         for Rs0, ts0 in starts:
             pose0 = poselib.CameraPose()
@@ -187,12 +192,7 @@ def pair_profile(x1: np.ndarray, x2: np.ndarray, F: np.ndarray, pp1: np.ndarray,
 
     prev = before
     for g in range(G):  # forward: a 1-D sweep (tens of points); the work inside is vectorized over the matches
-        a, b = float(f1[g]), float(f2[g])
-        E = K_from_focal(b, pp2).T @ F @ K_from_focal(a, pp1)
-        U, _, Vt = np.linalg.svd(E)
-        R0, t0, _ = pose_from_essential(U @ np.diag([1.0, 1.0, 0.0]) @ Vt, (x1 - pp1) / a, (x2 - pp2) / b,
-                                        np.ones(len(x1), bool))
-        refine(g, [(R0, t0)] + ([prev] if prev is not None else []))
+        refine(g, [] if prev is None else [prev], decompose=True)
         prev = (Rs[g], ts[g])
     nxt = after
     for g in range(G - 1, -1, -1):  # backward: each point also from the next one's optimum

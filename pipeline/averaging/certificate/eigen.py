@@ -17,7 +17,7 @@ import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky
+from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky, factor_symmetric
 
 __all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX",
            "DENSE_INERTIA_MAX"]
@@ -75,17 +75,15 @@ class DenseLDL:
         self.n_negative = self._count() if self.ok else -1
 
     def _count(self) -> int:
-        ldu, ipiv = self._ldu, self._ipiv
-        n, k, neg = ldu.shape[0], 0, 0
-        while k < n:
-            if ipiv[k] > 0:  # 1×1 block (LAPACK's 1-based pivot)
-                neg += int(ldu[k, k] < 0)
-                k += 1
-            else:  # 2×2 block in rows k, k+1
-                a, b, c = ldu[k, k], ldu[k + 1, k], ldu[k + 1, k + 1]
-                neg += 1 if a * c - b * b < 0 else 2 * int(a < 0)
-                k += 2
-        return neg
+        ldu, ipiv = self._ldu, np.asarray(self._ipiv)
+        k = np.arange(ipiv.size)
+        two = ipiv < 0  # rows of 2×2 blocks (LAPACK, lower: both rows carry the same negative pivot)
+        # a run of such rows is a sequence of 2×2 blocks: each starts at an even offset from its run's first row
+        run_start = np.maximum.accumulate(np.where(two & ~np.r_[False, two[:-1]], k, 0))
+        first = np.flatnonzero(two & ((k - run_start) % 2 == 0))
+        d = np.diagonal(ldu)
+        a, b, c = d[first], ldu[first + 1, first], d[first + 1]
+        return int(np.sum(d[~two] < 0) + np.sum(np.where(a * c - b * b < 0, 1, 2 * (a < 0))))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         x, info = lapack.dsytrs(self._ldu, self._ipiv, np.asarray(b, dtype=np.float64), lower=1)
@@ -121,8 +119,7 @@ def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | DenseLD
             if ldl.ok:
                 return ldl, ldl.n_negative, ""
     try:
-        lu = sla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                      options=dict(SymmetricMode=True))
+        lu = factor_symmetric(A)
     except RuntimeError as exc:  # exactly singular
         return None, -1, f"factorization failed ({exc})"
     if not np.array_equal(lu.perm_r, lu.perm_c):
