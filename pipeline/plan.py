@@ -290,7 +290,7 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     estimate = configs["cameras"].estimate_focal  # type: ignore[attr-defined]
     if n_default:
         notes.append(f"{n_default} image(s) had no K file and no EXIF focal: " + (
-            "their focal length is estimated from the view graph (cameras stage)" if estimate else
+            "their focal length is to be estimated from the view graph (cameras stage)" if estimate else
             "default focal 1.2·max(w, h) used (cameras.estimate_focal is off)"))
     if n_exif:
         notes.append(f"{n_exif} image(s) have an EXIF focal and no K file: " + (

@@ -69,15 +69,15 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
             sub = truth_on_registered(plan.truth, p, vg)
             refs += ([sub] if sub is not None else []) + [p]
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
-    metrics["evidence"] = _evidence(plan.out, metrics["methods"], results)
+    metrics["evidence"] = _evidence(plan.out, plan.work, metrics["methods"], results)
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs)
 
 
-def _evidence(out: Path, methods: dict[str, Any], results: dict[str, dict]) -> dict[str, Any]:
-    """The view graph's flags and messages joined with each method's per-camera support and the methods'
-    disagreement ({} without a view-graph summary)."""
+def _evidence(out: Path, work: Path, methods: dict[str, Any], results: dict[str, dict]) -> dict[str, Any]:
+    """The view graph's flags and messages joined with each method's per-camera support, the methods'
+    disagreement and the images whose focal length is only a guess ({} without a view-graph summary)."""
     from pipeline.graph.stage import load_graph_summary  # noqa: PLC0415
     from pipeline.io.rotations import read_rotations  # noqa: PLC0415
 
@@ -86,7 +86,9 @@ def _evidence(out: Path, methods: dict[str, Any], results: dict[str, dict]) -> d
     except PipelineError:
         return {}
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
-    return run_evidence(graph, methods, method_disagreement(rots))
+    per_image = _intrinsics(work).get("per_image", {})
+    guessed = [n for n, v in per_image.items() if v.get("source") == "default"]
+    return run_evidence(graph, methods, method_disagreement(rots), guessed)
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,
@@ -128,6 +130,10 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
     metrics["intrinsics"] = _intrinsics(plan.work)
+    guessed = [f for f in metrics["intrinsics"].get("focal", []) if f["source"] == "default"]
+    if guessed:
+        plan.notes.append(f"{guessed[0]['n_images']} image(s) kept the default focal guess 1.2·max(w, h): nothing "
+                          "determined theirs (cameras.json: estimate); they are flagged")
     metrics["pairs"] = pairs_section(plan.work)
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)

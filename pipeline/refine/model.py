@@ -38,18 +38,22 @@ _SIMPLE_PINHOLE, _PINHOLE, _SIMPLE_RADIAL = 0, 1, 2  # COLMAP's model ids
 _MODEL_NAMES = {_SIMPLE_PINHOLE: "SIMPLE_PINHOLE", _PINHOLE: "PINHOLE", _SIMPLE_RADIAL: "SIMPLE_RADIAL"}
 
 
-def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One COLMAP camera per distinct (K, size, known): ``(camera id (N,), first image of each camera (C,))``."""
+def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray, k1: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """One COLMAP camera per distinct (K, size, known, k1): ``(camera id (N,), first image of each camera (C,))``."""
+    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
     key = np.concatenate([np.asarray(K, float).reshape(len(K), 9), np.asarray(sizes, float).reshape(-1, 2),
-                          np.asarray(known, float).reshape(-1, 1)], axis=1)
+                          np.asarray(known, float).reshape(-1, 1), k1.reshape(-1, 1)], axis=1)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
     return inverse.reshape(-1) + 1, first
 
 
-def colmap_camera(K: np.ndarray, known: bool, radial: bool = False) -> tuple[int, list[float]]:
+def colmap_camera(K: np.ndarray, known: bool, radial: bool = False, k1: float = 0.0) -> tuple[int, list[float]]:
     """COLMAP's model id and parameters of our K: PINHOLE where known; where refined, SIMPLE_PINHOLE (one focal
-    length) when K has one focal length, or with ``radial`` SIMPLE_RADIAL with k1 = 0 (one focal length and
-    the radial term that the cameras stage's undistortion left, as COLMAP's mappers model an unknown camera).
+    length) when K has one focal length, or with ``radial`` SIMPLE_RADIAL from ``k1`` (one focal length and one
+    radial term, as COLMAP's mappers model an unknown camera: k1 = 0 on the cameras stage's undistorted keypoints,
+    the stage's own k1 on the measured ones). A nonzero ``k1`` is SIMPLE_RADIAL even without ``radial`` (then held
+    constant by the bundle adjustment): the keypoints are the measured ones, and the lens must stay modelled.
 
     Refined separately, fx and fy let the bundle adjustment trade one against the rotations: on the
     templeSparseRing without K (a turntable ring, a critical motion for the focal length), fx drifted by 80%
@@ -57,12 +61,16 @@ def colmap_camera(K: np.ndarray, known: bool, radial: bool = False) -> tuple[int
     """
     p = pinhole_params(K)
     if not known and K[0, 0] == K[1, 1]:
-        return (_SIMPLE_RADIAL, [p[0], p[2], p[3], 0.0]) if radial else (_SIMPLE_PINHOLE, [p[0], p[2], p[3]])
+        if radial or k1 != 0.0:
+            return _SIMPLE_RADIAL, [p[0], p[2], p[3], float(k1)]
+        return _SIMPLE_PINHOLE, [p[0], p[2], p[3]]
+    if k1 != 0.0:
+        raise ValueError("a radial term needs an unknown camera with one focal length (SIMPLE_RADIAL)")
     return _PINHOLE, p
 
 
-def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: bool, radial: bool) -> Any:
-    model, params = colmap_camera(K, known, radial)
+def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: bool, radial: bool, k1: float) -> Any:
+    model, params = colmap_camera(K, known, radial, k1)
     cam = pc.Camera(model=_MODEL_NAMES[model], width=int(size[0]), height=int(size[1]), params=params,
                     camera_id=int(camera_id))
     cam.has_prior_focal_length = bool(known)
@@ -72,7 +80,7 @@ def _camera(pc: Any, camera_id: int, K: np.ndarray, size: np.ndarray, known: boo
 def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np.ndarray, known: np.ndarray,
                          keypoints: Sequence[np.ndarray], images: np.ndarray, edges: np.ndarray,
                          match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
-                         t_cam2_from_cam1: np.ndarray, radial: bool = False) -> Any:
+                         t_cam2_from_cam1: np.ndarray, radial: bool = False, k1: np.ndarray | None = None) -> Any:
     """A ``pycolmap.DatabaseCache`` of the images ``images`` and the given pairs (an in-memory database).
 
     Args:
@@ -81,15 +89,17 @@ def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np
         edges: (M, 2) pairs among ``images``; match_offsets (M+1,), matches (T, 2): their inlier
             keypoint indices; cam2_from_cam1 (M, 3, 3) and t_cam2_from_cam1 (M, 3): relative poses.
         radial: unknown cameras as SIMPLE_RADIAL (:func:`colmap_camera`).
+        k1: (N,) each camera's starting radial term (default 0: undistorted keypoints).
     """
-    cam_id, _ = camera_groups(K, sizes, known)
+    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
+    cam_id, _ = camera_groups(K, sizes, known, k1)
     db = pc.Database.open(":memory:")
     try:
         written: set[int] = set()
         for k in np.asarray(images, np.int64).tolist():  # one call per image: no batch writer exists
             c = int(cam_id[k])
             if c not in written:
-                cam = _camera(pc, c, K[k], sizes[k], bool(known[k]), radial)
+                cam = _camera(pc, c, K[k], sizes[k], bool(known[k]), radial, float(k1[k]))
                 db.write_camera(cam, use_camera_id=True)
                 rig = pc.Rig(rig_id=c)
                 rig.add_ref_sensor(cam.sensor_id)
@@ -191,7 +201,8 @@ def write_binary_model(folder: Path, *, camera_ids: np.ndarray, camera_models: n
 
 def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np.ndarray, known: np.ndarray,
                             keypoints: Sequence[np.ndarray], images: np.ndarray, cam_from_world: np.ndarray,
-                            tracks: Tracks, scratch: Path | None = None, radial: bool = False) -> Any:
+                            tracks: Tracks, scratch: Path | None = None, radial: bool = False,
+                            k1: np.ndarray | None = None) -> Any:
     """The reconstruction to refine: the images ``images`` registered at ``cam_from_world``, every track a point.
 
     Args:
@@ -200,12 +211,15 @@ def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes:
         cam_from_world: (N, 3, 3) starting rotations.
         scratch: folder for the temporary binary model (tagged, removed at once); default: system temp.
         radial: unknown cameras as SIMPLE_RADIAL (:func:`colmap_camera`).
+        k1: (N,) each camera's starting radial term (default 0: undistorted keypoints).
     """
     images = np.asarray(images, np.int64)
-    cam_id, first = camera_groups(K, sizes, known)
+    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
+    cam_id, first = camera_groups(K, sizes, known, k1)
     used = np.unique(cam_id[images])
     rep = first[used - 1]  # one image of each used camera
-    models, params = zip(*(colmap_camera(K[k], bool(known[k]), radial) for k in rep)) if len(rep) else ((), ())
+    models, params = zip(*(colmap_camera(K[k], bool(known[k]), radial, float(k1[k])) for k in rep)) \
+        if len(rep) else ((), ())
     pos = np.full(len(names), -1, np.int64)
     pos[images] = np.arange(len(images))
     local = Tracks(tracks.offsets, pos[tracks.image], tracks.keypoint)

@@ -23,7 +23,12 @@ constant). Each such camera has one focal length and one radial term k1 (COLMAP'
 SIMPLE_RADIAL, as its mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE),
 k1 starting at 0 on the cameras stage's undistorted keypoints (the lens that stage left:
 rendered views each with its own lens, 0.090 → 0.018° and 0.091 → 0.012°; on views without
-a lens it costs 0–25%), and, with ``principal_point: auto``, its principal
+a lens it costs 0–25%). Where the cameras stage estimated a lens, that stage undistorted
+about the image centre, while a lens is centred on the principal point; with ``lens:
+measured`` (default) the bundle adjustment takes the measured keypoints and the stage's k1
+instead, so the lens is modelled about the principal point it refines (rendered, 12 views,
+k1 = −0.08 with the principal point 15 px off the centre: 0.064° undistorted, 0.0086°
+measured). With ``principal_point: auto``, its principal
 point refined too when every such camera has ``min_principal_point_images`` images (one
 image cannot tell its principal point from its pose); the principal point is kept only
 where the final model determines it
@@ -94,6 +99,10 @@ class RefineConfig(Config):
                                                     "from 0 on the cameras stage's undistorted keypoints (the lens "
                                                     "that stage left; COLMAP's mappers model an unknown camera so), "
                                                     "off = SIMPLE_PINHOLE")
+    lens: Literal["measured", "undistorted"] = option(
+        "measured", "cameras whose lens the cameras stage estimated: measured = the measured keypoints, with COLMAP's "
+                    "SIMPLE_RADIAL from the stage's k1 (the lens about the principal point the BA refines); "
+                    "undistorted = the stage's keypoints undistorted about the image centre, k1 from 0")
     edge_filter_deg: float | None = option(5.0, "pairs farther than this from the averaged rotations are not "
                                                 "used (null: every pair)", gt=0)
     min_track_views: int = option(3, "images a track must be seen in", ge=2)
@@ -199,7 +208,8 @@ def _check_inputs(n: int, K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[
 def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray],
                      edges: np.ndarray, match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
                      t_cam2_from_cam1: np.ndarray, R_init: np.ndarray, known_K: np.ndarray | bool = True,
-                     config: RefineConfig | None = None, scratch: Path | None = None) -> RefineResult:
+                     config: RefineConfig | None = None, scratch: Path | None = None,
+                     k1: np.ndarray | None = None) -> RefineResult:
     """Refine averaged rotations with pycolmap's global positioning, bundle adjustment and retriangulation.
 
     Args:
@@ -216,6 +226,9 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         known_K: (N,) bool or one bool: intrinsics known (constant) or refined (focal).
         config: options (:class:`RefineConfig`).
         scratch: folder for the temporary binary model (default: system temp).
+        k1: (N,) COLMAP's SIMPLE_RADIAL k1 of each unknown camera whose ``keypoints`` are the measured (distorted)
+            ones, its starting value (0 or None: undistorted keypoints). Refined with ``radial: auto``, else
+            held.
     Returns:
         :class:`RefineResult`.
     """
@@ -228,6 +241,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     cam2_from_cam1, t = np.asarray(cam2_from_cam1, float), np.asarray(t_cam2_from_cam1, float)
     _check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
     known = np.broadcast_to(np.asarray(known_K, bool), (n,)).copy()
+    k1 = np.zeros(n) if k1 is None else np.where(known, 0.0, np.asarray(k1, float))
     schedule = cfg.schedule()
     warnings: list[str] = []
     times: dict[str, float] = {}
@@ -286,20 +300,20 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
         p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
         state["cache"] = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off,
-                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok], radial=radial)
+                                              p_matches, cam2_from_cam1[pair_ok], t[pair_ok], radial=radial, k1=k1)
         state["pose_graph"] = pc.PoseGraph()
         state["pose_graph"].load(state["cache"].correspondence_graph)
         tr = tracks
         if schedule["positioning_tracks_per_image"] > 0:
             tr = subset_tracks(tr, select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
         state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch,
-                                              radial=radial)
+                                              radial=radial, k1=k1)
         stats["n_points_start"] = int(state["rec"].num_points3D())
         return True, ""
 
     refine_pp = cfg.principal_point != "fixed" and not known.all()
     if refine_pp and cfg.principal_point == "auto":  # one image cannot separate its principal point from its pose
-        cam_id, _ = camera_groups(K, sizes, known)
+        cam_id, _ = camera_groups(K, sizes, known, k1)
         per_camera = np.bincount(cam_id[active & ~known])
         few = int(per_camera[per_camera > 0].min())
         if few < cfg.min_principal_point_images:
@@ -342,7 +356,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             # first without the radial term, which trades against the principal point; then with it fixed
             again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
                                      R_init, known, replace(cfg, radial="off") if radial else
-                                     replace(cfg, principal_point="fixed"), scratch)
+                                     replace(cfg, principal_point="fixed"), scratch, k1)
             msg = (f"the principal point of {len(loose)} camera(s) is not determined by the model (standard deviation "
                    f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px)" +
                    (" with a radial term: refined again without one (SIMPLE_PINHOLE)" if radial else
@@ -365,7 +379,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         loose = [cid for cid in corner if not corner[cid] <= limit[cid]]
         if loose:
             again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                     R_init, known, replace(cfg, radial="off"), scratch)
+                                     R_init, known, replace(cfg, radial="off"), scratch, k1)
             msg = (f"the radial term of {len(loose)} camera(s) is not determined by the model (its displacement at "
                    f"the image corner has a standard deviation of {max(corner[c] for c in loose):.1f} px > "
                    f"{min(limit[c] for c in loose):.1f} px): every camera refined without one")

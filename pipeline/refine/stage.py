@@ -77,19 +77,29 @@ def _known_K(sources: Sequence[str], n: int) -> np.ndarray:
     return np.array([given_source(str(s)) for s in sources], bool)
 
 
-def _intrinsics(work: Path, fs: Any) -> tuple[np.ndarray, list[np.ndarray], list[str]]:
+def _intrinsics(work: Path, fs: Any, lens: str = "measured"
+                ) -> tuple[np.ndarray, list[np.ndarray], list[str], np.ndarray]:
     """The starting intrinsics: the cameras stage's (estimated focal, undistorted keypoints), else the features'.
 
-    Returns K (N, 3, 3), the keypoints the geometry used (undistorted where the cameras
-    stage found distortion: the model's cameras are then PINHOLE in undistorted pixels)
-    and each K's source.
+    Returns K (N, 3, 3), the keypoints, each K's source and each camera's starting k1. The keypoints are those
+    the geometry used (undistorted where the cameras stage found distortion: the model's cameras are then
+    pinhole in undistorted pixels, k1 = 0), except that with ``lens="measured"`` an image whose lens the stage
+    estimated, and whose K no file gave, keeps its measured keypoints and starts from the stage's SIMPLE_RADIAL k1.
     """
-    from pipeline.frontend.camera_stage import cameras_for  # noqa: PLC0415
+    from pipeline.frontend.camera_stage import cameras_for, given_source  # noqa: PLC0415
 
+    n = len(fs.names)
     cams = cameras_for(work, fs.names)
     if cams is None:
-        return fs.K, list(fs.keypoints), list(fs.K_source)
-    return cams.K, cams.keypoints_for_geometry(fs.keypoints), list(cams.K_source)
+        return fs.K, list(fs.keypoints), list(fs.K_source), np.zeros(n)
+    kp = list(cams.keypoints_for_geometry(fs.keypoints))
+    k1 = np.zeros(n)
+    if lens == "measured":
+        for k, (m, src) in enumerate(zip(cams.models, cams.distortion_source)):
+            if (src.startswith("estimated") and m.model == "SIMPLE_RADIAL" and m.params[3] != 0.0
+                    and not given_source(cams.K_source[k])):  # a given K is held: its lens stays undone
+                k1[k], kp[k] = float(m.params[3]), np.asarray(fs.keypoints[k], np.float64)[:, :2]
+    return cams.K, kp, list(cams.K_source), k1
 
 
 def _checked_pairs(vg: Any, graph: Path | None) -> Any:
@@ -107,11 +117,14 @@ def _checked_pairs(vg: Any, graph: Path | None) -> Any:
                      stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
 
 
-def load_inputs(work: Path, rotations: Path, graph: Path | None = None) -> tuple[dict[str, Any], list[str], np.ndarray]:
+def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: str = "measured"
+                ) -> tuple[dict[str, Any], list[str], np.ndarray]:
     """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
 
     Only the pairs of the checked view graph ``graph`` (OUT/viewgraph.npz: what the view-graph
     stage kept, so no pair its checks rejected) make tracks; every two-view BA pair without it.
+
+    ``lens``: :class:`~pipeline.refine.refine.RefineConfig`'s ``lens`` (which keypoints, which starting k1).
 
     Returns:
         the inputs (over every image of the features; NaN rotations for images the file
@@ -147,12 +160,12 @@ def load_inputs(work: Path, rotations: Path, graph: Path | None = None) -> tuple
                              f"{[nm for nm, c in zip(names, cams) if c < 0][:3]}); re-run the averaging")
     R_init = np.full((n, 3, 3), np.nan)
     R_init[cams] = R
-    K, keypoints, sources = _intrinsics(work, fs)
+    K, keypoints, sources, k1 = _intrinsics(work, fs, lens)
     return {"names": list(fs.names), "K": K, "sizes": fs.sizes, "keypoints": keypoints, "edges": vg.edges,
             "match_offsets": offsets,
             "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
             "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
-            "known_K": _known_K(sources, n)}, list(names), cams
+            "known_K": _known_K(sources, n), "k1": k1}, list(names), cams
 
 
 class RefineStage(Stage[RefineConfig]):
@@ -202,7 +215,8 @@ class RefineStage(Stage[RefineConfig]):
 
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
         logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
-        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH)
+        inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH,
+                                                 self.config.lens)
         self.known_K = inputs["known_K"]
         res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
         paths: list[Path] = []

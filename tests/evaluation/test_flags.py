@@ -1,0 +1,56 @@
+"""The run's evidence: cameras the methods disagree on, and cameras whose focal length is only a guess, are flagged."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.evaluation.flags import DISAGREEMENT_DEG, GUESSED_FOCAL, method_disagreement, run_evidence
+from pipeline.run import main
+
+
+def _graph(names: list[str]) -> dict:
+    return {"names": names, "flags": {}, "messages": [], "left_out": {}, "pairs": [], "n_cycles": 3}
+
+
+def test_a_camera_the_methods_disagree_on_by_more_than_a_degree_is_flagged() -> None:
+    rng = np.random.default_rng(0)
+    names = [f"c{k}" for k in range(6)]
+    R = so3.exp(rng.normal(size=(6, 3)))
+    other = R.copy()
+    other[2] = so3.exp(np.deg2rad([0.0, 1.5, 0.0])) @ R[2]  # 1.5° off: one of the two is wrong there
+    other[4] = so3.exp(np.deg2rad([0.0, 0.0, 0.5])) @ R[4]  # 0.5°: within what an unflagged camera claims
+    dis = method_disagreement({"a": (names, R), "b": (names, other)})
+    assert dis["c2"][0] == pytest.approx(1.5, abs=0.05) and dis["c4"][0] == pytest.approx(0.5, abs=0.05)
+    ev = run_evidence(_graph(names), {}, dis)
+    assert DISAGREEMENT_DEG == 1.0 and set(ev["flags"]) == {"c2"}
+    assert "disagree by 1.5°" in ev["flags"]["c2"][0] and ev["cameras"]["c4"]["status"] == "checked"
+
+
+def test_a_guessed_focal_flags_its_camera() -> None:
+    ev = run_evidence(_graph(["a", "b", "c"]), {}, {}, guessed_focal=["b", "not-in-the-graph"])
+    assert ev["flags"] == {"b": [GUESSED_FOCAL]} and ev["n_flagged"] == 1
+    assert ev["cameras"]["b"]["status"] == "flagged" and "not-in-the-graph" not in ev["cameras"]
+
+
+@pytest.mark.slow
+def test_a_run_whose_focal_lengths_stay_guessed_flags_every_camera(tiny_scene: Path, tiny_config: Path,
+                                                                    tmp_path: Path) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    for p in tiny_scene.glob("*.png"):  # no cameras.txt beside them, and PNGs carry no EXIF
+        shutil.copy(p, images / p.name)
+    cfg = tmp_path / "guess.yaml"
+    cfg.write_text(tiny_config.read_text() + "cameras:\n  estimate_focal: false\n")
+    m = json.loads(main(images, tmp_path / "out", cfg, gt=tiny_scene / "cameras.txt", reference=False,
+                        quiet=True).read_text())
+    assert [f["source"] for f in m["intrinsics"]["focal"]] == ["default"]
+    ev = m["evidence"]
+    assert ev["n_flagged"] == len(ev["cameras"]) > 0
+    assert all(GUESSED_FOCAL in c["flags"] for c in ev["cameras"].values())
+    assert any("kept the default focal guess" in n for n in m["notes"])
