@@ -23,18 +23,15 @@ constant). Each such camera has one focal length and one radial term k1 (COLMAP'
 SIMPLE_RADIAL, as its mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE),
 k1 starting at 0 on the cameras stage's undistorted keypoints (the lens that stage left:
 rendered views each with its own lens, 0.090 → 0.018° and 0.091 → 0.012°; on views without
-a lens it costs 0–25%). Where the cameras stage estimated a lens, that stage undistorted
-about the image centre, while a lens is centred on the principal point; with ``lens:
-measured`` (default) the bundle adjustment takes the measured keypoints and the stage's k1
-instead, so the lens is modelled about the principal point it refines (rendered, 12 views,
-k1 = −0.08 with the principal point 15 px off the centre: 0.064° undistorted, 0.0086°
-measured). With ``principal_point: auto``, its principal
-point refined too when every such camera has ``min_principal_point_images`` images (one
-image cannot tell its principal point from its pose); the principal point is kept only
-where the final model determines it
-(its standard deviation, from pycolmap's BA covariance, at most ``max_principal_point_sd``
-of the image's longest side); otherwise the refinement runs again with it fixed at the
-image centre, and the warnings say so. Measured with the true rotations known
+a lens it costs 0–25%). Where the cameras stage estimated a lens (undistorting about the
+image centre, while a lens is centred on the principal point), ``lens: measured`` (default)
+gives BA the measured keypoints and the stage's k1, so the lens is modelled about the
+principal point it refines (rendered, k1 = −0.08 centred 15 px off: 0.064° → 0.0086°).
+With ``principal_point: auto``, its principal point is refined too when every such camera
+has ``min_principal_point_images`` images (one image cannot tell its principal point from
+its pose), and kept only where the final model determines it (its standard deviation, from
+pycolmap's BA covariance, at most ``max_principal_point_sd`` of the image's longest side);
+otherwise the refinement runs again with it fixed at the image centre, and says so. Measured with the true rotations known
 (``notes/issue-13.md``): fountain-P11 without K, median error 0.195° with the principal
 point at the centre (the truth's is 15 and 17 px away), 0.047° refined (found within 3 px);
 templeSparseRing without K 0.666° → 0.259°.
