@@ -15,14 +15,14 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "GUESSED_FOCAL", "method_disagreement", "run_evidence", "evidence_markdown",
-           "evidence_console"]
+__all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "GUESSED_FOCAL", "method_disagreement", "run_evidence",
+           "evidence_markdown", "evidence_console"]
 
 #: Methods that disagree by more than this on a camera (degrees) flag it: at least one of them is wrong there by
 #: half as much or more, so the camera's rotation is not known to this accuracy. It is the accuracy an unflagged
-#: camera claims (issue 13, item 4: no reported camera more than 1° off). On a low-texture turntable the isotropic
-#: methods (IRLS-ℓ½, colmap-ra) are 1.0–2.2° off exactly where they disagree with IRLS-H by 1.0–2.3°; on fountain
-#: and castle no camera's methods disagree by more than 0.7°.
+#: camera claims (issue 13, item 4: no reported camera more than 1° off). On a low-texture turntable the
+#: isotropic methods (IRLS-ℓ½, colmap-ra) are 1.0–2.2° off exactly where they disagree with IRLS-H by 1.0–2.3°;
+#: on fountain and castle no camera's methods disagree by more than 0.7°.
 DISAGREEMENT_DEG = 1.0
 
 CERTIFICATE_NOTE = ("a certificate proves that a method's rotations are optimal for its cost on the pairs it used; "

@@ -31,10 +31,9 @@ With ``principal_point: auto``, its principal point is refined too when every su
 has ``min_principal_point_images`` images (one image cannot tell its principal point from
 its pose), and kept only where the final model determines it (its standard deviation, from
 pycolmap's BA covariance, at most ``max_principal_point_sd`` of the image's longest side);
-otherwise the refinement runs again with it fixed at the image centre, and says so. Measured with the true rotations known
-(``notes/issue-13.md``): fountain-P11 without K, median error 0.195° with the principal
-point at the centre (the truth's is 15 and 17 px away), 0.047° refined (found within 3 px);
-templeSparseRing without K 0.666° → 0.259°.
+otherwise the refinement runs again with it fixed at the image centre, and says so. Measured
+(``notes/issue-13.md``): fountain-P11 without K 0.195° with the principal point at the centre
+(the truth's is 15 and 17 px away), 0.047° refined; templeSparseRing 0.666° → 0.259°.
 
 It never raises on a pycolmap failure: the status says ``failed`` and the averaged
 rotations are returned. Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``,
@@ -224,8 +223,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         config: options (:class:`RefineConfig`).
         scratch: folder for the temporary binary model (default: system temp).
         k1: (N,) COLMAP's SIMPLE_RADIAL k1 of each unknown camera whose ``keypoints`` are the measured (distorted)
-            ones, its starting value (0 or None: undistorted keypoints). Refined with ``radial: auto``, else
-            held.
+            ones, its starting value (0 or None: undistorted keypoints; a known camera must have 0). Refined with
+            ``radial: auto``, else held.
     Returns:
         :class:`RefineResult`.
     """
@@ -238,7 +237,9 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     cam2_from_cam1, t = np.asarray(cam2_from_cam1, float), np.asarray(t_cam2_from_cam1, float)
     _check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
     known = np.broadcast_to(np.asarray(known_K, bool), (n,)).copy()
-    k1 = np.zeros(n) if k1 is None else np.where(known, 0.0, np.asarray(k1, float))
+    k1 = np.zeros(n) if k1 is None else np.asarray(k1, float)
+    if np.any(known & (k1 != 0.0)):  # its keypoints would be measured ones, and a known camera has no lens here
+        raise ValueError("a radial term k1 is given for a camera whose K is known; undistort its keypoints instead")
     schedule = cfg.schedule()
     warnings: list[str] = []
     times: dict[str, float] = {}

@@ -67,3 +67,13 @@ def test_the_camera_model_keeps_a_measured_lens_and_refuses_one_it_cannot_hold()
     ids, first = camera_groups(np.stack([K, K, K]), np.array([[640, 480]] * 3), np.zeros(3, bool),
                                np.array([0.0, -0.1, 0.0]))
     assert ids[0] == ids[2] != ids[1] and len(first) == 2
+
+
+def test_a_radial_term_for_a_known_camera_is_refused() -> None:
+    from pipeline.refine.refine import refine_rotations
+
+    K = np.array([[[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]] * 2)
+    with pytest.raises(ValueError, match="K is known"):
+        refine_rotations(["a", "b"], K, np.array([[640, 480]] * 2), [np.zeros((0, 2))] * 2, np.zeros((0, 2), int),
+                         np.zeros(1, int), np.zeros((0, 2), int), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+                         np.stack([np.eye(3)] * 2), known_K=True, k1=np.array([0.0, -0.1]))
