@@ -24,7 +24,7 @@
 3. **A lens**: the rendered scene of ``tests/test_run_intrinsics.py`` (8 views, 640×480,
    SIMPLE_RADIAL k1 = −0.15) and its k1 = 0 twin through the same resampling: the
    errors with the distortion ignored, read from a COLMAP cameras file, and estimated.
-4. **A lens off the image centre** (``lens-centre``): rendered 12-view scenes (1024×768, f = 900 px)
+4. **A lens off the image centre** (``lens-centre``): rendered scenes of 8–12 views (1024×768, f = 900 px)
    through a SIMPLE_RADIAL lens centred on a principal point 0–24 px from the image centre, run
    without K, file or EXIF (focal and k1 estimated); the refinement with ``refine.lens: measured``
    (default) and ``undistorted`` on the same front end, scored against the truth.
@@ -200,24 +200,28 @@ def lens_rows(root: Path) -> dict:
 
 
 # ------------------------------------------------------------ lens off the centre
-LENS_CENTRE = ((0, -0.08, (12.0, 9.0)), (1, -0.08, (0.0, 0.0)), (2, -0.05, (-20.0, 14.0)), (3, -0.08, (0.0, 0.0)),
-               (4, -0.08, (0.0, 0.0)), (5, -0.08, (8.0, -6.0)))
+#: (seed, k1, lens centre from the image centre (px), views, arc (degrees)): 12 views on an 80° arc, and fewer
+#: views on narrower arcs (like fountain-P11's 11 frontal views), where a principal point is harder to determine
+LENS_CENTRE = ((0, -0.08, (12.0, 9.0), 12, 80.0), (1, -0.08, (0.0, 0.0), 12, 80.0), (2, -0.05, (-20.0, 14.0), 12, 80.0),
+               (3, -0.08, (0.0, 0.0), 12, 80.0), (4, -0.08, (0.0, 0.0), 12, 80.0), (5, -0.08, (8.0, -6.0), 12, 80.0),
+               (0, -0.08, (10.0, -8.0), 8, 40.0), (1, -0.08, (-12.0, 10.0), 8, 40.0), (2, -0.08, (10.0, -8.0), 11, 30.0))
 
 
 def lens_centre_rows(root: Path) -> list[dict]:
-    """Item 4 of the docstring: (seed, k1, principal point offset) of :data:`LENS_CENTRE`, each refined both ways."""
+    """Item 4 of the docstring: the scenes of :data:`LENS_CENTRE`, each refined both ways."""
     from pipeline.run import main  # noqa: PLC0415
     from pipeline.synthetic.distort import render_distorted_scene  # noqa: PLC0415
     from pipeline.synthetic.render import SceneConfig  # noqa: PLC0415
 
-    cfg = SceneConfig(width=1024, height=768, focal=900.0, noise_sigma=1.0, n_views=12)
     rows = []
-    for seed, k1, off in LENS_CENTRE:
-        d = root / f"s{seed}"
+    for seed, k1, off, n_views, arc in LENS_CENTRE:
+        cfg = SceneConfig(width=1024, height=768, focal=900.0, noise_sigma=1.0, n_views=n_views, arc_deg=arc)
+        d = root / (f"s{seed}" if (n_views, arc) == (12, 80.0) else f"s{seed}_n{n_views}_a{arc:g}")
         if not (d / "scene" / "lens.txt").exists():
             render_distorted_scene(cfg.n_views, seed, d / "scene", k1, config=cfg, principal_offset=off)
         images_only(d / "scene", d / "images")
-        row: dict = {"seed": seed, "k1": k1, "principal_offset_px": list(off), "refined_median_deg": {}}
+        row: dict = {"seed": seed, "k1": k1, "principal_offset_px": list(off), "n_views": n_views, "arc_deg": arc,
+                     "refined_median_deg": {}}
         for lens in ("measured", "undistorted"):
             y = d / f"{lens}.yaml"
             y.write_text(f"run:\n  plots: false\n  methods: [irls-h]\nrefine:\n  lens: {lens}\n")
@@ -231,8 +235,9 @@ def lens_centre_rows(root: Path) -> list[dict]:
         row["averaged_median_deg"] = m["methods"]["irls-h-l0.5"]["references"]["truth"]["median_deg"]
         row["true_principal_point_px"] = [(cfg.width - 1) / 2 + off[0], (cfg.height - 1) / 2 + off[1]]
         r = row["refined_median_deg"]
-        print(f"lens-centre seed {seed} k1 {k1:+.2f} offset {off}: refined measured {r['measured']:.4f}°, "
-              f"undistorted {r['undistorted']:.4f}° (averaged {row['averaged_median_deg']:.4f}°)", flush=True)
+        print(f"lens-centre {n_views} views, {arc:g}° arc, seed {seed}, k1 {k1:+.2f}, offset {off}: refined "
+              f"measured {r['measured']:.4f}°, undistorted {r['undistorted']:.4f}° "
+              f"(averaged {row['averaged_median_deg']:.4f}°)", flush=True)
         rows.append(row)
     return rows
 
