@@ -64,7 +64,8 @@ def method_disagreement(rotations: dict[str, tuple[list[str], np.ndarray]]) -> d
 
 #: The flag of an image whose focal length is only the default guess (no K file, no EXIF, no estimate).
 GUESSED_FOCAL = ("its focal length is only the default guess 1.2·max(w, h) (no K file, no EXIF, and the view graph "
-                 "did not determine it): a focal 10% off bends its rotation by degrees")
+                 "did not determine it): the averaged rotations rest on it, and a focal 10% off bends them by degrees "
+                 "(the refinement estimates its own)")
 
 
 def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
