@@ -42,12 +42,14 @@ def _intrinsics(work: Path) -> dict[str, Any]:
 
 @dataclass
 class RunEvaluation:
-    """The evaluation of a run: metrics, per-camera and per-edge errors, and the references used."""
+    """The evaluation of a run: metrics, per-camera and per-edge errors, the references used, and the cameras
+    stage's summary (:func:`_intrinsics`, read once for the evidence, the report and metrics.json)."""
 
     metrics: dict[str, Any]
     camera_errors: dict[str, Any]
     edge_errors: dict[str, Any]
     refs: list[Reference]
+    intrinsics: dict[str, Any]
 
 
 def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Reference | list[Reference] | None
@@ -69,13 +71,15 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
             sub = truth_on_registered(plan.truth, p, vg)
             refs += ([sub] if sub is not None else []) + [p]
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
-    metrics["evidence"] = _evidence(plan.out, plan.work, metrics["methods"], results)
+    intrinsics = _intrinsics(plan.work)
+    metrics["evidence"] = _evidence(plan.out, intrinsics, metrics["methods"], results)
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
-    return RunEvaluation(metrics, cam_err, edge_err, refs)
+    return RunEvaluation(metrics, cam_err, edge_err, refs, intrinsics)
 
 
-def _evidence(out: Path, work: Path, methods: dict[str, Any], results: dict[str, dict]) -> dict[str, Any]:
+def _evidence(out: Path, intrinsics: dict[str, Any], methods: dict[str, Any], results: dict[str, dict]
+              ) -> dict[str, Any]:
     """The view graph's flags and messages joined with each method's per-camera support, the methods'
     disagreement and the images whose focal length is only a guess ({} without a view-graph summary)."""
     from pipeline.graph.stage import load_graph_summary  # noqa: PLC0415
@@ -86,8 +90,7 @@ def _evidence(out: Path, work: Path, methods: dict[str, Any], results: dict[str,
     except PipelineError:
         return {}
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
-    per_image = _intrinsics(work).get("per_image", {})
-    guessed = [n for n, v in per_image.items() if v.get("source") == "default"]
+    guessed = [n for n, v in intrinsics.get("per_image", {}).items() if v.get("source") == "default"]
     return run_evidence(graph, methods, method_disagreement(rots), guessed)
 
 
@@ -101,7 +104,7 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     stages = {k + (" (reused)" if runner.reused.get(k) else ""): v for k, v in runner.times.items()}
     data = report_data(metrics, refs, ev.camera_errors, ev.edge_errors, histories, vg, plan.notes, stages,
                        f"Rotations of {plan.images}", plan.run.plots)
-    data.intrinsics = _intrinsics(plan.work)
+    data.intrinsics = ev.intrinsics
     return write_report(plan.out, data)
 
 
@@ -129,7 +132,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "n_edges": vg.n_edges, "left_out": list(left_out), "left_out_why": left_out,
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
-    metrics["intrinsics"] = _intrinsics(plan.work)
+    metrics["intrinsics"] = ev.intrinsics
     guessed = [f for f in metrics["intrinsics"].get("focal", []) if f["source"] == "default"]
     if guessed:
         plan.notes.append(f"{guessed[0]['n_images']} image(s) kept the default focal guess 1.2·max(w, h): nothing "

@@ -97,8 +97,9 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
         if deg > DISAGREEMENT_DEG:
             flags.setdefault(n, []).append(f"the methods disagree by {deg:.1f}° on it ({which}): at least one is "
                                            "wrong there")
+    in_graph = set(graph.get("names", []))
     for n in guessed_focal or []:
-        if n in graph.get("names", []):
+        if n in in_graph:
             flags.setdefault(n, []).append(GUESSED_FOCAL)
     cameras: dict[str, dict[str, Any]] = {}
     for n in graph.get("names", []):

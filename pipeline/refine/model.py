@@ -30,7 +30,7 @@ from pipeline.core.atomic import TMP_TAG
 from pipeline.reference.database import COLMAP_PIXEL_OFFSET, pinhole_params
 from pipeline.refine.tracks import Tracks
 
-__all__ = ["camera_groups", "correspondence_cache", "write_binary_model", "starting_reconstruction",
+__all__ = ["camera_groups", "radial_terms", "correspondence_cache", "write_binary_model", "starting_reconstruction",
            "model_rotations", "INVALID_POINT3D_ID"]
 
 INVALID_POINT3D_ID = np.iinfo(np.uint64).max  # COLMAP's kInvalidPoint3DId
@@ -38,10 +38,15 @@ _SIMPLE_PINHOLE, _PINHOLE, _SIMPLE_RADIAL = 0, 1, 2  # COLMAP's model ids
 _MODEL_NAMES = {_SIMPLE_PINHOLE: "SIMPLE_PINHOLE", _PINHOLE: "PINHOLE", _SIMPLE_RADIAL: "SIMPLE_RADIAL"}
 
 
+def radial_terms(n: int, k1: np.ndarray | None) -> np.ndarray:
+    """(n,) starting radial terms: ``k1``, or 0 for every camera (undistorted keypoints)."""
+    return np.zeros(n) if k1 is None else np.asarray(k1, float)
+
+
 def camera_groups(K: np.ndarray, sizes: np.ndarray, known: np.ndarray, k1: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """One COLMAP camera per distinct (K, size, known, k1): ``(camera id (N,), first image of each camera (C,))``."""
-    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
+    k1 = radial_terms(len(K), k1)
     key = np.concatenate([np.asarray(K, float).reshape(len(K), 9), np.asarray(sizes, float).reshape(-1, 2),
                           np.asarray(known, float).reshape(-1, 1), k1.reshape(-1, 1)], axis=1)
     _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
@@ -91,7 +96,7 @@ def correspondence_cache(pc: Any, names: Sequence[str], K: np.ndarray, sizes: np
         radial: unknown cameras as SIMPLE_RADIAL (:func:`colmap_camera`).
         k1: (N,) each camera's starting radial term (default 0: undistorted keypoints).
     """
-    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
+    k1 = radial_terms(len(K), k1)
     cam_id, _ = camera_groups(K, sizes, known, k1)
     db = pc.Database.open(":memory:")
     try:
@@ -214,7 +219,7 @@ def starting_reconstruction(pc: Any, names: Sequence[str], K: np.ndarray, sizes:
         k1: (N,) each camera's starting radial term (default 0: undistorted keypoints).
     """
     images = np.asarray(images, np.int64)
-    k1 = np.zeros(len(K)) if k1 is None else np.asarray(k1, float)
+    k1 = radial_terms(len(K), k1)
     cam_id, first = camera_groups(K, sizes, known, k1)
     used = np.unique(cam_id[images])
     rep = first[used - 1]  # one image of each used camera

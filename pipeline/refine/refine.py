@@ -57,7 +57,8 @@ from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
 from pipeline.refine.covariance import camera_covariances, principal_point_sd, radial_corner_sd, rotation_covariance
-from pipeline.refine.model import camera_groups, correspondence_cache, model_rotations, starting_reconstruction
+from pipeline.refine.model import (camera_groups, correspondence_cache, model_rotations, radial_terms,
+                                   starting_reconstruction)
 from pipeline.refine.tracks import build_tracks, filter_edges, restrict_tracks, select_matches, select_tracks, \
     subset_tracks
 
@@ -237,7 +238,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     cam2_from_cam1, t = np.asarray(cam2_from_cam1, float), np.asarray(t_cam2_from_cam1, float)
     _check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
     known = np.broadcast_to(np.asarray(known_K, bool), (n,)).copy()
-    k1 = np.zeros(n) if k1 is None else np.asarray(k1, float)
+    k1 = radial_terms(n, k1)
     if np.any(known & (k1 != 0.0)):  # its keypoints would be measured ones, and a known camera has no lens here
         raise ValueError("a radial term k1 is given for a camera whose K is known; undistort its keypoints instead")
     schedule = cfg.schedule()
