@@ -321,3 +321,26 @@ def test_keypoints_are_unbiased_at_known_blob_centres():
     d = xy[:, None, :] - centres[None]
     near = d[np.arange(len(xy)), np.argmin(np.linalg.norm(d, axis=2), axis=1)]
     assert np.abs(np.median(near[np.linalg.norm(near, axis=1) < 1.0], axis=0)).max() > 0.1
+
+
+def test_an_exif_rotated_photo_is_read_in_its_stored_frame_as_colmap_reads_it(tmp_path):
+    """A phone photo stored landscape with EXIF Orientation 6 (show rotated 90°): COLMAP/pycolmap read the stored
+    pixels, so our cameras must too, or every rotation differs from the peers' and a COLMAP-made truth by a 90° roll.
+    (OpenCV's IMREAD_GRAYSCALE would apply the tag: this test fails with it.)"""
+    from PIL import Image
+    import pycolmap
+
+    from pipeline.frontend.images import image_size, read_gray
+
+    pixels = (np.random.default_rng(0).random((120, 200)) * 255).astype(np.uint8)
+    im = Image.fromarray(pixels)
+    exif = im.getexif()
+    exif[0x0112] = 6  # Orientation: rotate 90° clockwise to display
+    path = tmp_path / "portrait.jpg"
+    im.save(path, exif=exif.tobytes(), quality=95)
+    img, why = read_gray(path)
+    assert why == "" and img.shape == (120, 200)
+    assert image_size(path) == (200, 120)
+    bitmap = pycolmap.Bitmap.read(str(path), as_rgb=False)
+    assert (bitmap.width, bitmap.height) == (200, 120)
+    assert np.abs(img.astype(int) - pixels.astype(int)).mean() < 3  # the same pixels, not a transpose
