@@ -19,13 +19,18 @@ images) in a child process, and this script reads its ``metrics.json``:
   reuses plus its own stage, and its error against the truth is pycolmap's median error, on the images it
   registered; ours is given on all N and on those same images (``error_ratio_same_images``). With
   ``--pycolmap-own-sizes`` pycolmap's own path (its SIFT, exhaustive matching, mapping: what
-  ``run.py`` runs by default as the reference) is timed as well, on a copy of the run.
+  ``run.py`` runs by default as the reference) is timed as well, on a copy of the run;
+- **the pipeline's product** (acceptance 1 again): at ``--refine-sizes`` the refinement that ``run.py`` runs by
+  default (``python -m pipeline.refine --out RUN``: pycolmap's global positioning and bundle adjustment started
+  from the recommended averaging) is run on the finished retrieval run and, where there is one, on the exhaustive
+  run; their median errors and ratio are recorded (``refined``).
 
 Scenes, feature caches and runs live in ``--work`` (outside git; re-runs reuse them: the
 exhaustive run starts from the retrieval run's features). Usage::
 
     OMP_WAIT_POLICY=PASSIVE python benchmarks/scale.py [--layouts street ring grid] [--sizes 100 200 300]
-        [--work /work/scratch/scale] [--exhaustive-sizes 100] [--reference-sizes 200] [--json PATH]
+        [--work /work/scratch/scale] [--exhaustive-sizes 100] [--reference-sizes 200] [--refine-sizes 300]
+        [--json PATH]
 
 Prints a table and writes ``benchmarks/results/scale.json`` (merged with the rows already there).
 """
@@ -174,6 +179,44 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, 
     return row
 
 
+def refined(work: Path, layout: str, n: int) -> dict:
+    """The refinement (``run.py``'s default last step) of the finished retrieval and exhaustive runs of a scene:
+    its median error against the truth, each, and their ratio. Runs ``python -m pipeline.refine`` in a child
+    process (a re-run reuses a finished refinement)."""
+    scene, runs = work / "scenes" / f"{layout}-{n}", work / "runs"
+    truth = read_reference(scene / "cameras.txt")
+    out: dict = {}
+    for kind, run in (("retrieval", runs / f"{layout}-{n}"), ("exhaustive", runs / f"{layout}-{n}-exhaustive")):
+        if not (run / "metrics.json").is_file():
+            continue
+        t0 = time.perf_counter()
+        with open(runs / f"{run.name}-refine.log", "w") as f:
+            subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(run), "-q"], stdout=f,
+                           stderr=subprocess.STDOUT, check=True)
+        wall = time.perf_counter() - t0
+        label = next(iter(sorted((run / "rotations").glob("*+refine.txt")))).stem
+        est = read_reference(run / "rotations" / f"{label}.txt")
+        R, mask = match_reference(est.names, truth.names, truth.R)
+        rec = json.loads((run / "rotations" / f"{label}.json").read_text())
+        out[kind] = {"label": label, "median_deg": float(np.nanmedian(rotation_errors_deg(est.R, R, mask))),
+                     "wall_s": wall, "times_s": _find(rec, "times")}
+    if len(out) == 2:
+        out["error_ratio_retrieval"] = out["retrieval"]["median_deg"] / out["exhaustive"]["median_deg"]
+    return out
+
+
+def _find(d: object, key: str) -> object:
+    """The first value under ``key`` anywhere in a nested dict (None if absent)."""
+    if isinstance(d, dict):
+        if key in d:
+            return d[key]
+        for v in d.values():
+            got = _find(v, key)
+            if got is not None:
+                return got
+    return None
+
+
 def summarize(rows: list[dict]) -> dict:
     """Acceptance figures from the rows: recall/fraction, error ratios, growth per layout."""
     out: dict = {"growth": {}}
@@ -214,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference-sizes", nargs="*", type=int, default=[200])
     p.add_argument("--pycolmap-own-sizes", nargs="*", type=int, default=[],
                    help="also time pycolmap's own path (its SIFT + exhaustive matching + mapping) at these N")
+    p.add_argument("--refine-sizes", nargs="*", type=int, default=[],
+                   help="also refine the finished runs at these N (the pipeline's product) and compare them")
     p.add_argument("--fresh", action="store_true", help="remove the runs of these scenes first (times every stage)")
     p.add_argument("--only-pycolmap-own", action="store_true", help="keep the rows already in --json; add pycolmap's own path")
     p.add_argument("--rescore", action="store_true", help="run nothing: add the same-images comparison with "
@@ -241,6 +286,12 @@ def main(argv: list[str] | None = None) -> int:
                 rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes, a.fresh)
             if n in a.pycolmap_own_sizes:
                 rows[(lay, n)]["pycolmap_own"] = pycolmap_own(a.work, lay, n, rows[(lay, n)])
+            if n in a.refine_sizes:
+                rows[(lay, n)]["refined"] = ref = refined(a.work, lay, n)
+                print(f"refined {lay}-{n}: " + ", ".join(f"{k} {v['label']} {v['median_deg']:.4f}°"
+                                                         for k, v in ref.items() if isinstance(v, dict))
+                      + (f", ratio {ref['error_ratio_retrieval']:.2f}" if "error_ratio_retrieval" in ref else ""),
+                      flush=True)
             res = {"rows": list(rows.values()), "summary": summarize(list(rows.values())),
                    "command": "python benchmarks/scale.py " + " ".join(sys.argv[1:] if argv is None else argv),
                    "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}}
