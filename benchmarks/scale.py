@@ -194,11 +194,13 @@ def refined(work: Path, layout: str, n: int) -> dict:
             subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(run), "-q"], stdout=f,
                            stderr=subprocess.STDOUT, check=True)
         wall = time.perf_counter() - t0
-        label = next(iter(sorted((run / "rotations").glob("*+refine.txt")))).stem
+        record = json.loads((run / "refine.record.json").read_text())
+        label, status = _find(record, "label"), _find(record, "status")
         est = read_reference(run / "rotations" / f"{label}.txt")
         R, mask = match_reference(est.names, truth.names, truth.R)
         rec = json.loads((run / "rotations" / f"{label}.json").read_text())
-        out[kind] = {"label": label, "median_deg": float(np.nanmedian(rotation_errors_deg(est.R, R, mask))),
+        out[kind] = {"label": label, "status": status,
+                     "median_deg": float(np.nanmedian(rotation_errors_deg(est.R, R, mask))),
                      "wall_s": wall, "times_s": _find(rec, "times")}
     if len(out) == 2:
         out["error_ratio_retrieval"] = out["retrieval"]["median_deg"] / out["exhaustive"]["median_deg"]
