@@ -43,6 +43,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.core import so3  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
 from pipeline.evaluation.metrics import edge_errors_deg, rotation_errors_deg  # noqa: E402
@@ -137,18 +138,21 @@ def _pycolmap_verified(out: Path, truth, min_inliers: int = 15) -> dict | None:
         cameras = {c.camera_id: c for c in db.read_all_cameras()}
         ref = dict(zip(truth.names, truth.R))
         pair_ids, geoms = db.read_two_view_geometries()
-        errors = {}
+        errors, keypoints = {}, {}
         for pid, g in zip(pair_ids, geoms):  # one pose per pair: a few dozen, not a hot path
             if len(g.inlier_matches) < min_inliers:
                 continue
             a, b = (images[i] for i in pycolmap.pair_id_to_image_pair(pid))
-            pts = [np.asarray(db.read_keypoints(im.image_id), np.float64)[:, :2] for im in (a, b)]
+            for im in (a, b):  # each image's keypoints read once
+                if im.image_id not in keypoints:
+                    keypoints[im.image_id] = np.asarray(db.read_keypoints(im.image_id), np.float64)[:, :2]
+            pts = [keypoints[a.image_id], keypoints[b.image_id]]
             ok = pycolmap.estimate_two_view_geometry_pose(cameras[a.camera_id], pts[0], cameras[b.camera_id], pts[1], g)
             if not ok or g.cam2_from_cam1 is None or a.name not in ref or b.name not in ref:
                 errors[f"{a.name} {b.name}"] = None
                 continue
-            d = g.cam2_from_cam1.rotation.matrix() @ (ref[b.name] @ ref[a.name].T).T
-            errors[f"{a.name} {b.name}"] = float(np.degrees(np.arccos(np.clip((np.trace(d) - 1) / 2, -1, 1))))
+            errors[f"{a.name} {b.name}"] = float(np.degrees(so3.angle_between(g.cam2_from_cam1.rotation.matrix(),
+                                                                             ref[b.name] @ ref[a.name].T)))
     finally:
         db.close()
     wrong = {k: round(e, 2) for k, e in errors.items() if e is None or e > 5}

@@ -194,29 +194,16 @@ def refined(work: Path, layout: str, n: int) -> dict:
             subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(run), "-q"], stdout=f,
                            stderr=subprocess.STDOUT, check=True)
         wall = time.perf_counter() - t0
-        record = json.loads((run / "refine.record.json").read_text())
-        label, status = _find(record, "label"), _find(record, "status")
+        summary = json.loads((run / "refine.record.json").read_text())["summary"]
+        label = summary["label"]
         est = read_reference(run / "rotations" / f"{label}.txt")
         R, mask = match_reference(est.names, truth.names, truth.R)
-        rec = json.loads((run / "rotations" / f"{label}.json").read_text())
-        out[kind] = {"label": label, "status": status,
-                     "median_deg": float(np.nanmedian(rotation_errors_deg(est.R, R, mask))),
-                     "wall_s": wall, "times_s": _find(rec, "times")}
+        out[kind] = {"label": label, "status": summary["status"],
+                     "median_deg": float(np.nanmedian(rotation_errors_deg(est.R, R, mask))), "wall_s": wall,
+                     "times_s": json.loads((run / "rotations" / f"{label}.json").read_text())["times"]}
     if len(out) == 2:
         out["error_ratio_retrieval"] = out["retrieval"]["median_deg"] / out["exhaustive"]["median_deg"]
     return out
-
-
-def _find(d: object, key: str) -> object:
-    """The first value under ``key`` anywhere in a nested dict (None if absent)."""
-    if isinstance(d, dict):
-        if key in d:
-            return d[key]
-        for v in d.values():
-            got = _find(v, key)
-            if got is not None:
-                return got
-    return None
 
 
 def summarize(rows: list[dict]) -> dict:

@@ -40,6 +40,11 @@ def _intrinsics(work: Path) -> dict[str, Any]:
         return {}
 
 
+def _guessed_focal(intrinsics: dict[str, Any]) -> list[str]:
+    """The images whose focal length is only the default guess (source ``default`` in the cameras summary)."""
+    return [n for n, v in intrinsics.get("per_image", {}).items() if v.get("source") == "default"]
+
+
 @dataclass
 class RunEvaluation:
     """The evaluation of a run: metrics, per-camera and per-edge errors, the references used, and the cameras
@@ -90,8 +95,7 @@ def _evidence(out: Path, intrinsics: dict[str, Any], methods: dict[str, Any], re
     except PipelineError:
         return {}
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
-    guessed = [n for n, v in intrinsics.get("per_image", {}).items() if v.get("source") == "default"]
-    return run_evidence(graph, methods, method_disagreement(rots), guessed)
+    return run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics))
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,
@@ -133,9 +137,9 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
     metrics["intrinsics"] = ev.intrinsics
-    guessed = [f for f in metrics["intrinsics"].get("focal", []) if f["source"] == "default"]
+    guessed = _guessed_focal(ev.intrinsics)
     if guessed:
-        plan.notes.append(f"{guessed[0]['n_images']} image(s) kept the default focal guess 1.2·max(w, h): nothing "
+        plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
                           "determined theirs (cameras.json: estimate); they are flagged")
     metrics["pairs"] = pairs_section(plan.work)
     metrics["notes"] = plan.notes
