@@ -42,6 +42,15 @@ R = TypeVar("R")
 
 _ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
                "OMP_WAIT_POLICY": "PASSIVE"}
+#: Dask settings of the local cluster. Its scheduler and nannies run in this process, beside the two
+#: workers on a small machine, so their housekeeping comes out of a worker's core: the statistical
+#: profiler in each worker (a stack sample every 10 ms, for a dashboard this cluster does not start), the
+#: event-loop tick (20 ms), the system monitor (500 ms) and the nannies' memory check (100 ms). None
+#: of them schedules or balances tasks. Measured on 2 cores, 120 pairs in 90 tasks: this process's
+#: event-loop CPU 0.63 -> 0.40 s.
+LEAN_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "500ms",
+               "distributed.admin.system-monitor.interval": "2s",
+               "distributed.worker.memory.monitor-interval": "1s"}
 CONNECT_TIMEOUT_S = 10
 
 
@@ -88,10 +97,14 @@ class LocalDaskCluster:
         distributed = require_distributed()
         self.workers = max(1, int(workers or os.cpu_count() or 1))
         self.scratch = tempfile.mkdtemp(prefix="rotavg-dask-")
+        import dask  # noqa: PLC0415 - with distributed
+
         try:
-            self.cluster = distributed.LocalCluster(
-                n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                silence_logs=logging.ERROR, local_directory=self.scratch, env=dict(_ONE_THREAD), host="127.0.0.1")
+            with dask.config.set(LEAN_CONFIG):  # read by the scheduler and nannies here, passed on to the workers
+                self.cluster = distributed.LocalCluster(
+                    n_workers=self.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                    silence_logs=logging.ERROR, local_directory=self.scratch, env=dict(_ONE_THREAD),
+                    host="127.0.0.1")
         except BaseException:
             shutil.rmtree(self.scratch, ignore_errors=True)
             raise
@@ -233,6 +246,26 @@ class DaskExecutor:
             for f in futures:
                 yield f.result()
                 f.release()
+        finally:
+            self.client.cancel(futures)
+
+    def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]:
+        """``(index, None)`` as each item's ``fn`` finishes, in any order; the results are not fetched.
+
+        For work that leaves its output on disk (the per-item stages write their own chunks): fetching a
+        result costs a round trip through the scheduler per task, about half of this process's CPU per
+        task (measured: 4.2 against 2.1 ms). A task's error is raised here.
+        """
+        distributed = require_distributed()
+        futures = self.client.map(fn, list(items), pure=False)
+        index = {f.key: i for i, f in enumerate(futures)}
+        try:
+            for f in distributed.as_completed(futures, loop=self.client.loop):
+                if f.status != "finished":
+                    f.result()  # raises the task's exception
+                    raise PipelineError(f"a Dask task ended as {f.status!r}")
+                f.release()
+                yield index[f.key], None
         finally:
             self.client.cancel(futures)
 

@@ -38,16 +38,32 @@ R = TypeVar("R")
 
 
 class Executor(Protocol):
-    """Maps a function over items, yielding results in order."""
+    """Maps a function over items, yielding results in order.
+
+    ``each(fn, items)`` is for work that leaves its output on disk: it yields ``(index, result)`` as each item
+    finishes, in any order, where ``result`` may be None when fetching it would cost a round trip (Dask).
+    """
 
     workers: int
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]: ...
 
+    def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]: ...
+
     def close(self) -> None: ...
 
 
-class SerialExecutor:
+class _Fetching:
+    """:meth:`Executor.each` for executors whose results cost nothing to fetch: ``map``'s, numbered."""
+
+    def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
+        raise NotImplementedError
+
+    def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]:
+        return enumerate(self.map(fn, items))
+
+
+class SerialExecutor(_Fetching):
     """Runs everything in this process."""
 
     workers = 1
@@ -66,7 +82,7 @@ class SerialExecutor:
         self.close()
 
 
-class ThreadExecutor:
+class ThreadExecutor(_Fetching):
     """A thread pool in this process.
 
     While it is open, BLAS runs single-threaded (threadpoolctl): the pool's threads are
@@ -145,7 +161,7 @@ def _init_worker(threads: int, parent_pid: int | None = None) -> None:
         pass
 
 
-class ProcessExecutor:
+class ProcessExecutor(_Fetching):
     """A local process pool whose workers never outlive this process."""
 
     def __init__(self, workers: int) -> None:

@@ -162,6 +162,19 @@ class ItemStore:
             self._where.update({k: path.name for k in keys})
         return path
 
+    @staticmethod
+    def chunk_name(keys: Iterable[str]) -> str:
+        """The file name :meth:`write_chunk` gives the chunk of ``keys`` (in any order)."""
+        return _chunk_name(keys)
+
+    def adopt_chunk(self, keys: Sequence[str], name: str | None = None) -> None:
+        """Register the chunk a worker wrote for ``keys``; ``name``, when the worker's result gave it, must be
+        the one :meth:`chunk_name` derives (an executor that does not fetch results gives None)."""
+        expected = _chunk_name(keys)
+        if name is not None and name != expected:
+            raise CacheError(f"{self.folder}: a worker wrote chunk {name} for items that belong in {expected}")
+        self.adopt(expected, keys)
+
     def adopt(self, name: str, keys: Iterable[str]) -> None:
         """Register the chunk file ``name`` that a worker wrote into this folder, holding ``keys``."""
         if self._where is not None:
@@ -320,8 +333,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     write = functools.partial(_write_packed, folder=str(store.folder.resolve()), work=work)
     jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
 
-    def finish(chunk_keys: list[str], name: str) -> None:
-        store.adopt(name, chunk_keys)
+    def finish(chunk_keys: list[str], name: str | None) -> None:
+        store.adopt_chunk(chunk_keys, name)
         if on_chunk is not None:
             on_chunk(len(chunk_keys))
 
@@ -348,8 +361,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             backend = "threads"
     executor = make_executor(max(n_workers, 1), backend, scheduler)
     try:
-        for (chunk_keys, _), name in zip(jobs, executor.map(write, jobs)):
-            finish(chunk_keys, name)
+        for i, name in executor.each(write, jobs):
+            finish(jobs[i][0], name)
     finally:
         executor.close()
     return len(todo)

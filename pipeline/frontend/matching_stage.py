@@ -228,8 +228,9 @@ class MatchingStage(Stage[MatchingConfig]):
         chunks = [(todo[s:s + cfg.chunk_size], cfg.as_dict(), folder) for s in range(0, len(todo), cfg.chunk_size)]
         with cfg.open_executor(len(chunks), "threads") as ex, \
                 tqdm(total=len(todo), desc="matching", unit="pair", disable=not self.progress) as bar:
-            for name, pair_keys in ex.map(_match_chunk, chunks):
-                store.adopt(name, pair_keys)
+            for i, res in ex.each(_match_chunk, chunks):
+                pair_keys = [t[0] for t in chunks[i][0]]
+                store.adopt_chunk(pair_keys, None if res is None else res[0])
                 bar.update(len(pair_keys))
         return self._finish(names, pairs, keys, store, len(todo), selection)
 

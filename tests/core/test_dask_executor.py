@@ -36,6 +36,18 @@ def _square(x: int) -> int:
     return x * x
 
 
+def _fail_on_three(x: int) -> int:
+    if x == 3:
+        raise ValueError("item 3 is bad")
+    return x
+
+
+def _profiling(*_: object) -> bool:
+    import dask
+
+    return bool(dask.config.get("distributed.worker.profile.enabled"))
+
+
 def _worker_env(_: int) -> tuple[int, str, int]:
     import cv2
 
@@ -102,6 +114,18 @@ def test_workers_of_an_existing_cluster_run_single_threaded_and_in_order(cluster
     assert len(cluster.scheduler_info["workers"]) == 2  # an external cluster outlives the executor
 
 
+def test_each_reports_every_item_once_without_fetching_its_result_and_raises_a_task_error(cluster):
+    with make_executor(2, "processes", cluster.scheduler_address) as ex:
+        got = list(ex.each(_square, range(12)))
+        assert sorted(i for i, _ in got) == list(range(12)) and {r for _, r in got} == {None}
+        with pytest.raises(ValueError, match="item 3 is bad"):
+            list(ex.each(_fail_on_three, range(6)))
+        assert list(ex.map(_square, range(4))) == [0, 1, 4, 9]  # the executor is still usable
+    for backend in ("serial", "threads"):  # results that cost nothing to fetch come with their index
+        with make_executor(2, backend) as ex:
+            assert sorted(ex.each(_square, range(5))) == [(i, i * i) for i in range(5)]
+
+
 def test_stages_of_a_session_share_one_client_closed_at_its_end(cluster):
     address = cluster.scheduler_address
     with client_session():
@@ -126,6 +150,8 @@ def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypa
         with DaskExecutor(workers=2) as ex:
             pids = set(ex.map(lambda _: os.getpid(), range(6)))
             assert len(ex.client.scheduler_info()["workers"]) == 2
+            # the local cluster's workers run without the statistical profiler (no dashboard to show it)
+            assert set(ex.client.run(_profiling).values()) == {False}
             raise KeyboardInterrupt  # Ctrl-C in the middle of a run
     alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
     assert not alive

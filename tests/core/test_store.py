@@ -70,3 +70,17 @@ def test_a_damaged_layout_is_a_cache_error_and_the_scan_removes_the_chunk(tmp_pa
 def test_python_objects_are_refused_when_written(tmp_path):
     with pytest.raises(TypeError, match="Python objects"):
         ItemStore(tmp_path).write_chunk({"k": {"x": np.array([{"a": 1}], dtype=object)}})
+
+
+def test_a_chunk_is_adopted_by_the_name_its_keys_give_and_a_different_name_is_refused(tmp_path):
+    # the Dask executor does not fetch a task's result: the client derives the chunk's name from its keys
+    items = _items()
+    path = ItemStore(tmp_path).write_chunk(items)
+    keys = list(items)
+    assert ItemStore.chunk_name(keys) == ItemStore.chunk_name(keys[::-1]) == path.name
+    store = ItemStore(tmp_path)
+    store.adopt_chunk(keys[::-1])  # no name: the one the keys give
+    assert store.done(keys) == set(keys) and store.get(keys[1])["ok"] == np.array(False)
+    store.adopt_chunk(keys, path.name)
+    with pytest.raises(CacheError, match="belong in"):
+        store.adopt_chunk(keys[:1], path.name)
