@@ -52,6 +52,7 @@ LEAN_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.t
                "distributed.admin.system-monitor.interval": "2s",
                "distributed.worker.memory.monitor-interval": "1s"}
 CONNECT_TIMEOUT_S = 10
+_DISTRIBUTED_LOG = logging.getLogger("distributed")
 
 
 def require_distributed() -> Any:
@@ -96,6 +97,9 @@ class LocalDaskCluster:
     def __init__(self, workers: int | None = None) -> None:
         distributed = require_distributed()
         self.workers = max(1, int(workers or os.cpu_count() or 1))
+        # the scheduler and nannies log here at INFO, also as clients leave and when the cluster closes
+        self._log_level = _DISTRIBUTED_LOG.level
+        _DISTRIBUTED_LOG.setLevel(max(logging.WARNING, self._log_level))
         self.scratch = tempfile.mkdtemp(prefix="rotavg-dask-")
         import dask  # noqa: PLC0415 - with distributed
 
@@ -107,6 +111,7 @@ class LocalDaskCluster:
                     host="127.0.0.1")
         except BaseException:
             shutil.rmtree(self.scratch, ignore_errors=True)
+            _DISTRIBUTED_LOG.setLevel(self._log_level)
             raise
         self.address: str = self.cluster.scheduler_address
         try:
@@ -121,6 +126,7 @@ class LocalDaskCluster:
             self.cluster.close()
         finally:
             shutil.rmtree(self.scratch, ignore_errors=True)
+            _DISTRIBUTED_LOG.setLevel(self._log_level)
 
     def __enter__(self) -> "LocalDaskCluster":
         return self

@@ -6,6 +6,8 @@ by its address, the way ``--scheduler ADDRESS`` reaches a user's cluster.
 
 from __future__ import annotations
 
+import logging
+import multiprocessing.resource_tracker
 import os
 from pathlib import Path
 
@@ -140,10 +142,14 @@ def test_stages_of_a_session_share_one_client_closed_at_its_end(cluster):
     assert c.client.status == "closed" and len(cluster.scheduler_info["workers"]) == 2
 
 
-def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypatch):
+def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypatch, caplog):
     from pipeline.core.dask_executor import DaskExecutor
 
+    caplog.set_level(logging.INFO)  # as run.py logs: the cluster's start and shutdown add no INFO lines
     monkeypatch.chdir(tmp_path)
+    # multiprocessing's resource tracker, started once per process by the first pool or cluster, outlives
+    # both by design: start it first, so that it is there before and after whichever test runs first
+    multiprocessing.resource_tracker.ensure_running()
     me = psutil.Process()
     before = {p.pid for p in me.children(recursive=True)}
     with pytest.raises(KeyboardInterrupt):
@@ -157,6 +163,8 @@ def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypa
     assert not alive
     assert {p.pid for p in me.children(recursive=True)} - before == set()
     assert list(tmp_path.iterdir()) == []  # no dask-scratch-space in the working folder
+    chatter = [r.getMessage() for r in caplog.records if r.name.startswith("distributed") and r.levelno < logging.WARNING]
+    assert not chatter, chatter[:3]
 
 
 def test_unreachable_scheduler_is_one_line_before_any_stage(tmp_path, monkeypatch, capsys):
