@@ -59,8 +59,7 @@ from pipeline.refine import mapper
 from pipeline.refine.covariance import camera_covariances, principal_point_sd, radial_corner_sd, rotation_covariance
 from pipeline.refine.model import (camera_groups, correspondence_cache, model_rotations, radial_terms,
                                    starting_reconstruction)
-from pipeline.refine.tracks import build_tracks, filter_edges, restrict_tracks, select_matches, select_tracks, \
-    subset_tracks
+from pipeline.refine import tracks as tk
 
 logger = logging.getLogger(__name__)
 
@@ -102,7 +101,7 @@ class RefineConfig(Config):
                     "undistorted = the stage's keypoints undistorted about the image centre, k1 from 0")
     edge_filter_deg: float | None = option(5.0, "pairs farther than this from the averaged rotations are not "
                                                 "used (null: every pair)", gt=0)
-    min_track_views: int = option(3, "images a track must be seen in", ge=2)
+    min_track_views: int = option(3, "images a track must be seen in (a starved image keeps its shorter ones)", ge=2)
     track_consistency_px: float = option(10.0, "a track with two keypoints of one image farther apart is dropped",
                                          gt=0)
     min_image_observations: int = option(20, "an image with fewer track observations (or final 3D points) is "
@@ -266,18 +265,19 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
 
     # 1. edge filter from our averaged rotations; 2. tracks
     t0 = time.perf_counter()
-    keep, residual = filter_edges(edges, cam2_from_cam1, R_init, cfg.edge_filter_deg)
+    keep, residual = tk.filter_edges(edges, cam2_from_cam1, R_init, cfg.edge_filter_deg)
     stats["n_pairs_kept"] = int(keep.sum())
     if np.isfinite(residual).any():
         stats["pair_residual_deg_median"] = float(np.nanmedian(residual))
     if (~keep).any():
         warnings.append(f"{int((~keep).sum())} of {len(edges)} pairs disagree with the averaged rotations by more "
                         f"than {cfg.edge_filter_deg}° (or lack a rotation) and are not used")
-    k_off, k_matches = select_matches(match_offsets, matches, keep)
-    tracks = build_tracks(keypoints, edges[keep], k_off, k_matches, cfg.min_track_views, cfg.track_consistency_px)
+    k_off, k_matches = tk.select_matches(match_offsets, matches, keep)
+    built = tk.build_tracks(keypoints, edges[keep], k_off, k_matches, 2, cfg.track_consistency_px)
+    tracks, starved = tk.long_tracks(built, n, cfg.min_track_views, cfg.min_image_observations)
     obs = tracks.observations_per_image(n)
-    stats.update(n_tracks=tracks.n_tracks, n_track_components=tracks.n_components,
-                 n_tracks_inconsistent=tracks.n_inconsistent, n_tracks_short=tracks.n_short)
+    stats.update(n_tracks=tracks.n_tracks, n_track_components=tracks.n_components, n_images_short_tracks=int(
+        starved.sum()), n_tracks_inconsistent=tracks.n_inconsistent, n_tracks_short=tracks.n_short)
     active = has_R & (obs >= cfg.min_image_observations)
     for k in np.flatnonzero(has_R & ~active):
         why[k] = f"{obs[k]} track observations (< {cfg.min_image_observations}): not refined"
@@ -287,7 +287,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         warnings.append(f"only {int(active.sum())} image(s) with enough tracks ({tracks.n_tracks} tracks): "
                         "nothing to refine; the averaged rotations are kept")
         return result("failed")
-    tracks = restrict_tracks(tracks, active, cfg.min_track_views)
+    tracks = tk.restrict_tracks(tracks, active, 2 if (starved & active).any() else cfg.min_track_views)
 
     # 3. the in-memory database (correspondence graph) and the starting reconstruction; 4. pycolmap's steps
     pc = _pycolmap()
@@ -297,14 +297,14 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     def setup() -> tuple[bool, str]:
         images = np.flatnonzero(active)
         pair_ok = keep & active[edges[:, 0]] & active[edges[:, 1]]
-        p_off, p_matches = select_matches(match_offsets, matches, pair_ok)
+        p_off, p_matches = tk.select_matches(match_offsets, matches, pair_ok)
         state["cache"] = correspondence_cache(pc, names, K, sizes, known, keypoints, images, edges[pair_ok], p_off,
                                               p_matches, cam2_from_cam1[pair_ok], t[pair_ok], radial=radial, k1=k1)
         state["pose_graph"] = pc.PoseGraph()
         state["pose_graph"].load(state["cache"].correspondence_graph)
         tr = tracks
         if schedule["positioning_tracks_per_image"] > 0:
-            tr = subset_tracks(tr, select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
+            tr = tk.subset_tracks(tr, tk.select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
         state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch,
                                               radial=radial, k1=k1)
         stats["n_points_start"] = int(state["rec"].num_points3D())

@@ -7,8 +7,8 @@ import pytest
 
 from pipeline.core import so3
 from pipeline.refine.covariance import gauge_fixed_rotation_covariance, rotation_gauge_projection
-from pipeline.refine.tracks import Tracks, build_tracks, filter_edges, restrict_tracks, select_matches, \
-    select_tracks, subset_tracks
+from pipeline.refine.tracks import Tracks, build_tracks, filter_edges, long_tracks, restrict_tracks, \
+    select_matches, select_tracks, subset_tracks
 
 
 def _as_sets(tr: Tracks) -> list[tuple[tuple[int, int], ...]]:
@@ -52,6 +52,23 @@ def test_select_subset_and_restrict():
     active[[5, 9]] = False  # the third track loses two of its three views
     r = restrict_tracks(tr, active, min_views=3)
     assert r.offsets.tolist() == [0, 5, 9] and 5 not in r.image and 9 not in r.image
+
+
+def test_long_tracks_keep_the_short_tracks_of_an_image_that_has_too_few_long_ones():
+    # images 0-2 share two 3-view tracks; image 3 (a pan: every point it sees is seen from one centre) is only in
+    # 2-view tracks, with image 2 (twice) and with image 0; images 0 and 1 also share a 2-view track
+    tr = Tracks(offsets=np.array([0, 3, 6, 8, 10, 12, 14]),
+                image=np.array([0, 1, 2, 0, 1, 2, 2, 3, 2, 3, 0, 3, 0, 1]), keypoint=np.arange(14), n_short=4)
+    out, starved = long_tracks(tr, 4, min_views=3, min_observations=2)
+    assert starved.tolist() == [False, False, False, True]
+    # the 3-view tracks, and the three 2-view tracks of image 3; not the 2-view track of images 0 and 1
+    assert out.offsets.tolist() == [0, 3, 6, 8, 10, 12] and out.image[6:].tolist() == [2, 3, 2, 3, 0, 3]
+    assert out.n_short == 5 and out.observations_per_image(4).tolist() == [3, 2, 4, 3]
+    # no starved image: exactly the tracks of at least min_views images
+    no_pan = subset_tracks(tr, np.array([True, True, False, False, False, True]))
+    out, starved = long_tracks(no_pan, 3, min_views=3, min_observations=2)
+    assert not starved.any() and out.offsets.tolist() == [0, 3, 6]
+    assert long_tracks(subset_tracks(tr, np.zeros(6, bool)), 4, 3, 2)[0].n_tracks == 0
 
 
 def test_filter_edges_and_select_matches():
