@@ -26,7 +26,7 @@ than one. So every repeat also measures
   cores if nothing else ran, i.e. how evenly the work is spread and how little
   of it is serial.
 
-    OMP_WAIT_POLICY=PASSIVE python benchmarks/dask_speedup.py [--views 16] [--width 1024] [--repeats 3]
+    OMP_WAIT_POLICY=PASSIVE python benchmarks/dask_speedup.py [--views 16] [--width 1024] [--repeats 3] [--chunk-size 4]
 
 Writes ``benchmarks/results/dask_speedup.json``.
 """
@@ -100,11 +100,12 @@ def _process_cpu() -> float:
 
 def per_pair_stages(work: Path, chunk_size: int, **executor: object) -> float:
     """Matching, two-view and two-view BA in ``work`` (features already there); wall time."""
+    chunks = {"chunk_size": chunk_size} if chunk_size > 0 else {}  # 0: each stage's default, as run.py has
     t0 = time.perf_counter()
     with client_session():  # one client of the cluster for the three stages, as run.py has
-        MatchingStage(work, MatchingConfig(chunk_size=chunk_size, **executor), progress=False).run()
-        TwoViewStage(work, TwoViewConfig(chunk_size=chunk_size, progress=False, **executor)).run()
-        TwoViewBAStage(work, BAConfig(chunk_size=chunk_size, progress=False, **executor)).run()
+        MatchingStage(work, MatchingConfig(**chunks, **executor), progress=False).run()
+        TwoViewStage(work, TwoViewConfig(**chunks, progress=False, **executor)).run()
+        TwoViewBAStage(work, BAConfig(**chunks, progress=False, **executor)).run()
     return time.perf_counter() - t0
 
 
@@ -131,7 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", type=int, default=16, help="rendered views (all pairs are matched)")
     ap.add_argument("--width", type=int, default=1024, help="image width (height 3/4 of it), px")
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--chunk-size", type=int, default=4, help="pairs per task, every stage")
+    ap.add_argument("--chunk-size", type=int, default=4,
+                    help="pairs per task, every stage (0: each stage's default, which a Dask cluster cuts finer "
+                         "where a worker would get fewer than 16 tasks, as in run.py)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     a = ap.parse_args(argv)
     root = Path(tempfile.mkdtemp(prefix="dask-speedup-"))

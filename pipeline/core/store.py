@@ -309,7 +309,8 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             executor of :func:`pipeline.core.parallel.make_executor`.
         workers: workers of the executor (1 or a single chunk runs in this process; work shorter than
             starting a pool of processes runs on threads of this process).
-        chunk_size: items per chunk (a chunk is the unit of work and of resumption).
+        chunk_size: items per chunk (a chunk is the unit of work and of resumption); on a Dask cluster fewer,
+            so that every worker gets work (:func:`pipeline.core.parallel.balanced_chunk_size`).
         on_chunk: called with the number of items of each finished chunk (progress).
         backend, scheduler: the executor (:func:`pipeline.core.parallel.make_executor`);
             ``"dask"`` starts a local cluster of ``workers`` processes unless ``scheduler`` is set.
@@ -317,7 +318,7 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     Returns:
         The number of items computed.
     """
-    from pipeline.core.parallel import make_executor  # noqa: PLC0415 - keeps this module's imports light
+    from pipeline.core.parallel import balanced_chunk_size, make_executor  # noqa: PLC0415 - light imports
 
     done = store.done(keys)
     todo: list[int] = []
@@ -326,12 +327,10 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
         if key not in done and key not in seen:
             seen.add(key)
             todo.append(k)
-    chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
-    if not chunks:
+    if not todo:
         return 0
     # absolute: the workers may run in another folder or on another machine (with the same file system)
     write = functools.partial(_write_packed, folder=str(store.folder.resolve()), work=work)
-    jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
 
     def finish(chunk_keys: list[str], name: str | None) -> None:
         store.adopt_chunk(chunk_keys, name)
@@ -339,30 +338,38 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
             on_chunk(len(chunk_keys))
 
     local = backend != "dask" and scheduler is None
-    n_workers = min(workers, len(jobs)) if local else workers
-    if local and backend == "processes" and n_workers > 1:
-        # the first chunks, one per worker, run on threads of this process (which start at once and run in
-        # parallel where the work releases the GIL: OpenCV, PoseLib, BLAS) and time the work: a pool of
-        # processes pays off only when the rest is long beside starting it; otherwise threads go on
-        probe = make_executor(n_workers, "threads")
-        try:
-            timed = list(probe.map(functools.partial(_timed, write), jobs[:n_workers]))
-        finally:
-            probe.close()
-        for (chunk_keys, _), (name, _) in zip(jobs, timed):
-            finish(chunk_keys, name)
-        jobs = jobs[n_workers:]
-        rest = float(np.mean([t for _, t in timed])) * len(jobs)
-        n_workers = min(n_workers, len(jobs))
-        if not jobs:
-            return len(todo)
-        if not _pool_pays_off(rest, n_workers):
-            logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(jobs), rest)
-            backend = "threads"
-    executor = make_executor(max(n_workers, 1), backend, scheduler)
+    # a Dask cluster is reached first: how many workers it has (here or on other machines) sets how finely to cut
+    executor = None if local else make_executor(workers, backend, scheduler)
     try:
+        if executor is not None:
+            chunk_size = balanced_chunk_size(len(todo), chunk_size, executor.workers)
+        chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
+        jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
+        n_workers = min(workers, len(jobs))
+        if local and backend == "processes" and n_workers > 1:
+            # the first chunks, one per worker, run on threads of this process (which start at once and run in
+            # parallel where the work releases the GIL: OpenCV, PoseLib, BLAS) and time the work: a pool of
+            # processes pays off only when the rest is long beside starting it; otherwise threads go on
+            probe = make_executor(n_workers, "threads")
+            try:
+                timed = list(probe.map(functools.partial(_timed, write), jobs[:n_workers]))
+            finally:
+                probe.close()
+            for (chunk_keys, _), (name, _) in zip(jobs, timed):
+                finish(chunk_keys, name)
+            jobs = jobs[n_workers:]
+            rest = float(np.mean([t for _, t in timed])) * len(jobs)
+            n_workers = min(n_workers, len(jobs))
+            if not jobs:
+                return len(todo)
+            if not _pool_pays_off(rest, n_workers):
+                logger.debug("%d chunks left, about %.1f CPU s: threads of this process, no pool", len(jobs), rest)
+                backend = "threads"
+        if executor is None:
+            executor = make_executor(max(n_workers, 1), backend, scheduler)
         for i, name in executor.each(write, jobs):
             finish(jobs[i][0], name)
     finally:
-        executor.close()
+        if executor is not None:
+            executor.close()
     return len(todo)

@@ -17,8 +17,8 @@ import pytest
 
 from pipeline.core.dask_executor import client_session
 from pipeline.core.errors import PipelineError
-from pipeline.core.parallel import make_executor
-from pipeline.core.store import ItemStore
+from pipeline.core.parallel import balanced_chunk_size, make_executor
+from pipeline.core.store import ItemStore, compute_missing
 from pipeline.frontend.feature_stage import FeaturesStage
 from pipeline.frontend.features import FeatureConfig
 from pipeline.frontend.matching import MatchingConfig
@@ -42,6 +42,10 @@ def _fail_on_three(x: int) -> int:
     if x == 3:
         raise ValueError("item 3 is bad")
     return x
+
+
+def _results_of(tasks: list[int]) -> list[dict[str, np.ndarray]]:
+    return [{"square": np.array(t * t)} for t in tasks]
 
 
 def _profiling(*_: object) -> bool:
@@ -126,6 +130,19 @@ def test_each_reports_every_item_once_without_fetching_its_result_and_raises_a_t
     for backend in ("serial", "threads"):  # results that cost nothing to fetch come with their index
         with make_executor(2, backend) as ex:
             assert sorted(ex.each(_square, range(5))) == [(i, i * i) for i in range(5)]
+
+
+def test_a_dask_cluster_gets_enough_tasks_for_every_worker(cluster, tmp_path):
+    # at most chunk_size items per task, fewer when that would leave a worker fewer than 16 tasks
+    assert [balanced_chunk_size(120, 32, 2), balanced_chunk_size(2300, 32, 2), balanced_chunk_size(2300, 32, 16),
+            balanced_chunk_size(5, 8, 1), balanced_chunk_size(0, 8, 2)] == [4, 32, 9, 1, 1]
+    store = ItemStore(tmp_path / "store")
+    keys = [f"{i:020x}" for i in range(40)]
+    n = compute_missing(store, keys, lambda k: k, _results_of, chunk_size=32, backend="dask",
+                        scheduler=cluster.scheduler_address)
+    assert n == 40 and len(list((tmp_path / "store").glob("chunk-*.npz"))) == 20  # 2 items per task on 2 workers
+    store.write_index(keys)
+    assert [int(store.get(k)["square"]) for k in keys] == [i * i for i in range(40)]
 
 
 def test_stages_of_a_session_share_one_client_closed_at_its_end(cluster):
