@@ -31,7 +31,7 @@ import tempfile
 from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 from pipeline.core.errors import PipelineError
-from pipeline.core.parallel import die_with_parent
+from pipeline.core.parallel import balanced_chunk_size, die_with_parent, split
 
 __all__ = ["DaskExecutor", "LocalDaskCluster", "local_cluster", "check_scheduler", "client_session", "single_thread",
            "require_distributed"]
@@ -254,6 +254,10 @@ class DaskExecutor:
                 f.release()
         finally:
             self.client.cancel(futures)
+
+    def chunks(self, items: Sequence[T], chunk_size: int) -> list[Sequence[T]]:
+        """``items`` in tasks of at most ``chunk_size``, fewer where a worker would get too few tasks."""
+        return split(items, balanced_chunk_size(len(items), chunk_size, self.workers))
 
     def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]:
         """``(index, None)`` as each item's ``fn`` finishes, in any order; the results are not fetched.

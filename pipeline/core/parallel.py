@@ -30,7 +30,7 @@ from typing import Any, Callable, Iterator, Literal, Protocol, Sequence, TypeVar
 from pipeline.core.config import Config, option
 
 __all__ = ["Executor", "SerialExecutor", "ThreadExecutor", "ProcessExecutor", "make_executor", "die_with_parent",
-           "ExecutorOptions", "BACKENDS", "balanced_chunk_size", "TASKS_PER_WORKER"]
+           "ExecutorOptions", "BACKENDS", "balanced_chunk_size", "TASKS_PER_WORKER", "split"]
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -42,6 +42,8 @@ class Executor(Protocol):
 
     ``each(fn, items)`` is for work that leaves its output on disk: it yields ``(index, result)`` as each item
     finishes, in any order, where ``result`` may be None when fetching it would cost a round trip (Dask).
+    ``chunks(items, chunk_size)`` cuts items into tasks of at most ``chunk_size`` (a Dask cluster cuts finer, so
+    that every worker gets work: :func:`balanced_chunk_size`).
     """
 
     workers: int
@@ -50,17 +52,28 @@ class Executor(Protocol):
 
     def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]: ...
 
+    def chunks(self, items: Sequence[T], chunk_size: int) -> list[Sequence[T]]: ...
+
     def close(self) -> None: ...
 
 
+def split(items: Sequence[T], size: int) -> list[Sequence[T]]:
+    """``items`` in consecutive chunks of ``size`` (the last one shorter)."""
+    return [items[s:s + size] for s in range(0, len(items), size)]
+
+
 class _Fetching:
-    """:meth:`Executor.each` for executors whose results cost nothing to fetch: ``map``'s, numbered."""
+    """:meth:`Executor.each` for executors whose results cost nothing to fetch: ``map``'s, numbered; and
+    :meth:`Executor.chunks`: items cut as configured (a local pool is sized to the chunks)."""
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
         raise NotImplementedError
 
     def each(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[tuple[int, R | None]]:
         return enumerate(self.map(fn, items))
+
+    def chunks(self, items: Sequence[T], chunk_size: int) -> list[Sequence[T]]:
+        return split(items, chunk_size)
 
 
 class SerialExecutor(_Fetching):

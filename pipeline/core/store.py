@@ -318,7 +318,7 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     Returns:
         The number of items computed.
     """
-    from pipeline.core.parallel import balanced_chunk_size, make_executor  # noqa: PLC0415 - light imports
+    from pipeline.core.parallel import make_executor, split  # noqa: PLC0415 - keeps this module's imports light
 
     done = store.done(keys)
     todo: list[int] = []
@@ -341,9 +341,7 @@ def compute_missing(store: ItemStore, keys: Sequence[str], make_task: Callable[[
     # a Dask cluster is reached first: how many workers it has (here or on other machines) sets how finely to cut
     executor = None if local else make_executor(workers, backend, scheduler)
     try:
-        if executor is not None:
-            chunk_size = balanced_chunk_size(len(todo), chunk_size, executor.workers)
-        chunks = [todo[s:s + chunk_size] for s in range(0, len(todo), chunk_size)]
+        chunks = split(todo, chunk_size) if executor is None else executor.chunks(todo, chunk_size)
         jobs = [([keys[k] for k in c], [make_task(k) for k in c]) for c in chunks]
         n_workers = min(workers, len(jobs))
         if local and backend == "processes" and n_workers > 1:

@@ -44,7 +44,6 @@ from tqdm import tqdm
 
 from pipeline.core.atomic import save_npz, write_json
 from pipeline.core.errors import CacheError, ConfigError, InputFileError
-from pipeline.core.parallel import balanced_chunk_size
 from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend import feature_stage
@@ -228,10 +227,7 @@ class MatchingStage(Stage[MatchingConfig]):
         folder = str(store.folder.resolve())
         with cfg.open_executor(-(-len(todo) // cfg.chunk_size), "threads") as ex, \
                 tqdm(total=len(todo), desc="matching", unit="pair", disable=not self.progress) as bar:
-            size = cfg.chunk_size  # on a Dask cluster, enough tasks for every worker
-            if cfg.backend("threads") == "dask":
-                size = balanced_chunk_size(len(todo), size, ex.workers)
-            chunks = [(todo[s:s + size], cfg.as_dict(), folder) for s in range(0, len(todo), size)]
+            chunks = [(c, cfg.as_dict(), folder) for c in ex.chunks(todo, cfg.chunk_size)]
             for i, res in ex.each(_match_chunk, chunks):
                 pair_keys = [t[0] for t in chunks[i][0]]
                 store.adopt_chunk(pair_keys, None if res is None else res[0])
