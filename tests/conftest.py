@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import os
 import shutil
 import time
 from pathlib import Path
@@ -31,8 +32,11 @@ def repo_root() -> Path:
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """``../shared/data``, read in place. Tests that need it skip, with the reason, when absent."""
+    """``../shared/data``, read in place. Tests that need it skip, with the reason, when absent on a developer's
+    machine; under CI (``CI`` set, as ``.ci/run`` runs beside ``../shared``) its absence is a failure, not a skip."""
     if not SHARED_DATA.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"shared data not found at {SHARED_DATA}: CI runs beside ../shared and must test with it")
         pytest.skip(f"shared data not found at {SHARED_DATA}")
     return SHARED_DATA
 

@@ -165,7 +165,18 @@ def test_interrupted_then_rerun_equals_uninterrupted(scene, full_run, fast_confi
     with pytest.raises(KeyboardInterrupt):
         run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
     monkeypatch.undo()
+    real = feature_stage.extract_sift_adaptive
+    calls = {"sift": 0}
+
+    def counted(*a, **k):
+        calls["sift"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(feature_stage, "extract_sift_adaptive", counted)
     run.main(scene, out, config=fast_config, gt=scene / "cameras.txt", quiet=True, reference=False)
+    n_images = len(read_rotations(full_run / "rotations" / "irls-l0.5.txt")[0])
+    # the re-run resumes: only the images not extracted before the interrupt (none after it reached the BA)
+    assert calls["sift"] == (n_images - 3 if where == "features" else 0), (calls, n_images)
     for label in ("irls-l0.5", "irls-h-l0.5", "sdp-cso3"):
         n1, R1 = read_rotations(out / "rotations" / f"{label}.txt")
         n2, R2 = read_rotations(full_run / "rotations" / f"{label}.txt")

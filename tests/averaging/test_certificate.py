@@ -33,7 +33,7 @@ def _problem(vg: ViewGraph, w: np.ndarray, M: np.ndarray | None = None):
 
 def _sdp(vg: ViewGraph, C: np.ndarray, D: np.ndarray, cso3: bool = False):
     """min tr(L X) s.t. X ⪰ 0, X_ii = I (+ conv SO(3) LMIs): the reference SDP, via cvxpy."""
-    cp = pytest.importorskip("cvxpy")
+    import cvxpy as cp  # a hard dependency: imported, never skipped
     from pipeline.averaging.sdp.cvxpy_ref import conv_so3_lmi_expr
 
     n = vg.n_cameras

@@ -8,7 +8,6 @@ import pytest
 
 from pipeline.averaging import average
 from pipeline.averaging.calibration import DEFAULT_METRICS, shape_metric
-from pipeline.averaging.colmap_ra import have_pycolmap
 from pipeline.averaging.evidence import camera_evidence
 from pipeline.averaging.irls import irls
 from pipeline.averaging.mixture import NU_GRID, fit_mixture
@@ -138,7 +137,6 @@ def test_shape_metrics_and_their_errors():
 
 
 # ------------------------------------------------------------------------------- colmap-ra
-@pytest.mark.skipif(not have_pycolmap(), reason="pycolmap is not installed (the bench extra)")
 def test_colmap_ra_is_a_method_on_our_graph():
     g = paper1_graph(20, 0.5, 1.0, 0.0, seed=4)
     vg = ViewGraph(g.vg.names, g.vg.edges, g.vg.R_rel, inliers=np.arange(g.vg.n_edges) + 20)

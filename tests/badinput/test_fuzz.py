@@ -151,6 +151,7 @@ def _two_view(data: Any) -> None:
     _viewgraph(data.vg)
     n, total = data.vg.n_cameras, len(data.x_i)
     assert data.K.shape == (n, 3, 3) and np.isfinite(data.K).all()
+    assert len(data.offsets) == data.vg.n_edges + 1 and len(data.x_j) == total  # one slice per edge, i and j paired
     assert data.offsets[0] == 0 and data.offsets[-1] == total and np.all(np.diff(data.offsets) >= 0)
     assert np.isfinite(data.x_i).all() and np.isfinite(data.x_j).all()
     assert isinstance(data.rejected, list)

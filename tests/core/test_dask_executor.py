@@ -11,6 +11,7 @@ import multiprocessing.resource_tracker
 import os
 from pathlib import Path
 
+import distributed  # a hard dependency (dask[distributed]): imported, never skipped
 import numpy as np
 import psutil
 import pytest
@@ -29,7 +30,6 @@ from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.geometry.two_view_stage import TwoViewStage
 from pipeline.synthetic.render import SceneConfig, render_scene
 
-distributed = pytest.importorskip("distributed")
 
 SCENE = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
 

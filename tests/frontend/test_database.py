@@ -7,6 +7,7 @@ import sqlite3
 from pathlib import Path
 
 import numpy as np
+import pycolmap  # a hard dependency: a broken install fails here, it is not skipped
 import pytest
 
 from pipeline.core.errors import ConfigError, InputFileError
@@ -19,8 +20,6 @@ from pipeline.reference.database import pinhole_params
 from pipeline.run import main as run_main
 from pipeline.run import main_cli as run_cli
 from pipeline.synthetic.render import SceneConfig, render_scene
-
-pycolmap = pytest.importorskip("pycolmap")
 
 SCENE = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
 

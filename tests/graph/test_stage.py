@@ -115,4 +115,5 @@ def test_command_without_a_front_end_fails_in_one_line(tmp_path):
 
     r = subprocess.run([sys.executable, "-m", "pipeline.viewgraph", "--work", str(tmp_path), "--out", str(tmp_path)],
                        capture_output=True, text=True)
-    assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1 and "two_view" in r.stderr
+    assert r.returncode == 2 and r.stderr.strip().startswith("error:"), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "two_view" in r.stderr
