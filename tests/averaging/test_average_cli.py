@@ -72,6 +72,16 @@ def test_init_from_file(graph_file, tmp_path):
     assert rc == 0
     _, Rest = read_rotations(out)
     assert _err(Rest, R).max() < 3.0
+    # the file's rotations are the start: with no iteration at all they come back (a start that is not the truth,
+    # so that neither the default tree start nor the solution could pass for it)
+    R0 = R @ so3.exp(np.deg2rad(5.0) * np.random.default_rng(3).standard_normal((len(R), 3)))
+    write_rotations(init, vg.names, R0)
+    out0 = tmp_path / "rot0.txt"
+    rc = main_cli([str(path), "--init", str(init), "--l1-iterations", "0", "--max-iterations", "0", "--no-refine",
+                   "--no-certify", "--out", str(out0), "-q"])
+    assert rc == 0
+    _, R_back = read_rotations(out0)
+    assert _err(R_back, R0).max() < 1e-6 and _err(R_back, R).max() > 2.0
 
 
 def test_cli_bad_loss_one_line_error(graph_file, tmp_path, capsys):
@@ -115,3 +125,6 @@ def test_average_maps_user_init_of_full_graph(graph_file):
     _, R, vg = graph_file
     res = average(vg, init=R, l1_iterations=0)
     assert _err(res.R, R).max() < 3.0
+    R0 = R @ so3.exp(np.deg2rad(5.0) * np.random.default_rng(4).standard_normal((len(R), 3)))
+    res0 = average(vg, init=R0, l1_iterations=0, max_iterations=0, refine=False, certify=False)
+    assert _err(res0.R, R0).max() < 1e-6 and _err(res0.R, R).max() > 2.0  # the user's start, mapped, is used

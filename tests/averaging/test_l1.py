@@ -39,7 +39,8 @@ def test_admm_matches_linprog(seed):
     edges, rng = _random_graph(12, 0.5, seed)
     N, M = 12, len(edges)
     r = 0.05 * rng.standard_normal((M, 3))
-    r[rng.random(M) < 0.2] += rng.uniform(-1, 1, (int((rng.random(M) < 0.2).sum()) or 1, 3))[0]
+    out = rng.random(M) < 0.2  # outlier edges, each with its own large offset
+    r[out] += rng.uniform(-1, 1, (int(out.sum()), 3))
     solver = LaplacianSolver(edges, N, ref=0)
     solver.factor(np.ones(M))
     st = l1_step(solver, r, max_iterations=20000, eps_abs=1e-10, eps_rel=1e-9)

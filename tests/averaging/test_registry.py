@@ -135,8 +135,9 @@ def test_default_methods_follow_H_and_size():
         sdp_max_n: int = 60
 
     labels = lambda specs: [s.label for s in specs]  # noqa: E731
-    # colmap-ra, COLMAP's averaging on the same graph, runs beside ours whenever pycolmap is there
-    colmap, why = (["colmap-ra"], []) if have_pycolmap() else ([], ["colmap-ra not run: pycolmap is not installed"])
+    # colmap-ra, COLMAP's averaging on the same graph, runs beside ours (pycolmap is a dependency: always there)
+    assert have_pycolmap()
+    colmap, why = ["colmap-ra"], []
     specs, notes = default_methods(g.vg, RunCfg())
     assert labels(specs) == ["irls-l0.5", "irls-h-l0.5", "sdp-cso3"] + colmap and notes == why
     specs, notes = default_methods(no_H, RunCfg())

@@ -188,10 +188,12 @@ def test_noise_free_input_gives_exact_rotations_rank3_and_zero_gap(clean_graph, 
     st = res.stats
     assert st["rank"] == 3
     # Certified means a gap small against what the cost resolves (issue 15). Exact data resolve
-    # everything (resolution ≈ 0): only a solve to the cost's rounding is certified. The
-    # isotropic variants get there; cso3's Clarabel re-solve stops at a relative gap of 1e-11,
-    # 56× the rounding: exact rotations, honestly not certified.
-    assert st["certified"] is (variant != "cso3")
+    # everything (resolution ≈ 0): only a solve to the cost's rounding is certified, which the
+    # isotropic variants reach; whether cso3's re-solve does is the solver's, not asserted (it stopped
+    # at 56× the rounding when measured). Whatever the verdict, it follows the rule, and the
+    # rotations are exact (below).
+    if variant != "cso3":
+        assert st["certified"], st
     assert st["certified"] == (st["gap_abs"] <= 0.01 * st["resolution"] + st["cost_rounding"])
     assert 0 <= st["gap"] < 1e-5 or abs(st["gap"]) < 1e-6
     assert aligned_errors_deg(res.R, R).max() < 0.05
@@ -342,11 +344,17 @@ def test_unknown_variant_solver_and_form_are_rejected(clean_graph):
 
 
 def test_lmis_on_all_pairs_give_a_relaxation_at_least_as_strong():
-    vg, _ = noisy_graph(10, 0.4, seed=11, eig=(0.1, 1.0), cov_eig=True)
+    vg, R_true = noisy_graph(10, 0.4, seed=11, eig=(0.1, 1.0), cov_eig=True)
     edges_only = solve_sdp(vg, "cso3", "clarabel", eps_abs=1e-9, eps_rel=1e-9)
     all_pairs = solve_sdp(vg, "cso3", "clarabel", eps_abs=1e-9, eps_rel=1e-9, lmi_pairs="all")
     assert all_pairs.stats["n_constraints"] > edges_only.stats["n_constraints"]
     assert all_pairs.stats["lower_bound"] >= edges_only.stats["lower_bound"] - 1e-6 * abs(edges_only.stats["lower_bound"])
+    # ... and still a relaxation: no bound above the cost of a feasible point (either solution, or the truth)
+    C, sc = edge_weights(vg, anisotropic=True)
+    f_true = edge_cost(vg.edges, C, R_true) * sc
+    for res in (edges_only, all_pairs):
+        tol = 1e-6 * abs(res.stats["primal_cost"])
+        assert res.stats["lower_bound"] <= min(edges_only.stats["primal_cost"], all_pairs.stats["primal_cost"], f_true) + tol
     with pytest.raises(ValueError, match="lmi_pairs='some'"):
         solve_sdp(vg, "cso3", lmi_pairs="some")
 

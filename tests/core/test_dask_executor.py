@@ -93,7 +93,11 @@ def _items(folder: Path) -> dict[str, dict[str, np.ndarray]]:
 
 def test_dask_by_address_gives_the_serial_outputs(scene, cluster, tmp_path):
     _run_stages(scene, tmp_path / "serial", executor="serial")
-    _run_stages(scene, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    with distributed.Client(cluster.scheduler_address) as client, distributed.get_task_stream(client) as stream:
+        _run_stages(scene, tmp_path / "dask", scheduler=cluster.scheduler_address)
+    # the cluster did the work: tasks of every per-item stage, on both of its workers
+    done = [t for t in stream.data if any(s.get("action") == "compute" for s in t.get("startstops", ()))]
+    assert len(done) >= 8 and len({t["worker"] for t in done}) == 2, [t.get("key") for t in done]
     for store in ("features", "matches"):  # per image, per pair: bit for bit
         a, b = _items(tmp_path / "serial" / store), _items(tmp_path / "dask" / store)
         assert list(a) == list(b)

@@ -151,6 +151,12 @@ def test_1dsfm_synthetic_folder_conventions(tmp_path, caplog):
     assert np.all(z_cv > 0)
     Rb, tb, f, reg = read_bundler(tmp_path / "ds" / "gt_bundle.out")
     assert np.all((BUNDLER_TO_CV @ np.einsum("nab,nb->na", Rt, -C).T)[2] < 0)
+    # the Bundler reader itself: every camera of the file, back in the OpenCV frame (R, t = −R C), and which are
+    # registered (f = 0 and a zero R mark the others)
+    np.testing.assert_array_equal(reg, truth["registered"])
+    assert _max_angle(Rb[reg], truth["R_cv"][reg]) < 1e-10
+    np.testing.assert_allclose(tb[reg], truth["t_cv"][reg], atol=1e-9)
+    assert np.all(f[reg] > 0) and np.all(f[~reg] == 0) and np.allclose(Rb[~reg], np.eye(3))
 
 
 def test_1dsfm_averaging_recovers_truth_with_file_precision(tmp_path, caplog):

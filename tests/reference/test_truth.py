@@ -276,7 +276,8 @@ def test_fuzzed_reference_files_give_one_line_errors(tmp_path, layout) -> None:
     assert accepted < 300  # the mutations do break files
 
 
-def _colmap_model(folder) -> None:
+def _colmap_model(folder) -> np.ndarray:
+    """A 3-image COLMAP model in ``folder``; returns its cam_from_world rotations."""
     import pycolmap
 
     R = so3.random_rotations(3, np.random.default_rng(8))
@@ -287,6 +288,7 @@ def _colmap_model(folder) -> None:
         rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R[k]), np.array([0.0, 0.0, k + 1.0])))
     folder.mkdir(parents=True)
     rec.write(str(folder))
+    return R
 
 
 @pytest.mark.slow
@@ -298,13 +300,16 @@ def test_damaged_colmap_model_gives_one_line_not_a_hang(tmp_path, monkeypatch, n
 
     monkeypatch.setattr(truth, "COLMAP_TIMEOUT_S", 8.0)
     model = tmp_path / "model"
-    _colmap_model(model)
+    R = _colmap_model(model)
     data = (model / name).read_bytes()
     rng = np.random.default_rng(len(name))
     cuts = sorted({int(k) for k in rng.integers(1, len(data), 2)})
     for k in cuts:
         (model / name).write_bytes(data[:k])
         try:
-            read_reference(model)
+            ref = read_reference(model)
         except InputFileError as exc:
             assert "\n" not in str(exc) and str(model) in str(exc), str(exc)
+        else:  # a cut the reader survives must not read as another model
+            assert list(ref.names) == [f"img{m}.jpg" for m in range(3)], ref.names
+            np.testing.assert_allclose(ref.R, R, atol=1e-9)
