@@ -13,6 +13,9 @@ images are undistorted and whose K and cameras are known.
 ``k1`` from ``--k1``), saved as a JPEG (quality 95) whose EXIF says only what a camera writes: make, model and
 the focal length in 35 mm film, rounded to a whole millimetre as cameras round it (so the prior is off by up
 to 1.5%). The twin without the lens (the same JPEG re-encoding and EXIF) isolates what the distortion costs.
+The copies have square pixels, as a camera's have: Strecha's K has ``fy/fx`` = 1.0017, which no single-focal model
+(SIMPLE_RADIAL, ours or pycolmap's) fits, so every row is resampled by ``fx/fy`` (``--source-pixels`` keeps the
+source's pixels; section ``handheld-source-pixels``).
 
 **Internet** (``--kind internet``): ``--n-internet`` images of the scene, each as a different camera gives it
 (seeded): a zoom (a crop of 60–100% of the width and, independently, of the height about the centre, moved by up
@@ -27,8 +30,9 @@ estimates only.
 Each folder goes through ``run.py``'s ``main()`` without a K file, with the truth and with both pycolmap peers
 (incremental and global, which read the same EXIF themselves) in the same run. Reported per scene and lens:
 the focal and k1 the cameras stage estimated and their sources, every method's median error against the truth,
-the refined rotations', and the peers'. Writes ``benchmarks/results/real_photos.json`` (sections merged with an
-earlier run's).
+the refined rotations', and the peers'; and, per method, the images more than 2° off the truth that the run left
+unflagged (item 6: each image is within 2° or flagged). Writes ``benchmarks/results/real_photos.json`` (sections
+merged with an earlier run's).
 """
 
 from __future__ import annotations
@@ -61,9 +65,12 @@ EXIF_IFD, MAKE, MODEL, FOCAL_35MM = 0x8769, 0x010F, 0x0110, 0xA405
 MAX_SHIFT = 0.01
 
 
-def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float) -> dict:
+def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool = True) -> dict:
     """JPEGs of ``src``'s images through a SIMPLE_RADIAL lens (``K``, ``k1``; none when 0) with camera EXIF.
 
+    ``square``: resample the rows by ``fx/fy`` first, so that the copies have square pixels as cameras do (Strecha's
+    K has ``fy/fx`` = 1.0017, which no single-focal model such as SIMPLE_RADIAL fits: 2.5 px at the edge of a
+    3072-px image); the rotations and ``fx`` are unchanged, ``cy`` stays where it is. False keeps the source's pixels.
     Returns the lens and the EXIF prior's focal (px) for the record.
     """
     from PIL import Image  # noqa: PLC0415 - Pillow comes with matplotlib
@@ -73,10 +80,12 @@ def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float) -> dict:
     h, w = cv2.imread(str(names[0]), cv2.IMREAD_UNCHANGED).shape[:2]
     f35 = round(float(K[0, 0]) / max(w, h) * 36.0)  # cameras write whole millimetres
     cam = simple_radial(float(K[0, 0]), K[:2, 2], k1, w, h)
+    aspect = float(K[1, 1] / K[0, 0]) if square else 1.0
     maps = None
-    if k1 != 0.0:  # every pixel of the distorted image samples the pinhole image where the lens took it from
+    if k1 != 0.0 or aspect != 1.0:  # every pixel of the copy samples the source where the lens took it from
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
         xu = undistort_points(cam, np.column_stack([xx.ravel(), yy.ravel()]))
+        xu[:, 1] = K[1, 2] + (xu[:, 1] - K[1, 2]) * aspect  # a square-pixel row → the source's row
         maps = (xu[:, 0].reshape(h, w).astype(np.float32), xu[:, 1].reshape(h, w).astype(np.float32))
     for p in names:
         out = dst / (p.stem + ".jpg")
@@ -92,7 +101,8 @@ def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float) -> dict:
         tmp = out.with_suffix(".part.jpg")
         pil.save(tmp, quality=95, exif=exif.tobytes())
         tmp.replace(out)
-    return {"k1": k1, "focal_35mm": f35, "exif_focal_px": f35 / 36.0 * max(w, h), "true_focal_px": float(K[0, 0]),
+    return {"k1": k1, "square_pixels": bool(square), "source_aspect": float(K[1, 1] / K[0, 0]), "focal_35mm": f35,
+            "exif_focal_px": f35 / 36.0 * max(w, h), "true_focal_px": float(K[0, 0]),
             "size": [w, h], "n_images": len(names)}
 
 
@@ -144,10 +154,37 @@ def run_one(images: Path, out: Path, gt: Path) -> dict:
     peers = m.get("peers") or {"pycolmap": m.get("pycolmap") or {}}
     for label, q in peers.items():
         row["peers"][label] = {k: q.get(k) for k in ("median_deg", "n_registered", "n_images", "time_s")}
+    row["flags"] = flag_check(out, gt, m)
     row["per_image"] = {nm: {"focal_px": float(np.mean(v["focal_px"])),
                              "principal_point_px": v.get("principal_point_px"), "source": v.get("source")}
                         for nm, v in (intr.get("per_image") or {}).items()}
     return row
+
+
+#: Item 6 of issue 13: each image is either within this many degrees of the truth or flagged.
+FLAG_DEG = 2.0
+
+
+def flag_check(out: Path, gt: Path, m: dict) -> dict:
+    """Per method: the images more than :data:`FLAG_DEG` off the truth (ℓ2 alignment, as ``pipeline.evaluate``), and
+    which of them the run left unflagged (``metrics.json``'s ``evidence``): the silent failures of issue 13, item 6."""
+    from pipeline.evaluation.compare import match_reference  # noqa: PLC0415
+    from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: PLC0415
+    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+    from pipeline.reference.truth import read_reference  # noqa: PLC0415
+
+    ref = read_reference(gt)
+    cams = (m.get("evidence") or {}).get("cameras") or {}
+    rows = {}
+    for label, s in m["methods"].items():
+        names, R = read_rotations(Path(s["rotations"]) if "rotations" in s else out / "rotations" / f"{label}.txt")
+        R_true, mask = match_reference(list(names), ref.names, ref.R)
+        e = rotation_errors_deg(R, R_true, mask)
+        over = {n: float(x) for n, x in zip(names, e) if np.isfinite(x) and x > FLAG_DEG}
+        silent = {n: x for n, x in over.items() if (cams.get(n) or {}).get("status") == "checked"}
+        rows[label] = {"n_over": len(over), "n_unflagged_over": len(silent), "unflagged_over_deg": silent,
+                       "n_flagged": sum((cams.get(n) or {}).get("status") == "flagged" for n in names)}
+    return {"limit_deg": FLAG_DEG, "methods": rows}
 
 
 def _print(scene: str, tag: str, r: dict, prior: str) -> None:
@@ -157,6 +194,9 @@ def _print(scene: str, tag: str, r: dict, prior: str) -> None:
     print(f"{scene:13s} {tag:10s} {prior}focal {[(round(x['median_px']), x['source']) for x in r['focal']]}; lens "
           f"{[(x['models'], x['source']) for x in r['distortion']]}; ours {meds}; peers {peers}; {r['wall_s']:.0f} s",
           flush=True)
+    fl = {k: f"{v['n_unflagged_over']}/{v['n_over']} unflagged of > {r['flags']['limit_deg']:g}°, {v['n_flagged']} flagged"
+          for k, v in r["flags"]["methods"].items()}
+    print(f"{'':13s} {'':10s} flags: {fl}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -164,6 +204,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kind", default="handheld,internet", help="comma-separated: handheld, internet")
     ap.add_argument("--scenes", default="fountain-P11", help="comma-separated Strecha scenes of ../shared/data")
     ap.add_argument("--k1", type=float, default=-0.06, help="handheld: the lens's SIMPLE_RADIAL k1 (barrel below 0)")
+    ap.add_argument("--source-pixels", dest="square", action="store_false",
+                    help="handheld: keep the source's non-square pixels (Strecha: fy/fx 1.0017) instead of square ones")
     ap.add_argument("--n-internet", type=int, default=10, help="internet: images per scene")
     ap.add_argument("--seed", type=int, default=0, help="internet: the cameras' draw")
     ap.add_argument("--max-shift", type=float, default=MAX_SHIFT, help="internet: largest crop shift (share of side)")
@@ -180,11 +222,12 @@ def main(argv: list[str] | None = None) -> int:
             if "handheld" in a.kind:
                 rows = {}
                 for tag, k1 in (("no lens", 0.0), (f"k1 = {a.k1:g}", a.k1)):
-                    folder = root / scene / ("plain" if k1 == 0.0 else "lens")
-                    info = handheld_copy(d / "images", folder / "images", K, k1)
+                    folder = root / scene / (("plain" if k1 == 0.0 else "lens") + ("" if a.square else "-source"))
+                    tag += "" if a.square else f" (source pixels, fy/fx {K[1, 1] / K[0, 0]:.4f})"
+                    info = handheld_copy(d / "images", folder / "images", K, k1, a.square)
                     rows[tag] = r = {**info, **run_one(folder / "images", folder / "out", gt)}
                     _print(scene, tag, r, f"EXIF f {info['exif_focal_px']:.0f} px (true {info['true_focal_px']:.0f}); ")
-                result.setdefault("handheld", {})[scene] = rows
+                result.setdefault("handheld" if a.square else "handheld-source-pixels", {})[scene] = rows
             if "internet" in a.kind:
                 folder = root / scene / f"internet-{a.seed}-{a.max_shift:g}"
                 info = internet_copy(d / "images", folder / "images", K, a.n_internet, a.seed, a.max_shift)
