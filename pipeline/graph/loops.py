@@ -66,13 +66,47 @@ class CycleResult:
     angles: np.ndarray
 
 
-def _blame(cyc_edges: np.ndarray, frac: np.ndarray, M: int) -> np.ndarray:
-    """(M,) number of cycles of ``cyc_edges`` (K, 4) in which each edge has strictly the largest ``frac``."""
-    f = np.where(cyc_edges >= 0, frac[np.maximum(cyc_edges, 0)], -1.0)
-    top = np.sort(f, axis=1)
-    second = np.where(f == top[:, -1:], top[:, -2:-1], top[:, -1:])  # the largest of the others
-    strict = (cyc_edges >= 0) & (f > second)
-    return np.bincount(cyc_edges[strict], minlength=M)
+def _owners(cyc_edges: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """(K,) the edge of each cycle whose ``frac`` is strictly the largest, −1 on a tie.
+
+    ``cyc_edges`` (K, 4) pads a triangle with the sentinel edge ``len(frac) − 1``, whose ``frac`` is −1.
+    """
+    f = frac[cyc_edges]
+    arg = np.argmax(f, axis=1)
+    rows = np.arange(len(f))
+    top = f[rows, arg]
+    unique = np.count_nonzero(f == top[:, None], axis=1) == 1
+    return np.where(unique, cyc_edges[rows, arg], -1)
+
+
+def _gather(ptr: np.ndarray, through: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """The entries of the CSR rows ``rows`` (``through[ptr[r]:ptr[r + 1]]`` for each), concatenated."""
+    starts, lens = ptr[rows], ptr[rows + 1] - ptr[rows]
+    total = int(lens.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    offsets = np.repeat(starts - (np.cumsum(lens) - lens), lens)
+    return through[offsets + np.arange(total)]
+
+
+def _first_blamed(order: np.ndarray, bptr: np.ndarray, bthrough: np.ndarray, bad_edges: np.ndarray,
+                  bad_alive: np.ndarray, frac: np.ndarray, batch: int = 16) -> int:
+    """The first edge of ``order`` that is strictly the most suspicious (:func:`_owners`) in at least one live
+    inconsistent cycle through it, or −1. Candidates are checked in batches that double in size."""
+    start = 0
+    while start < len(order):
+        cand = order[start:start + batch]
+        lens = bptr[cand + 1] - bptr[cand]
+        cycles = _gather(bptr, bthrough, cand)
+        who = np.repeat(np.arange(len(cand)), lens)
+        live = bad_alive[cycles]
+        owned = _owners(bad_edges[cycles[live]], frac) == cand[who[live]]
+        hits = np.flatnonzero(np.bincount(who[live][owned], minlength=len(cand)))
+        if hits.size:
+            return int(cand[hits[0]])
+        start += batch
+        batch *= 2
+    return -1
 
 
 def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
@@ -113,29 +147,37 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
     n_c = np.bincount(flat, minlength=M)
     n_b = np.bincount(flat[bad_rep], minlength=M)
     ptr, through = edge_cycles(cyc, M)
+    # An edge is removable when, in at least one live inconsistent cycle, it is strictly the most suspicious (its
+    # "blame"). Only the first removable candidate in priority order is needed, so the candidates are checked in
+    # that order, in growing batches, each against the inconsistent cycles through it: the same choice as counting
+    # every edge's blame over every cycle each round, at the cost of the cycles through a few candidates.
     bad_idx = np.flatnonzero(~ok)
+    bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
+    bad_edges = np.where(cyc.edges[bad_idx] >= 0, cyc.edges[bad_idx], M)  # padding → the sentinel edge M
+    frac = np.append(np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0), -1.0)  # (M + 1,): the sentinel's is −1
+    bad_alive = np.ones(len(bad_idx), bool)
+    bad_pos = np.full(len(cyc), -1)
+    bad_pos[bad_idx] = np.arange(len(bad_idx))
     removed: list[int] = []
     n_c_at, n_b_at = n_c.copy(), n_b.copy()
     while True:
-        frac = np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
-        cand = kept & (n_c >= min_cycles) & (frac > max_bad_fraction)
-        if cand.any():
-            live_bad = bad_idx[alive[bad_idx]]
-            cand &= _blame(cyc.edges[live_bad], frac, M) >= 1
-        if not cand.any():
+        c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction))
+        best = _first_blamed(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, bad_edges, bad_alive, frac)
+        if best < 0:
             break
-        c = np.flatnonzero(cand)
-        best = int(c[np.lexsort((-n_b[c], -frac[c]))[0]])
         n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
         kept[best] = False
         removed.append(best)
         dead = through[ptr[best]:ptr[best + 1]]
         dead = dead[alive[dead]]
         alive[dead] = False
+        bad_alive[bad_pos[dead][~ok[dead]]] = False
         e = cyc.edges[dead]
         m = e >= 0
         n_c -= np.bincount(e[m], minlength=M)
         n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
+        changed = np.unique(e[m])
+        frac[changed] = np.where(n_c[changed] > 0, n_b[changed] / np.maximum(n_c[changed], 1), 0.0)
     confirmed = np.zeros(M, bool)
     ce = cyc.edges[alive & ok].ravel()
     confirmed[ce[ce >= 0]] = True

@@ -30,6 +30,41 @@ def test_outliers_are_removed_and_few_inliers_lost(max_len):
     assert res.confirmed[res.kept].mean() > 0.95 and not res.confirmed[~res.kept].any()
 
 
+def _greedy_by_definition(res, E: np.ndarray, max_bad_fraction: float = 0.5) -> list[int]:
+    """The greedy removal as the module docstring defines it, recounting every edge's blame over every live
+    inconsistent cycle each round (quadratic; the reference for the filter's batched search)."""
+    M, edges, ok = len(E), res.cycles.edges, res.consistent
+    alive, kept, removed = np.ones(len(edges), bool), np.ones(M, bool), []
+    while True:
+        live = edges[alive]
+        valid = live >= 0
+        n_c = np.bincount(live[valid], minlength=M)
+        n_b = np.bincount(live[valid & ~ok[alive][:, None]], minlength=M)
+        frac = np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
+        blame = np.zeros(M, int)
+        for cycle in edges[alive & ~ok]:
+            es = cycle[cycle >= 0]
+            f = frac[es]
+            if np.sum(f == f.max()) == 1:
+                blame[es[np.argmax(f)]] += 1
+        cand = np.flatnonzero(kept & (n_c >= 1) & (frac > max_bad_fraction) & (blame >= 1))
+        if not cand.size:
+            return removed
+        best = int(cand[np.lexsort((-n_b[cand], -frac[cand]))[0]])
+        kept[best] = False
+        removed.append(best)
+        alive &= ~np.any(edges == best, axis=1)
+
+
+@pytest.mark.parametrize("seed,n_out,max_len", [(1, 15, 3), (1, 15, 4), (2, 40, 4), (3, 80, 4)])
+def test_the_greedy_removal_is_the_one_its_definition_gives(seed, n_out, max_len):
+    _, E, Rm, _ = _graph(n=20, p=0.6, seed=seed, n_out=n_out)
+    sigma = np.random.default_rng(seed).uniform(0.3, 1.0, len(E))  # ties in the fractions are rare, not absent
+    res = cycle_filter(E, Rm, 20, sigma, max_len=max_len)
+    assert len(res.removed) >= n_out // 2
+    assert res.removed == _greedy_by_definition(res, E)
+
+
 def test_calibration_absorbs_a_common_overconfidence():
     # σ given 4x too small: κ² ≈ 16 is estimated, and nothing good is removed
     _, E, Rm, _ = _graph(noise_deg=2.0, seed=2)
