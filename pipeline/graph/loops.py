@@ -277,11 +277,23 @@ def cycle_check(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, kept: np.n
             todo = todo[~ok]
         else:
             batch = []
-            for e in todo:  # the few edges no confirmed path reaches (e.g. a ring without triangles)
-                use = kept.copy()
-                use[e] = False
-                d, p = _shortest(edges, var, use, n_cameras, np.array([edges[e, 0]]), limit)
-                if np.isfinite(d[0, edges[e, 1]]):
+            # the few edges no confirmed path reaches (e.g. a ring without triangles): one search each through the
+            # other kept edges. The graph is built once; the edge searched around is blocked by a weight beyond
+            # the search's limit, so no path within the limit can use it (as if it were removed).
+            ke = np.flatnonzero(kept)
+            G = sp.csr_matrix((np.r_[var[ke], var[ke]], (np.r_[edges[ke, 0], edges[ke, 1]],
+                                                        np.r_[edges[ke, 1], edges[ke, 0]])), shape=(n_cameras,) * 2)
+            G.sort_indices()
+            blocked = 2.0 * limit + 1.0
+            for e in todo:
+                i, j = edges[e]
+                at = [G.indptr[a] + int(np.searchsorted(G.indices[G.indptr[a]:G.indptr[a + 1]], b))
+                      for a, b in ((i, j), (j, i))]
+                saved = G.data[at].copy()
+                G.data[at] = blocked
+                d, p = dijkstra(G, directed=True, indices=np.array([i]), return_predecessors=True, limit=limit)
+                G.data[at] = saved
+                if np.isfinite(d[0, j]):
                     batch.append((np.array([e]), np.zeros(1, np.int64), d, p))
         for es, rows, dist, pred in batch:
             i, j = edges[es, 0], edges[es, 1]
