@@ -23,7 +23,8 @@ import numpy as np
 
 from pipeline.core import so3
 
-__all__ = ["Cycles", "EdgeIndex", "find_triangles", "find_cycles", "cycle_angles", "cycle_variance", "edge_cycles"]
+__all__ = ["Cycles", "EdgeIndex", "find_triangles", "find_cycles", "cycle_angles", "cycle_variance", "edge_cycles",
+           "expand_rows"]
 
 
 @dataclass
@@ -80,8 +81,9 @@ def _csr(src: np.ndarray, dst: np.ndarray, eid: np.ndarray, n: int) -> tuple[np.
     return ptr, dst[order], eid[order]
 
 
-def _expand(ptr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each entry of ``rows``, every position of its adjacency list: (owner index, position)."""
+def expand_rows(ptr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each entry of ``rows``, every position of its CSR row (``ptr`` (n+1,) row pointers): (owner index
+    into ``rows``, position)."""
     counts = ptr[rows + 1] - ptr[rows]
     owner = np.repeat(np.arange(len(rows)), counts)
     start = np.repeat(ptr[rows] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
@@ -100,7 +102,7 @@ def find_triangles(edges: np.ndarray, n: int, active: np.ndarray | None = None) 
     act = np.flatnonzero(np.ones(len(edges), bool) if active is None else np.asarray(active, bool))
     i, j = edges[act, 0], edges[act, 1]
     ptr, nbr, eid = _csr(i, j, act, n)  # the cameras above each camera
-    owner, pos = _expand(ptr, j)  # wedge i – j – k with k > j
+    owner, pos = expand_rows(ptr, j)  # wedge i – j – k with k > j
     e_ij, e_jk, k = act[owner], eid[pos], nbr[pos]
     e_ik = EdgeIndex(edges, n, None if active is None else active).lookup(i[owner], k)
     ok = e_ik >= 0

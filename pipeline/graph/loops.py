@@ -33,8 +33,8 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.stats import chi2
 
 from pipeline.core import so3
-from pipeline.graph.cycles import (Cycles, EdgeIndex, cycle_angles, cycle_variance, edge_cycles, find_cycles,
-                                   find_triangles)
+from pipeline.graph.cycles import (Cycles, EdgeIndex, cycle_angles, cycle_variance, edge_cycles, expand_rows,
+                                   find_cycles, find_triangles)
 
 __all__ = ["CycleResult", "cycle_filter", "PathCheck", "cycle_check", "colocation_check", "group_median"]
 
@@ -66,6 +66,11 @@ class CycleResult:
     angles: np.ndarray
 
 
+def _fraction(n_b: np.ndarray, n_c: np.ndarray) -> np.ndarray:
+    """The share of inconsistent cycles among an edge's cycles (0 for an edge in none)."""
+    return np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
+
+
 def _owners(cyc_edges: np.ndarray, frac: np.ndarray) -> np.ndarray:
     """(K,) the edge of each cycle whose ``frac`` is strictly the largest, −1 on a tie.
 
@@ -79,29 +84,20 @@ def _owners(cyc_edges: np.ndarray, frac: np.ndarray) -> np.ndarray:
     return np.where(unique, cyc_edges[rows, arg], -1)
 
 
-def _gather(ptr: np.ndarray, through: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """The entries of the CSR rows ``rows`` (``through[ptr[r]:ptr[r + 1]]`` for each), concatenated."""
-    starts, lens = ptr[rows], ptr[rows + 1] - ptr[rows]
-    total = int(lens.sum())
-    if total == 0:
-        return np.zeros(0, np.int64)
-    offsets = np.repeat(starts - (np.cumsum(lens) - lens), lens)
-    return through[offsets + np.arange(total)]
-
-
-def _first_blamed(order: np.ndarray, bptr: np.ndarray, bthrough: np.ndarray, bad_edges: np.ndarray,
-                  bad_alive: np.ndarray, frac: np.ndarray, batch: int = 16) -> int:
+def _first_blamed(order: np.ndarray, bptr: np.ndarray, bthrough: np.ndarray, padded: np.ndarray, alive: np.ndarray,
+                  frac: np.ndarray, batch: int = 16) -> int:
     """The first edge of ``order`` that is strictly the most suspicious (:func:`_owners`) in at least one live
-    inconsistent cycle through it, or −1. Candidates are checked in batches that double in size."""
+    inconsistent cycle through it (``bptr``, ``bthrough``: those cycles per edge), or −1. Candidates are checked in
+    batches that double in size."""
     start = 0
     while start < len(order):
         cand = order[start:start + batch]
-        lens = bptr[cand + 1] - bptr[cand]
-        cycles = _gather(bptr, bthrough, cand)
-        who = np.repeat(np.arange(len(cand)), lens)
-        live = bad_alive[cycles]
-        owned = _owners(bad_edges[cycles[live]], frac) == cand[who[live]]
-        hits = np.flatnonzero(np.bincount(who[live][owned], minlength=len(cand)))
+        who, pos = expand_rows(bptr, cand)
+        cycles = bthrough[pos]
+        live = alive[cycles]
+        who, cycles = who[live], cycles[live]
+        owned = _owners(padded[cycles], frac) == cand[who]
+        hits = np.flatnonzero(np.bincount(who[owned], minlength=len(cand)))
         if hits.size:
             return int(cand[hits[0]])
         start += batch
@@ -153,16 +149,14 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
     # every edge's blame over every cycle each round, at the cost of the cycles through a few candidates.
     bad_idx = np.flatnonzero(~ok)
     bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
-    bad_edges = np.where(cyc.edges[bad_idx] >= 0, cyc.edges[bad_idx], M)  # padding → the sentinel edge M
-    frac = np.append(np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0), -1.0)  # (M + 1,): the sentinel's is −1
-    bad_alive = np.ones(len(bad_idx), bool)
-    bad_pos = np.full(len(cyc), -1)
-    bad_pos[bad_idx] = np.arange(len(bad_idx))
+    bthrough = bad_idx[bthrough]  # the inconsistent cycles through each edge, as indices of all cycles
+    padded = np.where(cyc.edges >= 0, cyc.edges, M)  # a triangle's padding → the sentinel edge M
+    frac = np.append(_fraction(n_b, n_c), -1.0)  # (M + 1,): the sentinel's is −1
     removed: list[int] = []
     n_c_at, n_b_at = n_c.copy(), n_b.copy()
     while True:
         c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction))
-        best = _first_blamed(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, bad_edges, bad_alive, frac)
+        best = _first_blamed(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, padded, alive, frac)
         if best < 0:
             break
         n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
@@ -171,13 +165,12 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
         dead = through[ptr[best]:ptr[best + 1]]
         dead = dead[alive[dead]]
         alive[dead] = False
-        bad_alive[bad_pos[dead][~ok[dead]]] = False
         e = cyc.edges[dead]
         m = e >= 0
         n_c -= np.bincount(e[m], minlength=M)
         n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
         changed = np.unique(e[m])
-        frac[changed] = np.where(n_c[changed] > 0, n_b[changed] / np.maximum(n_c[changed], 1), 0.0)
+        frac[changed] = _fraction(n_b[changed], n_c[changed])
     confirmed = np.zeros(M, bool)
     ce = cyc.edges[alive & ok].ravel()
     confirmed[ce[ce >= 0]] = True
@@ -230,12 +223,18 @@ def _compose_paths(pred: np.ndarray, rows: np.ndarray, i: np.ndarray, j: np.ndar
     return P, length, (np.stack(walked, 1) if walked else np.zeros((K, 0), np.int64))
 
 
+def _graph(edges: np.ndarray, var: np.ndarray, use: np.ndarray, n: int) -> sp.csr_matrix:
+    """The (n, n) graph of the edges ``use`` selects, both directions, weighted by ``var``; indices sorted."""
+    e, w = edges[use], var[use]
+    G = sp.csr_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
+    G.sort_indices()
+    return G
+
+
 def _shortest(edges: np.ndarray, var: np.ndarray, use: np.ndarray, n: int, sources: np.ndarray,
               limit: float) -> tuple[np.ndarray, np.ndarray]:
-    e = edges[use]
-    w = var[use]
-    G = sp.csr_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
-    return dijkstra(G, directed=False, indices=sources, return_predecessors=True, limit=limit)
+    return dijkstra(_graph(edges, var, use, n), directed=False, indices=sources, return_predecessors=True,
+                    limit=limit)
 
 
 def cycle_check(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, kept: np.ndarray, which: np.ndarray,
@@ -280,10 +279,7 @@ def cycle_check(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, kept: np.n
             # the few edges no confirmed path reaches (e.g. a ring without triangles): one search each through the
             # other kept edges. The graph is built once; the edge searched around is blocked by a weight beyond
             # the search's limit, so no path within the limit can use it (as if it were removed).
-            ke = np.flatnonzero(kept)
-            G = sp.csr_matrix((np.r_[var[ke], var[ke]], (np.r_[edges[ke, 0], edges[ke, 1]],
-                                                        np.r_[edges[ke, 1], edges[ke, 0]])), shape=(n_cameras,) * 2)
-            G.sort_indices()
+            G = _graph(edges, var, kept, n_cameras)
             blocked = 2.0 * limit + 1.0
             for e in todo:
                 i, j = edges[e]
