@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree, shortest_path
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
 
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ViewGraphError
@@ -122,20 +122,21 @@ def rotations_from_tree(vg: ViewGraph, tree: np.ndarray, root: int = 0) -> np.nd
     order, pred = breadth_first_order(T, root, directed=False, return_predecessors=True)
     if order.size != N:
         raise ViewGraphError(f"the tree reaches {order.size} of {N} cameras; it does not span the graph")
-    # Hop counts from the root, computed in C (no per-camera Python loop).
-    depth = shortest_path(T, method="D", directed=False, unweighted=True, indices=root).astype(np.int64)
-    R = np.empty((N, 3, 3))
-    R[root] = np.eye(3)
-    child_all = order[1:]
-    parent_all = pred[child_all]
-    eidx_all = _edge_lookup(vg, parent_all, child_all)
-    forward_all = vg.edges[eidx_all, 0] == parent_all  # edge (parent, child): R_c = R_pc R_p
-    Rrel = vg.R_rel[eidx_all]
-    Rrel = np.where(forward_all[:, None, None], Rrel, np.swapaxes(Rrel, 1, 2))
-    d_all = depth[child_all]
-    for d in range(1, int(depth.max()) + 1):
-        sel = d_all == d
-        R[child_all[sel]] = Rrel[sel] @ R[parent_all[sel]]
+    child = order[1:]
+    parent = pred[child]
+    eidx = _edge_lookup(vg, parent, child)
+    forward = vg.edges[eidx, 0] == parent  # edge (parent, child): R_c = R_pc R_p
+    Rrel = vg.R_rel[eidx]
+    # Pointer doubling: R[c] holds R_c R_{jump[c]}ᵀ; each round composes a camera's step with its target's
+    # and doubles the hops it spans, so a chain of depth D takes ⌈log₂ D⌉ rounds of N products (a sequence
+    # of thousands of frames is a tree thousands deep: one round per level would be O(N·D)).
+    R = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    R[child] = np.where(forward[:, None, None], Rrel, np.swapaxes(Rrel, 1, 2))
+    jump = np.full(N, root, dtype=np.int64)
+    jump[child] = parent
+    while np.any(jump != root):
+        R = R @ R[jump]
+        jump = jump[jump]
     return R
 
 
