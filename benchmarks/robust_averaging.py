@@ -35,6 +35,8 @@ degrees after the ℓ2 alignment of ``pipeline.evaluate``, every ratio from this
 ``dense-large``
     The same generator at the sizes of 1DSfM's larger graphs: 1000 cameras and 100,000 edges
     (Vienna Cathedral: 918 / 103k) and 2500 cameras and 320,000 edges (Piccadilly: 2508 / 319k),
+    and at that of an unordered collection's retrieval graph, 2000 cameras and 20,000 edges (random
+    pairs, degree 20: its Laplacian's factor fills, as a 1DSfM graph's does) (``--large-sizes NxM``),
     seeds ``--seeds``, one call each: ours against pycolmap's ``run_rotation_averaging`` called on
     the same graph (its time alone), both scored on the cameras both posed (pycolmap leaves a
     camera or two unposed on these graphs).
@@ -267,16 +269,16 @@ def dense(seeds: list[int], repeat: int) -> dict[str, Any]:
     return {"rows": rows}
 
 
-LARGE_SIZES = ((1000, 100_000), (2500, 320_000))
+LARGE_SIZES = ((2000, 20_000), (1000, 100_000), (2500, 320_000))
 
 
-def dense_large(seeds: list[int]) -> dict[str, Any]:
+def dense_large(seeds: list[int], sizes: tuple[tuple[int, int], ...] = LARGE_SIZES) -> dict[str, Any]:
     import pycolmap  # noqa: PLC0415
 
     from pipeline.averaging.colmap_ra import run_pycolmap  # noqa: PLC0415
 
     rows = []
-    for n, m in LARGE_SIZES:
+    for n, m in sizes:
         for seed in seeds:
             g, _ = dense_graph(n=n, target_edges=m, seed=seed)
             vg, idx = g.vg, np.arange(n)
@@ -312,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=list(PROTOCOLS))
     p.add_argument("--sizes", type=int, nargs="+", default=[500, 2000])
     p.add_argument("--repeat", type=int, default=5, help="calls per timing (median)")
+    p.add_argument("--large-sizes", nargs="+", default=[f"{n}x{m}" for n, m in LARGE_SIZES],
+                   help="dense-large graphs as CAMERASxEDGES")
     p.add_argument("--quick", action="store_true", help="one seed, N = 500, one call per timing")
     p.add_argument("--out", type=Path, default=RESULTS / "robust_averaging.json")
     a = p.parse_args(argv)
@@ -337,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         out["dense"] = dense(list(range(5)) if not a.quick else a.seeds, a.repeat)
     if "dense-large" in a.sections:
         print("dense graphs at 1DSfM's larger sizes: ours vs pycolmap, median / mean (deg), time")
-        out["dense_large"] = dense_large(a.seeds)
+        out["dense_large"] = dense_large(a.seeds, tuple(tuple(int(v) for v in x.split("x")) for x in a.large_sizes))
     out["wall_s"] = time.perf_counter() - t0
     write_json(a.out, out)
     print(f"wrote {a.out}")

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from pipeline.averaging.kernel import (DenseCholesky, LaplacianSolver, SymmetricFactorizer, cg_with_factor,
-                                       effective_weights, graph_residuals)
+                                       effective_weights, graph_residuals, solve_iteratively)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -100,15 +100,19 @@ class BlockLaplacianSolver:
         previous matrix is a near-exact preconditioner for the current one: conjugate
         gradients on the current matrix, preconditioned by it, reach ``rtol`` in a few
         matrix-vector products. When they do not within ``max_cg`` iterations, or when the
-        gauge (the pinned cameras) changed, the current matrix is factored instead. The
+        gauge (the pinned cameras) changed, the current matrix is factored instead; on a well-connected graph,
+        block-Jacobi conjugate gradients come first (:func:`~pipeline.averaging.kernel.solve_iteratively`). The
         solution is that of the current matrix either way (to ``rtol``).
         """
         A = self.matrix(B)  # sets self.pinned for B
         pinned = self.pinned
-        if self._lu is not None and np.array_equal(pinned, self._lu_pinned):
+        if self._lu is not None:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[pinned] = 0.0
-            x, n_it = cg_with_factor(A, bb.reshape(-1), self._lu, rtol, max_cg)
+            x, n_it = solve_iteratively(self._factor, A, bb.reshape(-1), rtol, block=3)
+            if x is None and np.array_equal(pinned, self._lu_pinned):
+                x, n_cg = cg_with_factor(A, bb.reshape(-1), self._lu, rtol, max_cg)
+                n_it += n_cg
             self.n_cg_iterations += n_it
             if x is not None:
                 x = x.reshape(self.n, 3)
