@@ -237,6 +237,27 @@ class ItemStore:
             raise CacheError(f"chunk {self.folder / name} lacks the item {key} that {self.folder / INDEX} places there")
         return self._cache[name][key]
 
+    def check(self, keys: Sequence[str], check: Callable[[int, dict[str, np.ndarray]], Any], what: str) -> None:
+        """Apply ``check(i, item)`` to the item of each key; where it raises :class:`CacheError` (or the item cannot
+        be read), the chunks holding those items are removed, so that a recompute cannot reuse them, and one
+        :class:`CacheError` names how many ``what`` failed and the first reason."""
+        bad: list[str] = []
+        first = ""
+        for i, key in enumerate(keys):
+            try:
+                check(i, self.get(key))
+            except CacheError as exc:
+                bad.append(key)
+                first = first or " ".join(str(exc).split())
+        if bad:
+            where = self._where if self._where is not None else self.load_index()
+            names = {where[k] for k in bad if k in where}
+            for name in names:
+                (self.folder / name).unlink(missing_ok=True)
+            self._where = {k: v for k, v in where.items() if v not in names}
+            self._cache = {}
+            raise CacheError(f"{len(bad)} {what} damaged, e.g. {first}; their {len(names)} chunk file(s) removed")
+
     # ------------------------------------------------------------------ index
     def write_index(self, keys: list[str]) -> list[Path]:
         """Record the current keys, remove chunks none of them uses; returns the files in use."""

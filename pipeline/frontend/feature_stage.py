@@ -245,10 +245,12 @@ class FeaturesStage(Stage[FeatureConfig]):
 
     def verify(self, record: StageRecord) -> None:
         m = load_manifest(self.folder)
-        keys = ItemStore(self.folder / STORE).load_index()
-        if list(keys) != list(m["keys"]):
+        store = ItemStore(self.folder / STORE)
+        if list(store.load_index()) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the images")
-        load_features(self.folder, descriptors=False)  # every image's arrays
+        store.check(m["keys"], lambda i, item: _image_features(item, m["names"][i]),
+                    f"images' features in {self.folder / STORE}")
+        load_features(self.folder, descriptors=False)  # the manifest's other fields
 
 
 def load_manifest(work: Path) -> dict:

@@ -274,11 +274,18 @@ class MatchingStage(Stage[MatchingConfig]):
         fs = feature_stage.load_features(self.folder, descriptors=False)
         if list(fs.names) != list(m["names"]):
             raise CacheError(f"{self.folder / MANIFEST} was matched for other images than the current features")
-        ms = load_matches(self.folder)
-        for (a, b), mm in zip(ms.pairs, ms.matches):
-            if len(mm) and (mm[:, 0].max() >= len(fs.keypoints[a]) or mm[:, 1].max() >= len(fs.keypoints[b])):
-                raise CacheError(f"{self.folder / STORE}: the matches of {ms.names[a]}-{ms.names[b]} refer to "
-                                 "keypoints the features do not have")
+        pairs = np.asarray(m["pairs"], np.int64).reshape(-1, 2)
+        n_kp = np.array([len(k) for k in fs.keypoints], np.int64)
+
+        def in_range(q: int, item: dict[str, np.ndarray]) -> None:
+            mm = _pair_matches(item)
+            if len(mm) and np.any(mm.max(axis=0) >= n_kp[pairs[q]]):
+                a, b = pairs[q]
+                raise CacheError(f"the matches of {fs.names[a]}-{fs.names[b]} refer to keypoints the features lack")
+
+        store = ItemStore(self.folder / STORE)
+        store.load_index()
+        store.check(m["keys"], in_range, f"pairs' matches in {self.folder / STORE}")
 
 
 def _load_manifest(work: Path) -> dict:
