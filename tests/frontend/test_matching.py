@@ -158,47 +158,44 @@ def test_flann_matches_do_not_depend_on_rng_state_or_threads():
     np.testing.assert_array_equal(out[0], ref)
 
 
+def _damage_first_item(store_dir, field, index, value):
+    """Set ``field[index] = value`` in the first item of the first chunk, in place and in the same dtype: the file
+    keeps its size (the stage record's check still passes), only its contents are wrong."""
+    from pipeline.core.store import ItemStore
+
+    store = ItemStore(store_dir)
+    items = store.read_chunk(sorted(store_dir.glob("chunk-*.npz"))[0])
+    key = next(iter(items))
+    fields = {k: np.array(v) for k, v in items[key].items()}
+    fields[field][index] = value
+    assert fields[field][index] == value or np.isnan(value)  # representable in the stored dtype
+    store.write_chunk({**{k: dict(v) for k, v in items.items()}, key: fields})
+
+
 @pytest.mark.parametrize("bad_index", [-1, 10**6])
 def test_matches_out_of_the_features_range_are_recomputed(scene, tmp_path, bad_index):
     # A chunk that reads well but refers to keypoints the features lack (past the end, or negative, which numpy
     # would take from the end) is not trusted: the stage recomputes it and the matches come back as before.
-    from pipeline.core.store import ItemStore
     from pipeline.frontend.matching_stage import STORE
 
     work = tmp_path / "w"
     features.main(scene.out, work, progress=False)
     matching.main(work, progress=False)
     before = load_matches(work)
-    store = ItemStore(work / STORE)
-    path = sorted((work / STORE).glob("chunk-*.npz"))[0]
-    items = store.read_chunk(path)
-    key = next(iter(items))
-    fields = {k: np.array(v) for k, v in items[key].items()}
-    mm = next(k for k, v in fields.items() if v.ndim == 2 and v.shape[1] == 2 and v.dtype.kind in "iu" and len(v))
-    assert fields[mm].dtype.kind == "i"  # same bytes: the record's sizes still match, only the contents are wrong
-    fields[mm][0, 1] = bad_index
-    store.write_chunk({**{k: dict(v) for k, v in items.items()}, key: fields})
-    stage = matching.MatchingStage(work, progress=False)
-    assert not stage.run().reused
+    _damage_first_item(work / STORE, "matches", (0, 1), bad_index)
+    assert not matching.MatchingStage(work, progress=False).run().reused
     after = load_matches(work)
     assert after.pairs.tolist() == before.pairs.tolist()
     assert all(np.array_equal(x, y) for x, y in zip(after.matches, before.matches))
 
 
 def test_features_that_read_but_are_not_finite_are_recomputed(scene, tmp_path):
-    from pipeline.core.store import ItemStore
     from pipeline.frontend.feature_stage import STORE, load_features
 
     work = tmp_path / "w"
     features.main(scene.out, work, progress=False)
     before = load_features(work)
-    store = ItemStore(work / STORE)
-    path = sorted((work / STORE).glob("chunk-*.npz"))[0]
-    items = store.read_chunk(path)
-    key = next(iter(items))
-    fields = {k: np.array(v) for k, v in items[key].items()}
-    fields["keypoints"][3, 0] = np.nan  # same bytes: the record's sizes still match
-    store.write_chunk({**{k: dict(v) for k, v in items.items()}, key: fields})
+    _damage_first_item(work / STORE, "keypoints", (3, 0), np.nan)
     features.main(scene.out, work, progress=False)
     after = load_features(work)
     assert all(np.array_equal(x, y) for x, y in zip(after.keypoints, before.keypoints))
