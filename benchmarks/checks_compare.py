@@ -7,8 +7,9 @@ runs that ``benchmarks/front_end_checks.py --work W --label after`` left in ``W/
 repeated scenes and their controls; each run's truth is the ``--gt`` its ``metrics.json`` records)
 and applies to each BA graph
 
-- ``before``: the rules of 534a003 (no bridge exception, every non-rotation-only pair a co-location
-  witness): ``keep_bridges: false``, ``colocation_min_parallax_deg: 0``;
+- ``before`` (``--change bridges``, the default): the rules of 534a003 (no bridge exception, every
+  non-rotation-only pair a co-location witness): ``keep_bridges: false``, ``colocation_min_parallax_deg: 0``;
+  (``--change robust-unconfirmed``): the robust filter's solution on the kept pairs alone;
 - ``after``: the defaults.
 
 Per scene and rule set: pairs kept, kept pairs more than 5° from the truth (and the worst), images
@@ -41,7 +42,14 @@ from pipeline.graph.checks import ViewGraphConfig, check_view_graph  # noqa: E40
 from pipeline.reference.truth import read_reference  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "checks_compare.json"
-RULES = {"before": ViewGraphConfig(keep_bridges=False, colocation_min_parallax_deg=0.0), "after": ViewGraphConfig()}
+#: Rule changes compared (``--change``): "before" against the defaults ("after").
+CHANGES = {
+    # 534a003 → the bridge exception and co-location witnesses with parallax (issue 16)
+    "bridges": ViewGraphConfig(keep_bridges=False, colocation_min_parallax_deg=0.0),
+    # the robust filter's solution without the pairs dropped as unconfirmed (before 2026-12-03, seventh session)
+    "robust-unconfirmed": ViewGraphConfig(robust_unconfirmed=False),
+}
+RULES = {"before": CHANGES["bridges"], "after": ViewGraphConfig()}
 
 
 def compare(vg: ViewGraph, R_ref: np.ndarray, mask: np.ndarray) -> dict:
@@ -68,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, required=True, help="the work folder of front_end_checks.py")
     p.add_argument("--json", type=Path, default=RESULTS)
+    p.add_argument("--change", choices=list(CHANGES), default="bridges", help="which rule change to compare")
     a = p.parse_args(argv)
+    RULES["before"] = CHANGES[a.change]
     rows = {}
     for out in sorted((a.work / "runs").glob("*_after")):
         gt = json.loads((out / "metrics.json").read_text())["input"].get("gt") if (out / "metrics.json").is_file() \
@@ -87,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         for label in RULES:
             print(f"{name:18s} {label:7s} " + " ".join(f"{str(r[label][c]):>17s}" for c in cols))
     a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps({"rows": rows, "command": "python benchmarks/checks_compare.py " + " ".join(
+    a.json.write_text(json.dumps({"rows": rows, "change": a.change, "command": "python benchmarks/checks_compare.py " + " ".join(
         sys.argv[1:] if argv is None else argv)}, indent=1))
     print(f"wrote {a.json}")
     return 0

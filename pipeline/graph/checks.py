@@ -19,7 +19,8 @@ BA's). In order:
    flags the cameras it joins. A walk that turns on the spot (a rendered street's 30° pan
    steps, each view overlapping only its two neighbours) is joined only by such pairs;
    dropping them split a 300-view street in two halves of 148;
-6. the robust solution: IRLS-ℓ½ on each component of the kept graph; an edge whose residual
+6. the robust solution: IRLS-ℓ½ on each component of the kept graph, with the pairs step 5
+   dropped as unconfirmed weighed too (``robust_unconfirmed``); a kept edge whose residual
    exceeds ``max(robust_floor_deg, robust_k_sigma·h_inflation·σ_weak)`` is rejected. It sees
    what only long cycles see (a repeated structure's pair whose cycles it makes consistent).
 
@@ -94,6 +95,8 @@ class ViewGraphConfig(Config):
     robust_floor_deg: float = option(5.0, "robust filter: reject residuals above max(this, k·h_inflation·σ_weak)",
                                      gt=0)
     robust_k_sigma: float = option(4.0, "robust filter: k", gt=0)
+    robust_unconfirmed: bool = option(True, "robust filter: its solution also weighs the pairs dropped only as "
+                                            "unconfirmed (never judged by it, never kept by it)")
 
     def check(self) -> None:
         if self.provisional_min_inliers > self.min_inliers:
@@ -227,10 +230,16 @@ def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, 
     from pipeline.averaging.irls import IRLSConfig  # noqa: PLC0415 - the graph checks use one averaging method
     from pipeline.averaging.solve import average  # noqa: PLC0415
 
-    keep = np.flatnonzero(chk.kept)
-    if not len(keep):
+    if not chk.kept.any():
         return 0
-    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], allow_isolated=True)
+    # The solution also weighs the pairs dropped only because no cycle confirmed them (when
+    # robust_unconfirmed): a pair whose one triangle is inconsistent because of *another* pair of it is such
+    # a pair, and without it that other pair's error has only long loops to go to, which IRLS-ℓ½ spreads
+    # below its threshold and the polish may then put on any pair of the loop (a rendered 500-view street:
+    # a correct pan pair rejected at 26°, the wrong pair kept, half the street lost). Only kept pairs are judged.
+    keep = np.flatnonzero(chk.kept | (cfg.robust_unconfirmed & (chk.step == "unconfirmed")))
+    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep],
+                    inliers=None if vg.inliers is None else vg.inliers[keep], allow_isolated=True)
     labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
     for c in range(int(labels.max()) + 1):  # one solve per component (a few): the left-out ones are checked too
@@ -240,6 +249,6 @@ def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, 
         res = average(comp, "irls", IRLSConfig(certify=False))
         r[keep[restr.edge_kept[res.edge_index]]] = np.degrees(res.residuals_rad)
     thr = np.maximum(cfg.robust_floor_deg, cfg.robust_k_sigma * cfg.h_inflation * sigma_weak_deg)
-    bad = np.isfinite(r) & (r > thr)
+    bad = chk.kept & np.isfinite(r) & (r > thr)
     return _reject(chk, bad, "robust", lambda ix: [
         f"the robust solution (IRLS-ℓ½) leaves it {r[k]:.1f}° off (threshold {thr[k]:.1f}°)" for k in ix])

@@ -137,6 +137,42 @@ def test_two_pans_close_a_loop_that_checks_them():
     assert set(chk.step[-4:]) == {"robust"} and not chk.bridged.any()
 
 
+def _street_loop(chain=10, seed=2):
+    """A street's loop: two bands of ``chain`` views ((i, i+1), (i, i+2)), A and B, joined by a pan camera P
+    (rotation-only pairs) and closed through X, Y: (b, X) strong; (X, Y) a correct pair of low parallax, normal
+    tier; (b, Y) strong but 25° wrong, with few inliers; (0, Y) rotation-only. The triangle (b, X, Y) is
+    inconsistent, so neither (X, Y) nor (b, Y) is confirmed, and the one loop through them is long."""
+    rng = np.random.default_rng(seed)
+    n = 2 * chain + 3
+    P, X, Y, b = 2 * chain, 2 * chain + 1, 2 * chain + 2, 2 * chain - 1
+    R = so3.random_rotations(n, rng)
+    band = [(o + i, o + i + d) for o in (0, chain) for d in (1, 2) for i in range(chain - d)]
+    E = np.sort(np.array(band + [(chain - 1, P), (chain, P), (b, X), (X, Y), (b, Y), (0, Y)]), axis=1)
+    Rm = so3.exp(np.deg2rad(0.1) * rng.standard_normal((len(E), 3))) @ (R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2))
+    Rm[-2] = so3.exp(np.deg2rad(25.0) * np.array([0.0, 0.0, 1.0])) @ Rm[-2]
+    inl = np.full(len(E), 300)
+    inl[-2] = 40
+    small = np.isin(np.arange(len(E)), [len(E) - 6, len(E) - 5, len(E) - 1])
+    vg = _vg(E, Rm, n, inl=inl, matches=inl + 60, small=small)
+    vg.stats["median_triangulation_deg"][small] = 0.0
+    vg.stats["median_triangulation_deg"][-3] = 2.0
+    return vg
+
+
+def test_the_robust_solution_weighs_the_pairs_left_unconfirmed():
+    # (X, Y) is dropped as unconfirmed, but it is what shows that (b, Y) is the wrong pair of the triangle: the
+    # robust solution weighs it, rejects (b, Y), and keeps every other pair (the camera Y hangs on its pan)
+    vg = _street_loop()
+    chk = check_view_graph(vg)
+    assert chk.step[-2] == "robust" and not chk.kept[-2]
+    assert chk.step[-3] == "unconfirmed" and chk.kept[:-3].all() and chk.kept[-1]
+    kept = ViewGraph(vg.names, vg.edges[chk.kept], vg.R_rel[chk.kept], allow_isolated=True)
+    assert kept.is_connected()
+    # on the kept pairs alone (the rule before), the loop's 25° is spread below the threshold: the wrong pair stays
+    old = check_view_graph(vg, ViewGraphConfig(robust_unconfirmed=False))
+    assert old.kept[-2] and old.info["robust"] == 0
+
+
 def test_config_checks():
     with pytest.raises(ConfigError, match="provisional_min_inliers"):
         ViewGraphConfig(provisional_min_inliers=20)
