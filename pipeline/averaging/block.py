@@ -11,8 +11,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import (DenseCholesky, LaplacianSolver, SymmetricFactorizer, cg_with_factor,
-                                       effective_weights, graph_residuals, solve_iteratively)
+from pipeline.averaging.iterative import cg_with_factor, solve_iteratively
+from pipeline.averaging.kernel import (REUSE_MIN_N, DenseCholesky, LaplacianSolver, SymmetricFactorizer,
+                                       effective_weights, graph_residuals)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -109,7 +110,7 @@ class BlockLaplacianSolver:
         if self._lu is not None:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[pinned] = 0.0
-            x, n_it = solve_iteratively(self._factor, A, bb.reshape(-1), rtol, block=3)
+            x, n_it = solve_iteratively(self._factor, A, bb.reshape(-1), rtol, block=3, min_n=REUSE_MIN_N)
             if x is None and np.array_equal(pinned, self._lu_pinned):
                 x, n_cg = cg_with_factor(A, bb.reshape(-1), self._lu, rtol, max_cg)
                 n_it += n_cg

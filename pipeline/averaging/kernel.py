@@ -27,6 +27,7 @@ import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
+from pipeline.averaging.iterative import ITERATIVE_FILL, cg_with_factor, solve_iteratively
 from pipeline.core import so3
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -49,14 +50,6 @@ DENSE_FILL = 0.2
 #: costs more than all the dense ones of the run (measured: 2000 cameras, 200k edges, 10% of the Laplacian
 #: nonzero: 6.2 s against 0.43 s for a dense Cholesky). kNN graphs (0.6% at 2000 cameras) stay with SuperLU.
 DENSE_PATTERN = 0.05
-#: A first factor that fills more than this share of n² marks a well-connected (expander-like) view graph, whose
-#: weighted Laplacians conjugate gradients with a (block-)diagonal preconditioner solve in tens of sparse products:
-#: far cheaper than a new factor or a stale one's triangular solves (measured: 1920 random cameras with 12k edges,
-#: fill 18%, 41–74 iterations at 12–22 ms against 76–89 ms for SuperLU's factor and solve). Such graphs are well
-#: conditioned whatever their weights; where they are not, :data:`JACOBI_MAX_CG` ends the trial for the run.
-ITERATIVE_FILL = 0.1
-#: Iteration cap of the (block-)Jacobi conjugate gradients; past it, factors serve the rest of the run.
-JACOBI_MAX_CG = 150
 #: Largest matrix (rows) factored densely (6000²·8 bytes = 288 MB).
 DENSE_MAX_SIZE = 6000
 #: Below this many rows the dense factor runs with one BLAS thread: OpenBLAS's threads gain nothing on a small
@@ -65,8 +58,7 @@ DENSE_MAX_SIZE = 6000
 #: two threads factor faster).
 DENSE_SINGLE_THREAD_SIZE = 1500
 
-__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "ITERATIVE_FILL", "JACOBI_MAX_CG",
-           "DENSE_MAX_SIZE", "JacobiPreconditioner", "solve_iteratively",
+__all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
            "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals", "graph_residuals", "apply_update",
            "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor", "DenseCholesky",
            "SymmetricFactorizer"]
@@ -220,7 +212,8 @@ class SymmetricFactorizer:
     Cholesky finds not positive-definite (weights near the rounding floor) is factored by SuperLU.
 
     The first factor's fill also decides whether the run's systems are tried first by (block-)Jacobi conjugate
-    gradients (``jacobi``, :func:`solve_iteratively`): a fill beyond :data:`ITERATIVE_FILL`, or a matrix dense from
+    gradients (``jacobi``, :func:`~pipeline.averaging.iterative.solve_iteratively`): a fill beyond
+    :data:`~pipeline.averaging.iterative.ITERATIVE_FILL`, or a matrix dense from
     the start.
 
     Args:
@@ -249,85 +242,6 @@ class SymmetricFactorizer:
         if self.dense is None and n <= DENSE_MAX_SIZE:
             self.dense = fill > DENSE_FILL
         return lu
-
-
-class JacobiPreconditioner:
-    """The inverse of a symmetric matrix's diagonal blocks (1×1 or 3×3), as a preconditioner's ``solve``."""
-
-    def __init__(self, A: sp.spmatrix, block: int = 1) -> None:
-        self.block = int(block)
-        if self.block == 1:
-            self._inv = 1.0 / A.diagonal()
-            return
-        C = A.tocoo()
-        r, c, b = C.row, C.col, self.block
-        on = r // b == c // b
-        D = np.zeros((A.shape[0] // b, b, b))
-        D[r[on] // b, r[on] % b, c[on] % b] = C.data[on]
-        self._inv = np.linalg.inv(D)
-
-    def solve(self, R: np.ndarray) -> np.ndarray:
-        if self.block == 1:
-            return R * self._inv.reshape((-1,) + (1,) * (R.ndim - 1))
-        X = R.reshape(self._inv.shape[0], self.block, -1)
-        return np.einsum("nij,njk->nik", self._inv, X).reshape(R.shape)
-
-
-def solve_iteratively(factorizer: SymmetricFactorizer, A: sp.spmatrix, b: np.ndarray, rtol: float,
-                      block: int = 1) -> tuple[np.ndarray | None, int]:
-    """Conjugate gradients with a (block-)Jacobi preconditioner, where the factorizer found the graph well
-    connected (``factorizer.jacobi``); None when it is not, or when they did not converge within
-    :data:`JACOBI_MAX_CG` iterations, which ends the trial for the factorizer's run. Returns the CG iterations spent.
-    """
-    if not factorizer.jacobi or A.shape[0] // block < REUSE_MIN_N:  # small: a factor is cheaper
-        return None, 0
-    x, n_it = cg_with_factor(A, b, JacobiPreconditioner(A, block), rtol, JACOBI_MAX_CG)
-    if x is None:
-        factorizer.jacobi = False
-    return x, n_it
-
-
-def cg_with_factor(A: sp.spmatrix, b: np.ndarray, lu: sla.SuperLU | DenseCholesky, rtol: float, max_cg: int
-                   ) -> tuple[np.ndarray | None, int]:
-    """Conjugate gradients on ``A x = b`` preconditioned by the factor ``lu`` of a nearby matrix.
-
-    The columns of ``b`` are solved together (one sparse product and one triangular solve
-    per iteration for all of them), each with its own step lengths.
-
-    Args:
-        A: (n, n) the current symmetric positive-definite matrix.
-        b: (n,) or (n, k) right-hand side(s).
-        lu: the factor of an earlier matrix (the preconditioner; SuperLU or :class:`DenseCholesky`).
-        rtol: relative residual tolerance, per column.
-        max_cg: iteration cap.
-
-    Returns:
-        The solution with ``b``'s shape, or None when a column did not converge; the CG
-        iterations spent.
-    """
-    B = np.asarray(b, dtype=np.float64).reshape(b.shape[0], -1)
-    X = np.zeros_like(B)
-    Rr = B.copy()
-    tol = rtol * np.linalg.norm(B, axis=0)
-    if np.all(np.linalg.norm(Rr, axis=0) <= tol):
-        return X.reshape(b.shape), 0
-    Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
-    P = Z.copy()
-    rz = np.einsum("ij,ij->j", Rr, Z)
-    for it in range(1, max_cg + 1):
-        AP = A @ P
-        pap = np.einsum("ij,ij->j", P, AP)
-        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap != 0)
-        X += alpha * P
-        Rr -= alpha * AP
-        if np.all(np.linalg.norm(Rr, axis=0) <= tol):
-            return (X.reshape(b.shape), it) if np.all(np.isfinite(X)) else (None, it)
-        Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
-        rz_new = np.einsum("ij,ij->j", Rr, Z)
-        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
-        P = Z + beta * P
-        rz = rz_new
-    return None, max_cg
 
 
 class LaplacianSolver:
@@ -428,7 +342,7 @@ class LaplacianSolver:
     def solve_reusing(self, w: np.ndarray, b: np.ndarray, rtol: float = 1e-8, max_cg: int = 12) -> np.ndarray:
         """Solve the system of weights ``w`` (M,) for ``b`` (N, 3), reusing the last factor when it serves.
 
-        On a well-connected graph (:func:`solve_iteratively`) conjugate gradients with a diagonal
+        On a well-connected graph (:func:`~pipeline.averaging.iterative.solve_iteratively`) conjugate gradients with a diagonal
         preconditioner come first. Otherwise, IRLS weights change little between iterations, so conjugate
         gradients on the current matrix, preconditioned by the previous SuperLU factor, converge in a few
         steps; when they do not within ``max_cg``, or the gauge changed, the current matrix
@@ -441,7 +355,7 @@ class LaplacianSolver:
         if self.n >= REUSE_MIN_N and self._lu is not None:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[self.pinned] = 0.0
-            x, n_it = solve_iteratively(self._factor, L, bb, rtol)
+            x, n_it = solve_iteratively(self._factor, L, bb, rtol, min_n=REUSE_MIN_N)
             if x is None and np.array_equal(self.pinned, self._lu_pinned):
                 x, n_cg = cg_with_factor(L, bb, self._lu, rtol, max_cg)
                 n_it += n_cg

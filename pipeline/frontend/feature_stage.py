@@ -249,8 +249,7 @@ class FeaturesStage(Stage[FeatureConfig]):
         if list(store.load_index()) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the images")
         store.check(m["keys"], lambda i, item: _image_features(item, m["names"][i]),
-                    f"images' features in {self.folder / STORE}")
-        load_features(self.folder, descriptors=False)  # the manifest's other fields
+                    f"images' features in {self.folder / STORE}")  # the manifest's fields: load_manifest
 
 
 def load_manifest(work: Path) -> dict:

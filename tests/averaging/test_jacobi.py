@@ -1,4 +1,4 @@
-"""Conjugate gradients with a (block-)Jacobi preconditioner on well-connected view graphs (kernel.solve_iteratively).
+"""Conjugate gradients with a (block-)Jacobi preconditioner on well-connected view graphs (iterative.solve_iteratively).
 
 The answer must be the current system's, whichever path gives it: checked against a dense solve. The path itself is
 checked too: a well-connected graph is solved without new factors, a chain never tries the preconditioner, and a
@@ -10,10 +10,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import pipeline.averaging.iterative as iterative
 import pipeline.averaging.kernel as kernel
 from pipeline.averaging import average
 from pipeline.averaging.block import BlockLaplacianSolver
-from pipeline.averaging.kernel import JacobiPreconditioner, LaplacianSolver
+from pipeline.averaging.iterative import JacobiPreconditioner
+from pipeline.averaging.kernel import LaplacianSolver
 from pipeline.core import so3
 from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.synthetic.graphs import paper1_graph, with_outliers
@@ -55,7 +57,7 @@ def test_a_well_connected_graph_is_solved_without_new_factors(monkeypatch):
     S.factor(np.ones(g.vg.n_edges))
     assert S._factor.jacobi is True
     used = []
-    monkeypatch.setattr(kernel, "JacobiPreconditioner", lambda *a, _J=JacobiPreconditioner: used.append(1) or _J(*a))
+    monkeypatch.setattr(iterative, "JacobiPreconditioner", lambda *a, _J=JacobiPreconditioner: used.append(1) or _J(*a))
     b = rng.standard_normal((g.vg.n_cameras, 3))
     for spread in (2.0, 1e3):  # an IRLS-like reweighting, then weights over six decades
         w = np.exp(rng.uniform(-np.log(spread), np.log(spread), g.vg.n_edges))
@@ -70,7 +72,7 @@ def test_a_chain_never_tries_the_preconditioner():
     S = LaplacianSolver(chain, n)
     S.factor(np.ones(n - 1))
     assert S._factor.jacobi is False
-    assert kernel.solve_iteratively(S._factor, S.matrix(np.ones(n - 1)), np.ones((n, 3)), 1e-8) == (None, 0)
+    assert iterative.solve_iteratively(S._factor, S.matrix(np.ones(n - 1)), np.ones((n, 3)), 1e-8) == (None, 0)
 
 
 def test_a_preconditioner_that_does_not_converge_ends_the_trial(monkeypatch):
@@ -78,7 +80,7 @@ def test_a_preconditioner_that_does_not_converge_ends_the_trial(monkeypatch):
     rng = np.random.default_rng(2)
     S = LaplacianSolver(g.vg.edges, g.vg.n_cameras, ref=0)
     S.factor(np.ones(g.vg.n_edges))
-    monkeypatch.setattr(kernel, "JACOBI_MAX_CG", 2)
+    monkeypatch.setattr(iterative, "JACOBI_MAX_CG", 2)
     w = rng.uniform(0.5, 2.0, g.vg.n_edges)
     b = rng.standard_normal((g.vg.n_cameras, 3))
     x = S.solve_reusing(w, b)
@@ -98,7 +100,7 @@ def test_the_block_solver_too():
     B1 = B * rng.uniform(0.3, 3.0, g.vg.n_edges)[:, None, None]
     it0 = S.n_cg_iterations
     x = S.solve_reusing(B1, b)
-    assert S.n_factorizations == 1 and it0 < S.n_cg_iterations <= kernel.JACOBI_MAX_CG
+    assert S.n_factorizations == 1 and it0 < S.n_cg_iterations <= iterative.JACOBI_MAX_CG
     np.testing.assert_allclose(x, _direct(S, S.matrix(B1), b), rtol=0, atol=1e-5 * np.abs(x).max())
 
 

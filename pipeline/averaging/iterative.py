@@ -1,0 +1,108 @@
+"""Conjugate gradients for the averaging's normal equations, preconditioned by a factor or by the diagonal blocks.
+
+:func:`cg_with_factor` runs preconditioned CG on ``A x = b`` with any preconditioner that has ``solve``: the
+factor of an earlier IRLS matrix (:class:`~pipeline.averaging.kernel.LaplacianSolver`, the block solver of
+IRLS-H), or :class:`JacobiPreconditioner`, the inverse of the matrix's own 1×1 or 3×3 diagonal blocks, which
+:func:`solve_iteratively` uses on well-connected view graphs (the factor fills there, and the matrix is well
+conditioned). Pure functions on arrays.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["ITERATIVE_FILL", "JACOBI_MAX_CG", "JacobiPreconditioner", "solve_iteratively", "cg_with_factor"]
+
+#: A first factor that fills more than this share of n² marks a well-connected (expander-like) view graph, whose
+#: weighted Laplacians conjugate gradients with a (block-)diagonal preconditioner solve in tens of sparse products:
+#: far cheaper than a new factor or a stale one's triangular solves (measured: 1920 random cameras with 12k edges,
+#: fill 18%, 41–74 iterations at 12–22 ms against 76–89 ms for SuperLU's factor and solve). Such graphs are well
+#: conditioned whatever their weights; where they are not, :data:`JACOBI_MAX_CG` ends the trial for the run.
+ITERATIVE_FILL = 0.1
+#: Iteration cap of the (block-)Jacobi conjugate gradients; past it, factors serve the rest of the run.
+JACOBI_MAX_CG = 150
+
+
+class JacobiPreconditioner:
+    """The inverse of a symmetric matrix's diagonal blocks (1×1 or 3×3), as a preconditioner's ``solve``."""
+
+    def __init__(self, A: sp.spmatrix, block: int = 1) -> None:
+        self.block = int(block)
+        if self.block == 1:
+            self._inv = 1.0 / A.diagonal()
+            return
+        C = A.tocoo()
+        r, c, b = C.row, C.col, self.block
+        on = r // b == c // b
+        D = np.zeros((A.shape[0] // b, b, b))
+        D[r[on] // b, r[on] % b, c[on] % b] = C.data[on]
+        self._inv = np.linalg.inv(D)
+
+    def solve(self, R: np.ndarray) -> np.ndarray:
+        if self.block == 1:
+            return R * self._inv.reshape((-1,) + (1,) * (R.ndim - 1))
+        X = R.reshape(self._inv.shape[0], self.block, -1)
+        return np.einsum("nij,njk->nik", self._inv, X).reshape(R.shape)
+
+
+def solve_iteratively(factorizer: Any, A: sp.spmatrix, b: np.ndarray, rtol: float, block: int = 1,
+                      min_n: int = 0) -> tuple[np.ndarray | None, int]:
+    """Conjugate gradients with a (block-)Jacobi preconditioner, where the factorizer found the graph well
+    connected (``factorizer.jacobi``); None when it is not, or when they did not converge within
+    :data:`JACOBI_MAX_CG` iterations, which ends the trial for the factorizer's run (a
+    :class:`~pipeline.averaging.kernel.SymmetricFactorizer`), or below ``min_n`` cameras, where a factor is cheaper.
+    Returns the CG iterations spent.
+    """
+    if not factorizer.jacobi or A.shape[0] // block < min_n:
+        return None, 0
+    x, n_it = cg_with_factor(A, b, JacobiPreconditioner(A, block), rtol, JACOBI_MAX_CG)
+    if x is None:
+        factorizer.jacobi = False
+    return x, n_it
+
+
+def cg_with_factor(A: sp.spmatrix, b: np.ndarray, lu: Any, rtol: float, max_cg: int
+                   ) -> tuple[np.ndarray | None, int]:
+    """Conjugate gradients on ``A x = b`` preconditioned by the factor ``lu`` of a nearby matrix.
+
+    The columns of ``b`` are solved together (one sparse product and one triangular solve
+    per iteration for all of them), each with its own step lengths.
+
+    Args:
+        A: (n, n) the current symmetric positive-definite matrix.
+        b: (n,) or (n, k) right-hand side(s).
+        lu: the preconditioner, anything with ``solve``: the factor of an earlier matrix (SuperLU or
+            :class:`~pipeline.averaging.kernel.DenseCholesky`) or a :class:`JacobiPreconditioner`.
+        rtol: relative residual tolerance, per column.
+        max_cg: iteration cap.
+
+    Returns:
+        The solution with ``b``'s shape, or None when a column did not converge; the CG
+        iterations spent.
+    """
+    B = np.asarray(b, dtype=np.float64).reshape(b.shape[0], -1)
+    X = np.zeros_like(B)
+    Rr = B.copy()
+    tol = rtol * np.linalg.norm(B, axis=0)
+    if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+        return X.reshape(b.shape), 0
+    Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+    P = Z.copy()
+    rz = np.einsum("ij,ij->j", Rr, Z)
+    for it in range(1, max_cg + 1):
+        AP = A @ P
+        pap = np.einsum("ij,ij->j", P, AP)
+        alpha = np.divide(rz, pap, out=np.zeros_like(rz), where=pap != 0)
+        X += alpha * P
+        Rr -= alpha * AP
+        if np.all(np.linalg.norm(Rr, axis=0) <= tol):
+            return (X.reshape(b.shape), it) if np.all(np.isfinite(X)) else (None, it)
+        Z = lu.solve(np.asfortranarray(Rr)).reshape(B.shape)
+        rz_new = np.einsum("ij,ij->j", Rr, Z)
+        beta = np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz != 0)
+        P = Z + beta * P
+        rz = rz_new
+    return None, max_cg
