@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.iterative import cg_with_factor, solve_iteratively
+from pipeline.averaging.iterative import solve_without_factoring
 from pipeline.averaging.kernel import (REUSE_MIN_N, DenseCholesky, LaplacianSolver, SymmetricFactorizer,
                                        effective_weights, graph_residuals)
 from pipeline.core import so3
@@ -102,7 +102,7 @@ class BlockLaplacianSolver:
         gradients on the current matrix, preconditioned by it, reach ``rtol`` in a few
         matrix-vector products. When they do not within ``max_cg`` iterations, or when the
         gauge (the pinned cameras) changed, the current matrix is factored instead; on a well-connected graph,
-        block-Jacobi conjugate gradients come first (:func:`~pipeline.averaging.kernel.solve_iteratively`). The
+        block-Jacobi conjugate gradients come first (:func:`~pipeline.averaging.iterative.solve_iteratively`). The
         solution is that of the current matrix either way (to ``rtol``).
         """
         A = self.matrix(B)  # sets self.pinned for B
@@ -110,10 +110,9 @@ class BlockLaplacianSolver:
         if self._lu is not None:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[pinned] = 0.0
-            x, n_it = solve_iteratively(self._factor, A, bb.reshape(-1), rtol, block=3, min_n=REUSE_MIN_N)
-            if x is None and np.array_equal(pinned, self._lu_pinned):
-                x, n_cg = cg_with_factor(A, bb.reshape(-1), self._lu, rtol, max_cg)
-                n_it += n_cg
+            x, n_it = solve_without_factoring(self._factor, A, bb.reshape(-1), self._lu,
+                                              np.array_equal(pinned, self._lu_pinned), rtol, max_cg, block=3,
+                                              min_n=REUSE_MIN_N)
             self.n_cg_iterations += n_it
             if x is not None:
                 x = x.reshape(self.n, 3)

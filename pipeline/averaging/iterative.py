@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["ITERATIVE_FILL", "JACOBI_MAX_CG", "JacobiPreconditioner", "solve_iteratively", "cg_with_factor"]
+__all__ = ["ITERATIVE_FILL", "JACOBI_MAX_CG", "JacobiPreconditioner", "solve_iteratively", "solve_without_factoring",
+           "cg_with_factor"]
 
 #: A first factor that fills more than this share of n² marks a well-connected (expander-like) view graph, whose
 #: weighted Laplacians conjugate gradients with a (block-)diagonal preconditioner solve in tens of sparse products:
@@ -61,6 +62,18 @@ def solve_iteratively(factorizer: Any, A: sp.spmatrix, b: np.ndarray, rtol: floa
     x, n_it = cg_with_factor(A, b, JacobiPreconditioner(A, block), rtol, JACOBI_MAX_CG)
     if x is None:
         factorizer.jacobi = False
+    return x, n_it
+
+
+def solve_without_factoring(factorizer: Any, A: sp.spmatrix, b: np.ndarray, lu: Any, same_gauge: bool, rtol: float,
+                            max_cg: int, block: int = 1, min_n: int = 0) -> tuple[np.ndarray | None, int]:
+    """The reuse path of both IRLS solvers: :func:`solve_iteratively` first, then CG preconditioned by the last
+    factor ``lu`` where the gauge it was made for is unchanged (``same_gauge``). Returns the solution, or None when
+    neither served and the caller must factor, and the CG iterations spent."""
+    x, n_it = solve_iteratively(factorizer, A, b, rtol, block, min_n)
+    if x is None and same_gauge:
+        x, n_cg = cg_with_factor(A, b, lu, rtol, max_cg)
+        n_it += n_cg
     return x, n_it
 
 

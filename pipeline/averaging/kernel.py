@@ -27,7 +27,7 @@ import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.iterative import ITERATIVE_FILL, cg_with_factor, solve_iteratively
+from pipeline.averaging.iterative import ITERATIVE_FILL, solve_without_factoring
 from pipeline.core import so3
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -60,7 +60,7 @@ DENSE_SINGLE_THREAD_SIZE = 1500
 
 __all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
            "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals", "graph_residuals", "apply_update",
-           "LaplacianSolver", "check_graph", "factor_symmetric", "cg_with_factor", "DenseCholesky",
+           "LaplacianSolver", "check_graph", "factor_symmetric", "DenseCholesky",
            "SymmetricFactorizer"]
 
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (0.25 ms per threadpool_limits call, 6 µs per limit)
@@ -227,11 +227,12 @@ class SymmetricFactorizer:
 
     def __call__(self, A: sp.spmatrix) -> sla.SuperLU | DenseCholesky:
         n = A.shape[0]
-        if self.dense is None and n <= DENSE_MAX_SIZE and A.nnz > DENSE_PATTERN * n * n:
+        dense_pattern = A.nnz > DENSE_PATTERN * n * n
+        if self.dense is None and n <= DENSE_MAX_SIZE and dense_pattern:
             self.dense = True
         if self.dense:
             if self.jacobi is None:
-                self.jacobi = A.nnz > DENSE_PATTERN * n * n
+                self.jacobi = dense_pattern
             try:
                 return DenseCholesky(A)
             except np.linalg.LinAlgError:
@@ -343,9 +344,10 @@ class LaplacianSolver:
     def solve_reusing(self, w: np.ndarray, b: np.ndarray, rtol: float = 1e-8, max_cg: int = 12) -> np.ndarray:
         """Solve the system of weights ``w`` (M,) for ``b`` (N, 3), reusing the last factor when it serves.
 
-        On a well-connected graph (:func:`~pipeline.averaging.iterative.solve_iteratively`) conjugate gradients with a diagonal
-        preconditioner come first. Otherwise, IRLS weights change little between iterations, so conjugate
-        gradients on the current matrix, preconditioned by the previous SuperLU factor, converge in a few
+        On a well-connected graph (:func:`~pipeline.averaging.iterative.solve_iteratively`) conjugate
+        gradients with a diagonal preconditioner come first. Otherwise, IRLS weights change little between
+        iterations, so conjugate gradients on the current matrix, preconditioned by the previous SuperLU
+        factor, converge in a few
         steps; when they do not within ``max_cg``, or the gauge changed, the current matrix
         is factored, as it always is below :data:`REUSE_MIN_N` cameras, where a factorization
         is cheaper than a few preconditioned products. The answer is the current matrix's
@@ -356,10 +358,9 @@ class LaplacianSolver:
         if self.n >= REUSE_MIN_N and self._lu is not None:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[self.pinned] = 0.0
-            x, n_it = solve_iteratively(self._factor, L, bb, rtol, min_n=REUSE_MIN_N)
-            if x is None and np.array_equal(self.pinned, self._lu_pinned):
-                x, n_cg = cg_with_factor(L, bb, self._lu, rtol, max_cg)
-                n_it += n_cg
+            same_gauge = np.array_equal(self.pinned, self._lu_pinned)
+            x, n_it = solve_without_factoring(self._factor, L, bb, self._lu, same_gauge, rtol, max_cg,
+                                              min_n=REUSE_MIN_N)
             self.n_cg_iterations += n_it
             if x is not None:
                 x[self.pinned] = 0.0

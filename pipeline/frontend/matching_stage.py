@@ -268,8 +268,8 @@ class MatchingStage(Stage[MatchingConfig]):
         sel = m.get("selection") or {}
         if (sel.get("ranked") or sel.get("selector") == "retrieval") and "loop_closure" not in sel:
             load_ranked(self.folder, len(m["names"]))
-        where = ItemStore(self.folder / STORE).load_index()
-        if list(where) != list(m["keys"]):
+        store = ItemStore(self.folder / STORE)
+        if list(store.load_index()) != list(m["keys"]):
             raise CacheError(f"{self.folder / MANIFEST} and its store disagree on the pairs")
         fs = feature_stage.load_features(self.folder, descriptors=False)
         if list(fs.names) != list(m["names"]):
@@ -283,8 +283,6 @@ class MatchingStage(Stage[MatchingConfig]):
                 a, b = pairs[q]
                 raise CacheError(f"the matches of {fs.names[a]}-{fs.names[b]} refer to keypoints the features lack")
 
-        store = ItemStore(self.folder / STORE)
-        store.load_index()
         store.check(m["keys"], in_range, f"pairs' matches in {self.folder / STORE}")
 
 

@@ -111,15 +111,11 @@ def test_irls_gives_the_rotations_of_the_factored_path(monkeypatch, method):
     if method == "irls-h":
         vg = vg.with_H(np.broadcast_to(np.diag([1e4, 2e4, 4e4]), (vg.n_edges, 3, 3)).copy())
     used = []
-    orig = kernel.solve_iteratively
-    monkeypatch.setattr(kernel, "solve_iteratively", lambda *a, **k: used.append(1) or orig(*a, **k))
-    import pipeline.averaging.block as block
-
-    monkeypatch.setattr(block, "solve_iteratively", kernel.solve_iteratively)
+    orig = iterative.solve_iteratively
+    monkeypatch.setattr(iterative, "solve_iteratively", lambda *a, **k: used.append(1) or orig(*a, **k))
     fast = average(vg, method).R
     assert used
-    monkeypatch.setattr(kernel, "solve_iteratively", lambda *a, **k: (None, 0))
-    monkeypatch.setattr(block, "solve_iteratively", kernel.solve_iteratively)
+    monkeypatch.setattr(iterative, "solve_iteratively", lambda *a, **k: (None, 0))
     slow = average(vg, method).R
     assert rotation_errors_deg(fast, slow, align="none").max() < 1e-4
     assert np.median(rotation_errors_deg(fast, g.R_true)) < 1.0
