@@ -26,6 +26,31 @@ def _restore_logging():
 
 
 @pytest.fixture(scope="session")
+def damage_item():
+    """``damage(store_dir, change, which=None) -> key``: rewrite the first stored item (in key order over the chunk
+    files) that ``which(item)`` accepts, as ``change(fields)`` leaves its fields (a dict of arrays it may edit or
+    delete from), in place: the chunk keeps its name and the store's index still places the item there, so only
+    the item's contents are wrong."""
+    import numpy as np
+
+    from pipeline.core.store import ItemStore
+
+    def damage(store_dir: Path, change, which=None) -> str:
+        store = ItemStore(store_dir)
+        for path in sorted(Path(store_dir).glob("chunk-*.npz")):
+            items = store.read_chunk(path)
+            for key, item in items.items():
+                if which is None or which(item):
+                    fields = {k: np.array(v) for k, v in item.items()}
+                    change(fields)
+                    assert store.write_chunk({**{k: dict(v) for k, v in items.items()}, key: fields}) == path
+                    return key
+        raise AssertionError(f"no item of {store_dir} to damage")
+
+    return damage
+
+
+@pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
 

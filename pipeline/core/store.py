@@ -9,7 +9,8 @@ item's own inputs), so
 - an interrupted run resumes: finished chunks are found and their items skipped;
 - a changed option or input gives new keys, never a stale result;
 - adding images reuses every pair already done;
-- a damaged chunk file is removed with a warning and its items recomputed.
+- a damaged chunk file, or an item that reads well but fails its stage's check, is removed with a warning and
+  its items recomputed.
 
 An item's result is a mapping of names to arrays (scalars as 0-d arrays, strings
 as 0-d unicode arrays). The store's index (``index.json``, written when the stage
@@ -241,22 +242,49 @@ class ItemStore:
         """Apply ``check(i, item)`` to the item of each key; where it raises :class:`CacheError` (or the item cannot
         be read), the chunks holding those items are removed, so that a recompute cannot reuse them, and one
         :class:`CacheError` names how many ``what`` failed and the first reason."""
+        bad, first = self._damaged(range(len(keys)), keys, check)
+        if bad:
+            n_files = self._remove_chunks(bad)
+            raise CacheError(f"{len(bad)} {what} damaged, e.g. {first}; their {n_files} chunk file(s) removed")
+
+    def drop_damaged(self, keys: Sequence[str], check: Callable[[int, dict[str, np.ndarray]], Any], what: str) -> int:
+        """Before a stage reuses the items of ``keys`` already in the store: apply ``check(i, item)`` (``i`` the
+        item's position in ``keys``) to each, and remove the chunks of those that fail it (it raises
+        :class:`CacheError`), with one warning, so that :func:`compute_missing` computes them again: an item that
+        reads well but is wrong is never taken back. Returns the number of damaged items."""
+        done = self.done(keys)
+        bad, first = self._damaged([i for i, k in enumerate(keys) if k in done], keys, check)
+        if bad:
+            n_files = self._remove_chunks(bad)
+            logger.warning("%d %s damaged, e.g. %s; their %d chunk file(s) removed, they are recomputed", len(bad),
+                           what, first, n_files)
+        return len(bad)
+
+    def _damaged(self, positions: Iterable[int], keys: Sequence[str],
+                 check: Callable[[int, dict[str, np.ndarray]], Any]) -> tuple[list[str], str]:
+        """The keys at ``positions`` whose item cannot be read or fails ``check``, and the first reason."""
         bad: list[str] = []
         first = ""
-        for i, key in enumerate(keys):
+        for i in positions:
             try:
-                check(i, self.get(key))
+                check(i, self.get(keys[i]))
             except CacheError as exc:
-                bad.append(key)
+                bad.append(keys[i])
                 first = first or " ".join(str(exc).split())
-        if bad:
-            where = self._where if self._where is not None else self.load_index()
-            names = {where[k] for k in bad if k in where}
-            for name in names:
-                (self.folder / name).unlink(missing_ok=True)
-            self._where = {k: v for k, v in where.items() if v not in names}
-            self._cache = {}
-            raise CacheError(f"{len(bad)} {what} damaged, e.g. {first}; their {len(names)} chunk file(s) removed")
+            except (KeyError, IndexError, ValueError, TypeError) as exc:  # not the layout the stage writes
+                bad.append(keys[i])
+                first = first or f"an item not as the stage writes it ({type(exc).__name__}: {exc})"
+        return bad, first
+
+    def _remove_chunks(self, keys: Sequence[str]) -> int:
+        """Remove the chunk files holding ``keys`` (and forget every item in them); returns how many."""
+        where = self._where if self._where is not None else self.load_index()
+        names = {where[k] for k in keys if k in where}
+        for name in names:
+            (self.folder / name).unlink(missing_ok=True)
+        self._where = {k: v for k, v in where.items() if v not in names}
+        self._cache = {}
+        return len(names)
 
     # ------------------------------------------------------------------ index
     def write_index(self, keys: list[str]) -> list[Path]:

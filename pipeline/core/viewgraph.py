@@ -35,11 +35,31 @@ from pipeline.core.atomic import save_npz
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.readers import read_npz
 
-__all__ = ["ViewGraph", "Restriction"]
+__all__ = ["ViewGraph", "Restriction", "precision_problem"]
 
 FORMAT = "rotavg-viewgraph"
 FORMAT_VERSION = 1
 ROTATION_TOL = 1e-6
+
+
+def precision_problem(H: np.ndarray) -> tuple[int, str] | None:
+    """The first of the (M, 3, 3) matrices ``H`` that is not a precision (finite, symmetric to 1e-8 relative,
+    positive definite) and what is wrong with it (``"has NaN or inf"``, ...); None when every one is."""
+    if not np.all(np.isfinite(H)):
+        return int(np.flatnonzero(~np.isfinite(H).all(axis=(1, 2)))[0]), "has NaN or inf"
+    scale = np.maximum(np.abs(H).max(axis=(1, 2)), 1e-300)
+    asym = np.abs(H - np.swapaxes(H, 1, 2)).max(axis=(1, 2)) / scale
+    if np.any(asym > 1e-8):
+        k = int(np.argmax(asym))
+        return k, (f"is not symmetric (relative asymmetry {asym[k]:.3g}); H must be a symmetric positive-definite "
+                   "precision")
+    with np.errstate(all="ignore"):  # entries near the float limit overflow: not a precision either
+        lam = np.linalg.eigvalsh(0.5 * (H + np.swapaxes(H, 1, 2)))
+    bad = ~(lam[:, 0] > 0) | ~np.isfinite(lam).all(axis=1)
+    if np.any(bad):
+        k = int(np.flatnonzero(bad)[0])
+        return k, f"is not positive definite (smallest eigenvalue {lam[k, 0]:.3g}); H must be a precision in 1/rad²"
+    return None
 
 
 @dataclass
@@ -164,26 +184,10 @@ class ViewGraph:
         if self.H is not None:
             if self.H.shape != (M, 3, 3):
                 raise ViewGraphError(f"H.shape={self.H.shape} but expected ({M}, 3, 3)")
-            if not np.all(np.isfinite(self.H)):
-                k = int(np.flatnonzero(~np.isfinite(self.H).all(axis=(1, 2)))[0])
-                raise ViewGraphError(f"H of edge {k} {tuple(self.edges[k].tolist())} has NaN or inf")
-            scale = np.maximum(np.abs(self.H).max(axis=(1, 2)), 1e-300)
-            asym = np.abs(self.H - np.swapaxes(self.H, 1, 2)).max(axis=(1, 2)) / scale
-            if np.any(asym > 1e-8):
-                k = int(np.argmax(asym))
-                raise ViewGraphError(
-                    f"H of edge {k} {tuple(self.edges[k].tolist())} is not symmetric "
-                    f"(relative asymmetry {asym[k]:.3g}); H must be a symmetric positive-definite precision"
-                )
-            with np.errstate(all="ignore"):  # entries near the float limit overflow: not a precision either
-                lam = np.linalg.eigvalsh(0.5 * (self.H + np.swapaxes(self.H, 1, 2)))
-            bad = ~(lam[:, 0] > 0) | ~np.isfinite(lam).all(axis=1)
-            if np.any(bad):
-                k = int(np.flatnonzero(bad)[0])
-                raise ViewGraphError(
-                    f"H of edge {k} {tuple(self.edges[k].tolist())} is not positive definite "
-                    f"(smallest eigenvalue {lam[k, 0]:.3g}); H must be a precision in 1/rad²"
-                )
+            problem = precision_problem(self.H)
+            if problem is not None:
+                k, what = problem
+                raise ViewGraphError(f"H of edge {k} {tuple(self.edges[k].tolist())} {what}")
         if self.inliers is not None and self.inliers.shape != (M,):
             raise ViewGraphError(f"inliers.shape={self.inliers.shape} but expected ({M},)")
         for name, arr in self.stats.items():

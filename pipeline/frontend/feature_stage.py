@@ -183,6 +183,9 @@ class FeaturesStage(Stage[FeatureConfig]):
         logger.info("features: %s", cfg)
         keys = self._keys()
         store = ItemStore(self.folder / STORE)
+        if not self.overwrite:
+            store.drop_damaged(list(keys.values()), lambda i, item: _image_features(item, s["names"][i]),
+                               f"images' features in {self.folder / STORE}")
         done = set() if self.overwrite else store.done(keys.values())
         todo = [n for n in s["names"] if keys[n] not in done]
         skipped = [{"name": n, "reason": w} for n, w in s["bad"].items()]

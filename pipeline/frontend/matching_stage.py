@@ -29,6 +29,7 @@ images' feature keys: with new images, or another selector, only the new pairs a
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 import threading
@@ -37,7 +38,7 @@ import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -220,8 +221,11 @@ class MatchingStage(Stage[MatchingConfig]):
                     100 * selection["fraction"])
         fp = _pair_fingerprint(cfg)  # not the selection: another selector reuses the pairs already matched
         keys = [item_key(fp, fkeys[a], fkeys[b]) for a, b in pairs]
-        done = set() if self.overwrite else store.done(keys)
         fdir = (self.folder / feature_stage.STORE).resolve()  # workers may run elsewhere: absolute paths
+        if not self.overwrite:
+            n_kp = functools.cache(lambda a: len(ItemStore.read_chunk(fdir / where[fkeys[a]])[fkeys[a]]["keypoints"]))
+            store.drop_damaged(keys, _in_range(names, pairs, n_kp), f"pairs' matches in {self.folder / STORE}")
+        done = set() if self.overwrite else store.done(keys)
         todo = [(keys[p], fkeys[a], str(fdir / where[fkeys[a]]), fkeys[b], str(fdir / where[fkeys[b]]))
                 for p, (a, b) in enumerate(pairs) if keys[p] not in done]
         folder = str(store.folder.resolve())
@@ -276,14 +280,7 @@ class MatchingStage(Stage[MatchingConfig]):
             raise CacheError(f"{self.folder / MANIFEST} was matched for other images than the current features")
         pairs = np.asarray(m["pairs"], np.int64).reshape(-1, 2)
         n_kp = np.array([len(k) for k in fs.keypoints], np.int64)
-
-        def in_range(q: int, item: dict[str, np.ndarray]) -> None:
-            mm = _pair_matches(item)
-            if len(mm) and np.any(mm.max(axis=0) >= n_kp[pairs[q]]):
-                a, b = pairs[q]
-                raise CacheError(f"the matches of {fs.names[a]}-{fs.names[b]} refer to keypoints the features lack")
-
-        store.check(m["keys"], in_range, f"pairs' matches in {self.folder / STORE}")
+        store.check(m["keys"], _in_range(fs.names, pairs, n_kp.__getitem__), f"pairs' matches in {self.folder / STORE}")
 
 
 def _load_manifest(work: Path) -> dict:
@@ -302,6 +299,18 @@ def _load_manifest(work: Path) -> dict:
     except (ValueError, KeyError, TypeError, OverflowError) as exc:
         raise CacheError(f"{path} is damaged ({' '.join(str(exc).split())[:80]}); re-run pipeline.matching") from None
     return m
+
+
+def _in_range(names: Sequence[str], pairs: np.ndarray, n_kp: Callable[[int], int]
+              ) -> Callable[[int, dict[str, np.ndarray]], None]:
+    """The check of a stored pair ``q``'s matches: readable, and within its two images' ``n_kp(image)`` keypoints."""
+    def check(q: int, item: dict[str, np.ndarray]) -> None:
+        mm = _pair_matches(item)
+        a, b = pairs[q]
+        if len(mm) and (mm[:, 0].max() >= n_kp(a) or mm[:, 1].max() >= n_kp(b)):
+            raise CacheError(f"the matches of {names[a]}-{names[b]} refer to keypoints the features lack")
+
+    return check
 
 
 def _pair_matches(item: Any) -> np.ndarray:

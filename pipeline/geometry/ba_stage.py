@@ -35,7 +35,7 @@ from tqdm import tqdm
 from pipeline.core import so3
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
-from pipeline.core.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph, precision_problem
 from pipeline.geometry.ba_focal import focal_columns
 from pipeline.geometry.ba_solver import BAConfig, TwoViewBAError, refine_pair
 from pipeline.geometry.stage_io import PairStage, read_viewgraph, recorded_output, rerun_hint, stage_cli
@@ -103,6 +103,36 @@ def _result(item: dict[str, np.ndarray]) -> dict[str, Any]:
     return {k: (v.item() if v.ndim == 0 else v) for k, v in item.items()}
 
 
+_SHAPES = {"R": (3, 3), "t": (3,), "H": (3, 3), "focal": (2,), "sigma2": (), "iterations": (), "n_points": (),
+           "n_inliers": (), "converged": (), "rms_px": (), "time_s": (), "cpu_s": (), "ok": ()}
+
+
+def _check_result(item: dict[str, np.ndarray]) -> None:
+    """:class:`CacheError` where a stored pair result reads well but is not what :func:`_refine_chunk` writes: a
+    field missing or of the wrong shape, or a refined pair whose R is not a rotation, whose t is not a unit vector,
+    whose H is not a precision (finite, symmetric, positive definite) or whose figures are out of their range."""
+    if "ok" not in item or np.shape(item["ok"]) != ():
+        raise CacheError("lacks its 'ok' flag")
+    fields = _SHAPES if bool(item["ok"]) else {"reason": (), "n_points": ()}
+    wrong = [f for f, shape in fields.items() if f not in item or np.shape(item[f]) != shape]
+    if wrong:
+        raise CacheError(f"lacks the field {wrong[0]!r} or has it in another shape")
+    if not bool(item["ok"]):
+        return
+    r = _result(item)
+    problem = precision_problem(np.asarray(r["H"], np.float64)[None])
+    if problem is not None:
+        raise CacheError(f"has an H that {problem[1].split(';')[0]}")
+    t = np.asarray(r["t"], np.float64)
+    if not (so3.is_rotation(np.asarray(r["R"], np.float64)) and np.isfinite(t).all()
+            and abs(np.linalg.norm(t) - 1.0) <= 1e-6):
+        raise CacheError("has an R that is not a rotation or a t that is not a unit vector")
+    figures = np.array([r["sigma2"], r["rms_px"], *r["focal"], r["time_s"], r["cpu_s"]], np.float64)
+    if not (np.isfinite(figures).all() and r["sigma2"] > 0 and np.all(figures[1:] >= 0) and np.all(r["focal"] > 0)
+            and 0 <= r["n_inliers"] <= r["n_points"] and r["iterations"] >= 0):
+        raise CacheError("has a figure out of its range (σ², rms, focal, times, counts)")
+
+
 def load_ba_viewgraph(work: Path) -> ViewGraph:
     """The view graph with ``H`` that :class:`TwoViewBAStage` wrote in ``work``.
 
@@ -168,6 +198,15 @@ class TwoViewBAStage(PairStage[BAConfig]):
         fp = cfg.fingerprint()
         keys = [item_key(fp, *task) for task in tasks]
         store = ItemStore(work / self.store)
+
+        def check(k: int, item: dict[str, np.ndarray]) -> None:
+            try:
+                _check_result(item)
+            except CacheError as exc:
+                i, j = vg_in.edges[k]
+                raise CacheError(f"{vg_in.names[i]}-{vg_in.names[j]}: {exc}") from None
+
+        store.drop_damaged(keys, check, f"pairs' two-view BA results in {work / self.store}")
         done = store.done(keys)
         t0 = time.perf_counter()
         with tqdm(total=M, initial=sum(k in done for k in keys), desc="two-view BA", unit="pair",

@@ -36,6 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.core import so3
 from pipeline.core.atomic import save_npz
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
@@ -260,6 +261,43 @@ def _geometry_from_item(item: dict[str, np.ndarray]) -> PairGeometry:
     return PairGeometry(**kw)
 
 
+_FIELDS = tuple(f.name for f in dataclasses.fields(PairGeometry)) + ("kp_i", "kp_j", "x_i", "x_j")
+
+
+def _check_item(item: dict[str, np.ndarray], n_kp: tuple[int, int]) -> None:
+    """:class:`CacheError` where a stored pair result reads well but is not what :func:`_estimate_chunk` writes:
+    a field missing or of the wrong shape, an accepted pair whose R is not a rotation or whose t is not a unit
+    vector (or 0, a pure rotation), inliers that disagree in number or refer to keypoints outside ``n_kp`` (the two
+    images' counts)."""
+    missing = [f for f in _FIELDS if f not in item]
+    if missing:
+        raise CacheError(f"lacks the field {missing[0]!r}")
+    try:
+        g = _geometry_from_item(item)
+    except (ValueError, TypeError) as exc:
+        raise CacheError(f"has a malformed field ({exc})") from None
+    kp_i, kp_j, x_i, x_j = (np.asarray(item[f]) for f in ("kp_i", "kp_j", "x_i", "x_j"))
+    n = len(kp_i) if kp_i.ndim == 1 else -1
+    if n < 0 or kp_j.shape != (n,) or x_i.shape != (n, 2) or x_j.shape != (n, 2):
+        raise CacheError(f"has inlier arrays of disagreeing shapes {kp_i.shape}, {kp_j.shape}, {x_i.shape}, "
+                         f"{x_j.shape}")
+    if min(g.n_matches, g.n_inliers, g.n_inliers_E, g.n_inliers_H, g.n_static, g.n_guided) < 0:
+        raise CacheError("has a negative count")
+    if not g.ok:
+        if n:
+            raise CacheError(f"is rejected ({g.reason}) but carries {n} inliers")
+        return
+    if g.R.shape != (3, 3) or not so3.is_rotation(g.R) or g.t.shape != (3,) or not np.isfinite(g.t).all() \
+            or min(abs(np.linalg.norm(g.t) - 1.0), np.linalg.norm(g.t)) > 1e-6:  # t = 0: a pure rotation
+        raise CacheError("is accepted with an R that is not a rotation or a t that is neither a unit vector nor 0")
+    if n != g.n_inliers:
+        raise CacheError(f"is accepted with {g.n_inliers} inliers but carries {n}")
+    if not (np.isfinite(x_i).all() and np.isfinite(x_j).all()):
+        raise CacheError("has inlier pixels that are NaN or inf")
+    if n and (min(kp_i.min(), kp_j.min()) < 0 or kp_i.max() >= n_kp[0] or kp_j.max() >= n_kp[1]):
+        raise CacheError(f"refers to keypoints outside the images' {n_kp[0]} and {n_kp[1]}")
+
+
 class TwoViewStage(PairStage[TwoViewConfig]):
     """Relative poses of the matched pairs of a WORK folder (folder = WORK)."""
 
@@ -310,6 +348,15 @@ class TwoViewStage(PairStage[TwoViewConfig]):
         keys = [item_key(fp, fkeys[a], fkeys[b], mkeys[p], K[a], K[b], float(0.5 * (scale[a] + scale[b])),
                          lens(cams[a]), lens(cams[b])) for p, (a, b) in enumerate(pairs)]
         store = ItemStore(work / self.store)
+        n_kp = functools.cache(lambda a: len(_raw_keypoints(str(fdir / fwhere[fkeys[a]]), fkeys[a])))
+
+        def check(p: int, item: dict[str, np.ndarray]) -> None:
+            try:
+                _check_item(item, (n_kp(pairs[p][0]), n_kp(pairs[p][1])))
+            except CacheError as exc:
+                raise CacheError(f"{names[pairs[p][0]]}-{names[pairs[p][1]]}: {exc}") from None
+
+        store.drop_damaged(keys, check, f"pairs' two-view results in {work / self.store}")
         done = store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
                   disable=not config.progress) as bar:

@@ -84,3 +84,24 @@ def test_a_chunk_is_adopted_by_the_name_its_keys_give_and_a_different_name_is_re
     store.adopt_chunk(keys, path.name)
     with pytest.raises(CacheError, match="belong in"):
         store.adopt_chunk(keys[:1], path.name)
+
+
+def test_drop_damaged_removes_only_the_chunks_of_items_that_fail_and_counts_them(tmp_path, caplog):
+    store = ItemStore(tmp_path)
+    good = store.write_chunk({"k1" * 10: {"v": np.array(1.0)}, "k2" * 10: {"v": np.array(2.0)}})
+    bad = store.write_chunk({"k3" * 10: {"v": np.array(np.nan)}, "k4" * 10: {"v": np.array(4.0)}})
+    odd = store.write_chunk({"k5" * 10: {"w": np.array(5.0)}})  # a field the check does not find
+
+    def check(i, item):
+        if not np.isfinite(item["v"]):
+            raise CacheError(f"item {i} is not finite")
+
+    keys = ["k1" * 10, "k3" * 10, "k5" * 10, "k9" * 10]  # k4 is not asked for; k9 is not in the store
+    fresh = ItemStore(tmp_path)
+    with caplog.at_level("WARNING"):
+        assert fresh.drop_damaged(keys, check, "values") == 2
+    assert good.exists() and not bad.exists() and not odd.exists()
+    assert fresh.done(keys + ["k4" * 10]) == {"k1" * 10}  # k4 shared the damaged chunk: it is recomputed too
+    (msg,) = [r.getMessage() for r in caplog.records]
+    assert msg.startswith("2 values damaged, e.g. item 1 is not finite") and "2 chunk file(s) removed" in msg
+    assert ItemStore(tmp_path).drop_damaged(keys, check, "values") == 0  # nothing left to find

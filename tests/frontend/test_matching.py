@@ -158,45 +158,41 @@ def test_flann_matches_do_not_depend_on_rng_state_or_threads():
     np.testing.assert_array_equal(out[0], ref)
 
 
-def _damage_first_item(store_dir, field, index, value):
-    """Set ``field[index] = value`` in the first item of the first chunk, in place and in the same dtype: the file
-    keeps its size (the stage record's check still passes), only its contents are wrong."""
-    from pipeline.core.store import ItemStore
-
-    store = ItemStore(store_dir)
-    items = store.read_chunk(sorted(store_dir.glob("chunk-*.npz"))[0])
-    key = next(iter(items))
-    fields = {k: np.array(v) for k, v in items[key].items()}
-    fields[field][index] = value
-    assert fields[field][index] == value or np.isnan(value)  # representable in the stored dtype
-    store.write_chunk({**{k: dict(v) for k, v in items.items()}, key: fields})
-
-
+@pytest.mark.parametrize("path", ["reuse", "recompute"])
 @pytest.mark.parametrize("bad_index", [-1, 10**6])
-def test_matches_out_of_the_features_range_are_recomputed(scene, tmp_path, bad_index):
+def test_matches_out_of_the_features_range_are_recomputed(scene, tmp_path, bad_index, path, damage_item):
     # A chunk that reads well but refers to keypoints the features lack (past the end, or negative, which numpy
-    # would take from the end) is not trusted: the stage recomputes it and the matches come back as before.
-    from pipeline.frontend.matching_stage import STORE
+    # would take from the end) is not trusted, whether the stage's output is intact (its check on reuse finds it)
+    # or lost (the recompute checks what it would reuse): the stage recomputes it and the matches come back as
+    # before.
+    from pipeline.frontend.matching_stage import MANIFEST, STORE
 
     work = tmp_path / "w"
     features.main(scene.out, work, progress=False)
     matching.main(work, progress=False)
     before = load_matches(work)
-    _damage_first_item(work / STORE, "matches", (0, 1), bad_index)
-    assert not matching.MatchingStage(work, progress=False).run().reused
+    damage_item(work / STORE, lambda f: f["matches"].__setitem__((0, 1), bad_index))
+    if path == "recompute":
+        (work / MANIFEST).unlink()
+    rec = matching.MatchingStage(work, progress=False).run()
+    assert not rec.reused and rec.summary["n_computed"] >= 1  # the damaged pair's chunk
     after = load_matches(work)
     assert after.pairs.tolist() == before.pairs.tolist()
     assert all(np.array_equal(x, y) for x, y in zip(after.matches, before.matches))
 
 
-def test_features_that_read_but_are_not_finite_are_recomputed(scene, tmp_path):
-    from pipeline.frontend.feature_stage import STORE, load_features
+@pytest.mark.parametrize("path", ["reuse", "recompute"])
+def test_features_that_read_but_are_not_finite_are_recomputed(scene, tmp_path, path, damage_item):
+    from pipeline.frontend.feature_stage import MANIFEST, STORE, FeaturesStage, load_features
 
     work = tmp_path / "w"
     features.main(scene.out, work, progress=False)
     before = load_features(work)
-    _damage_first_item(work / STORE, "keypoints", (3, 0), np.nan)
-    features.main(scene.out, work, progress=False)
+    damage_item(work / STORE, lambda f: f["keypoints"].__setitem__((3, 0), np.nan))
+    if path == "recompute":
+        (work / MANIFEST).unlink()
+    rec = FeaturesStage(work, images=scene.out, progress=False).run()
+    assert not rec.reused and rec.summary["n_extracted"] == 1
     after = load_features(work)
     assert all(np.array_equal(x, y) for x, y in zip(after.keypoints, before.keypoints))
     assert all(np.array_equal(x, y) for x, y in zip(after.descriptors, before.descriptors))
