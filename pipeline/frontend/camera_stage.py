@@ -48,6 +48,7 @@ from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
 from pipeline.frontend.camera_estimate import CamerasConfig, estimate_focal, estimate_radial
 from pipeline.frontend.camera_evidence import Evidence, features_evidence, stage_evidence
+from pipeline.frontend.camera_items import check_item
 from pipeline.frontend.distortion import (COLMAP_OFFSET, CameraModel, is_camera_model_file, radial_undistort,
                                           undistort_points)
 from pipeline.frontend.focal import K_from_focal
@@ -167,6 +168,8 @@ class CamerasStage(Stage[CamerasConfig]):
         fp = self.config.fingerprint()
         keys = [item_key(fp, tag, *task) for task in tasks]
         self._keys.extend(keys)
+        self._store.drop_damaged(keys, lambda k, item: check_item(worker, tasks[k], item),
+                                 f"pairs' {tag} results in {self._store.folder}")
         done = self._store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc=f"cameras {tag}", unit="pair",
                   disable=not self.config.progress) as bar:

@@ -86,6 +86,33 @@ def test_resumes_and_heals(no_K, tmp_path, caplog) -> None:
         load_cameras(tmp_path)
 
 
+@pytest.mark.parametrize("fields, change", [
+    (("F", "inliers"), lambda f: f["inliers"].__setitem__(0, 10**6)),        # a match the pair lacks
+    (("F", "inliers"), lambda f: f.__setitem__("F", f["F"] * np.nan)),
+    (("cost", "R", "t"), lambda f: f["cost"].__setitem__(0, np.nan)),      # the focal profile
+    (("cost", "R", "t"), lambda f: f.__setitem__("R", f["R"] * 2.0)),      # not rotations
+    (("cost", "R", "t"), lambda f: f.__setitem__("sigma2", np.array(-1.0))),
+    (("cost", "R", "t"), lambda f: f.pop("t")),
+], ids=["F-inlier-out-of-range", "F-nan", "profile-cost-nan", "profile-R", "profile-sigma2", "profile-t-missing"])
+def test_a_stored_pair_that_reads_but_is_wrong_is_recomputed(no_K, tmp_path, fields, change, damage_item,
+                                                           caplog) -> None:
+    # The stage's output is lost and one stored pair result (its F, or its focal profile) reads well but is wrong:
+    # it is recomputed, not reused, and the focal comes out as the first run's, to the last digit.
+    from pipeline.frontend.camera_stage import STORE
+
+    w = tmp_path / "w"
+    shutil.copytree(no_K, w)
+    before = load_cameras(w).K
+    damage_item(w / STORE, change, which=lambda item: set(fields) <= set(item))
+    (w / MANIFEST).unlink()
+    with caplog.at_level(logging.WARNING):
+        rec = CamerasStage(w, Q).run()
+    warned = [r.getMessage() for r in caplog.records if "results in" in r.getMessage()]
+    assert len(warned) == 1 and "1 pairs'" in warned[0] and "recomputed" in warned[0], warned
+    assert not rec.reused
+    assert np.array_equal(load_cameras(w).K, before)
+
+
 def test_distortion_from_a_COLMAP_file(tmp_path) -> None:
     d = render_distorted_scene(3, 1, tmp_path / "img", -0.1, config=SceneConfig(width=320, height=240, focal=280.0,
                                                                                  texture_px_per_unit=150.0))
