@@ -9,7 +9,8 @@ Writes
 - ``OUT/viewgraph.npz``: the checked graph (stat ``confirmed``: the edge is in a consistent cycle);
 - ``OUT/viewgraph.json``: counts; ``left_out`` (every image outside it, with why);
   ``pairs`` (every pair that was estimated or rejected: its status, the step that rejected
-  it and why, its tier); ``flags`` (``{camera: [reasons]}``); ``messages`` (graph-level,
+  it and why, its tier, and ``tracks``: whether its matches may make the refinement's tracks,
+  :func:`track_pairs`); ``flags`` (``{camera: [reasons]}``); ``messages`` (graph-level,
   e.g. no cycle: the result cannot be verified); the checks' figures.
 
 With ``checks: false`` every pair of the BA graph is kept, as before this stage checked them.
@@ -36,11 +37,12 @@ from pipeline.geometry.two_view_stage import load_two_view
 from pipeline.graph.checks import GraphChecks, ViewGraphConfig, check_view_graph
 from pipeline.graph.components import left_out_reasons
 from pipeline.graph.flags import graph_flags
+from pipeline.graph.tiers import WEAK_H
 from pipeline.stage import Stage, StageRecord
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "main_cli", "GRAPH", "SUMMARY"]
+__all__ = ["ViewGraphConfig", "ViewGraphStage", "load_graph_summary", "track_pairs", "main_cli", "GRAPH", "SUMMARY"]
 
 GRAPH = "viewgraph.npz"
 SUMMARY = "viewgraph.json"
@@ -60,12 +62,21 @@ def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], b
     rows += [{"pair": list(d.get("pair", [])), "status": "rejected", "step": "two_view_ba", "reason": d.get("reason", "")}
              for d in ba_dropped]
     n_in = np.asarray(vg.stats.get("n_inliers_E", vg.inliers if vg.inliers is not None else np.zeros(vg.n_edges)))
+    tracks = track_pairs(chk)
     for k, (a, b) in enumerate(vg.edges.tolist()):  # one JSON row per pair: I/O, not a hot path
         rows.append({"pair": [vg.names[a], vg.names[b]], "status": "kept" if chk.kept[k] else "rejected",
                      "step": str(chk.step[k]), "reason": str(chk.reason[k]), "tier": str(chk.tier[k]),
                      "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k]),
-                     "bridged": bool(chk.bridged[k])})
+                     "bridged": bool(chk.bridged[k]), "tracks": bool(tracks[k])})
     return rows
+
+
+def track_pairs(chk: GraphChecks) -> np.ndarray:
+    """(M,) the pairs whose inlier matches may make the refinement's tracks: the kept ones, and those rejected only
+    because their rotation is poorly determined (weak H). Such a pair passed the inlier gates: its matches are
+    sound, only the rotation it alone gives is not, and the bundle adjustment does not read that rotation (the
+    refinement's edge filter still compares it with the averaged rotations)."""
+    return chk.kept | ((chk.step == "acceptance") & (chk.reason == WEAK_H))
 
 
 class ViewGraphStage(Stage[ViewGraphConfig]):
@@ -74,7 +85,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     name = "viewgraph"
     title = "view graph and its checks"
     config_cls = ViewGraphConfig
-    version = 3
+    version = 4  # 4: pairs[].tracks
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)

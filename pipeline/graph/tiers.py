@@ -70,6 +70,10 @@ class PairEvidence:
     cond: np.ndarray
 
 
+#: The acceptance gate's reason for a pair whose rotation is poorly determined (its matches pass the inlier gates).
+WEAK_H = "rotation poorly determined (weak H)"
+
+
 def pair_evidence(vg: ViewGraph) -> PairEvidence:
     """The evidence of every edge of ``vg`` from its stats (two-view stage) and H (two-view BA)."""
     M = vg.n_edges
@@ -96,7 +100,7 @@ def gate_pairs(ev: PairEvidence, config: Any, min_inliers: int | None = None) ->
     k = cfg.min_inliers if min_inliers is None else min_inliers
     reason = np.full(len(ev.n_inliers), "", dtype=object)
     weak_h = cfg.h_inflation * ev.sigma_weak_deg > cfg.max_sigma_deg  # NaN (no H): passes
-    for fail, why in ((weak_h, "rotation poorly determined (weak H)"),
+    for fail, why in ((weak_h, WEAK_H),
                       (ev.inlier_ratio < cfg.min_inlier_ratio, "inlier ratio too low"),
                       (ev.n_inliers < k, "too few inliers")):  # the last assigned is reported: the first gate
         reason = np.where(fail, why, reason)

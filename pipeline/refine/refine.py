@@ -87,20 +87,20 @@ class RefineConfig(Config):
                                                  "(null: the preset's)", ge=0)
     max_change_deg: float = option(5.0, "a refined rotation farther than this from the averaged one keeps the "
                                         "averaged one (both are reported)", gt=0)
-    max_change_known_only: bool = option(True, "max_change_deg applies only to images whose K came from a file: "
-                                               "an image whose intrinsics the refinement estimated keeps its refined "
-                                               "rotation however far it moved (its averaged rotation rested on the "
-                                               "cameras stage's focal), and the warnings say so")
+    max_change_known_only: bool = option(True, "max_change_deg only for images with a K file: an image whose "
+                                               "intrinsics the refinement estimated keeps its refined rotation (its "
+                                               "averaged one rested on the cameras stage's focal); warnings say so")
     radial: Literal["auto", "off"] = option("auto", "cameras without a K file: auto = SIMPLE_RADIAL, one k1 refined "
                                                     "from 0 on the cameras stage's undistorted keypoints (the lens "
-                                                    "that stage left; COLMAP's mappers model an unknown camera so), "
-                                                    "off = SIMPLE_PINHOLE")
+                                                    "that stage left; as COLMAP's mappers do), off = SIMPLE_PINHOLE")
     lens: Literal["measured", "undistorted"] = option(
         "measured", "cameras whose lens the cameras stage estimated: measured = the measured keypoints, with COLMAP's "
                     "SIMPLE_RADIAL from the stage's k1 (the lens about the principal point the BA refines); "
                     "undistorted = the stage's keypoints undistorted about the image centre, k1 from 0")
     edge_filter_deg: float | None = option(5.0, "pairs farther than this from the averaged rotations are not "
                                                 "used (null: every pair)", gt=0)
+    weak_pairs: bool = option(True, "the inlier matches of the pairs the view graph rejected only because their "
+                                    "rotation is poorly determined (weak H) also make tracks (edge_filter_deg applies)")
     min_track_views: int = option(3, "images a track must be seen in (a starved image keeps its shorter ones)", ge=2)
     track_consistency_px: float = option(10.0, "a track with two keypoints of one image farther apart is dropped",
                                          gt=0)

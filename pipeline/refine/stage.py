@@ -102,14 +102,25 @@ def _intrinsics(work: Path, fs: Any, lens: str = "measured"
     return cams.K, kp, list(cams.K_source), k1
 
 
-def _checked_pairs(vg: Any, graph: Path | None) -> Any:
-    """The two-view BA graph ``vg`` cut to the pairs the view-graph stage kept (``graph``, OUT/viewgraph.npz)."""
+def _checked_pairs(vg: Any, graph: Path | None, weak: bool = True) -> Any:
+    """The two-view BA graph ``vg`` cut to the pairs whose matches make tracks: those the view-graph stage kept
+    (``graph``, OUT/viewgraph.npz) and, with ``weak``, those it rejected only because their rotation is poorly
+    determined (``tracks`` in the summary beside it, :func:`pipeline.graph.stage.track_pairs`)."""
     from pipeline.core.viewgraph import ViewGraph  # noqa: PLC0415
+    from pipeline.graph.stage import SUMMARY, load_graph_summary  # noqa: PLC0415
 
     if graph is None or not Path(graph).is_file():
         return vg
     g = ViewGraph.load(graph, allow_isolated=True)
     kept = {(g.names[a], g.names[b]) for a, b in g.edges.tolist()}
+    if weak and (Path(graph).parent / SUMMARY).is_file():
+        rows = load_graph_summary(Path(graph).parent).get("pairs", [])
+        try:
+            kept |= {(str(r["pair"][0]), str(r["pair"][1])) for r in rows
+                     if r.get("tracks") is True and r.get("status") == "rejected"}
+        except (TypeError, KeyError, IndexError, AttributeError):
+            raise CacheError(f"{Path(graph).parent / SUMMARY} has malformed pairs; re-run the view-graph stage"
+                             ) from None
     keep = np.array([(vg.names[a], vg.names[b]) in kept or (vg.names[b], vg.names[a]) in kept
                      for a, b in vg.edges.tolist()], bool)
     return ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], H=vg.H[keep],
@@ -117,12 +128,13 @@ def _checked_pairs(vg: Any, graph: Path | None) -> Any:
                      stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
 
 
-def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: str = "measured"
-                ) -> tuple[dict[str, Any], list[str], np.ndarray]:
+def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: str = "measured",
+                weak_pairs: bool = True) -> tuple[dict[str, Any], list[str], np.ndarray]:
     """The keyword inputs of :func:`refine_rotations` from WORK and an averaged rotations file.
 
     Only the pairs of the checked view graph ``graph`` (OUT/viewgraph.npz: what the view-graph
-    stage kept, so no pair its checks rejected) make tracks; every two-view BA pair without it.
+    stage kept) make tracks, and with ``weak_pairs`` those it rejected only as poorly determined
+    (weak H: their matches passed the inlier gates); every two-view BA pair without ``graph``.
 
     ``lens``: :class:`~pipeline.refine.refine.RefineConfig`'s ``lens`` (which keypoints, which starting k1).
 
@@ -136,7 +148,7 @@ def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: st
 
     fs = load_features(work, descriptors=False)
     tv = load_two_view(work)
-    vg = _checked_pairs(load_ba_viewgraph(work), graph)
+    vg = _checked_pairs(load_ba_viewgraph(work), graph, weak_pairs)
     n = len(fs.names)
     if tv.vg.n_cameras != n or vg.n_cameras != n:
         raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
@@ -216,7 +228,7 @@ class RefineStage(Stage[RefineConfig]):
     def compute(self) -> tuple[list[Path], dict[str, Any]]:
         logger.info("refine: start %s; options %s", self.start_why, self.config.as_dict())
         inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH,
-                                                 self.config.lens)
+                                                 self.config.lens, self.config.weak_pairs)
         self.known_K = inputs["known_K"]
         res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
         paths: list[Path] = []

@@ -179,3 +179,28 @@ def test_config_checks():
     with pytest.raises(ConfigError, match="max_cycle_length"):
         ViewGraphConfig(max_cycle_length=5)
     assert ViewGraphConfig().min_inliers == 15
+
+
+def test_tracks_take_the_kept_pairs_and_those_rejected_only_as_weak_never_a_wrong_or_thin_one():
+    # A graph of good pairs, plus: one whose rotation is poorly determined (weak H), one with too few inliers,
+    # one whose weak rotation also fails the inlier-ratio gate, and one wrong pair the cycles reject.
+    from pipeline.graph.stage import track_pairs
+
+    rng, R, E, Rm = _truth(n=12, p=0.6, seed=3)
+    M = len(E)
+    vg = _vg(E, Rm, 12)
+    inl, matches, sig = vg.inliers.copy(), vg.stats["n_matches"].copy(), np.full(M, 0.3)
+    weak, thin, weak_thin, wrong = 0, 1, 2, 3
+    sig[[weak, weak_thin]] = 3.0
+    inl[thin] = 8
+    inl[weak_thin], matches[weak_thin] = 20, 400
+    Rm = Rm.copy()
+    Rm[wrong] = so3.exp(np.deg2rad([0.0, 30.0, 0.0])) @ Rm[wrong]
+    vg = _vg(E, Rm, 12, inl, matches, 10.0, sig)
+    chk = check_view_graph(vg, ViewGraphConfig())
+    assert chk.reason[weak] == "rotation poorly determined (weak H)" and not chk.kept[weak]
+    assert chk.reason[thin] == "too few inliers" and chk.reason[weak_thin] == "inlier ratio too low"
+    assert not chk.kept[wrong] and chk.step[wrong] != "acceptance"
+    tracks = track_pairs(chk)
+    assert tracks[weak] and not tracks[[thin, weak_thin, wrong]].any()
+    assert np.array_equal(tracks & (np.arange(M) != weak), chk.kept)

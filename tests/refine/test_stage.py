@@ -142,7 +142,7 @@ def test_tracks_come_only_from_the_pairs_the_checked_view_graph_kept(rendered_ru
     rot = rendered_run / "rotations" / "irls-h-l0.5.txt"
     checked = ViewGraph.load(rendered_run / "viewgraph.npz", allow_isolated=True)
     every, _, _ = load_inputs(rendered_run / "work", rot)  # no checked graph: every two-view BA pair
-    kept, _, _ = load_inputs(rendered_run / "work", rot, rendered_run / "viewgraph.npz")
+    kept, _, _ = load_inputs(rendered_run / "work", rot, rendered_run / "viewgraph.npz", weak_pairs=False)
     assert len(kept["edges"]) == checked.n_edges <= len(every["edges"])
     a, b = checked.edges[0]
     fewer = ViewGraph(checked.names, checked.edges[1:], checked.R_rel[1:], H=checked.H[1:],
@@ -156,3 +156,41 @@ def test_tracks_come_only_from_the_pairs_the_checked_view_graph_kept(rendered_ru
     assert got["match_offsets"][-1] == len(got["matches"]) < kept["match_offsets"][-1]
     # the intrinsics are the cameras stage's, K from the rendered scene's file: known, kept constant
     assert kept["known_K"].all()
+
+
+def test_a_pair_rejected_only_as_weak_makes_tracks_and_no_other_rejected_pair_does(rendered_run, tmp_path):
+    # The view graph's summary says which rejected pairs' matches may make tracks (``tracks``: those rejected only
+    # because their rotation is poorly determined). Take a kept pair out of the checked graph and mark it rejected
+    # in a copy of the summary: as weak (tracks true) its matches come back; as rejected for another reason
+    # (tracks false) they do not; with weak_pairs off neither does.
+    import json
+
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.refine.stage import load_inputs
+
+    rot = rendered_run / "rotations" / "irls-h-l0.5.txt"
+    checked = ViewGraph.load(rendered_run / "viewgraph.npz", allow_isolated=True)
+    a, b = checked.edges[0]
+    pair = [checked.names[a], checked.names[b]]
+    fewer = ViewGraph(checked.names, checked.edges[1:], checked.R_rel[1:], H=checked.H[1:],
+                      inliers=None if checked.inliers is None else checked.inliers[1:],
+                      stats={k: np.asarray(v)[1:] for k, v in checked.stats.items()}, allow_isolated=True)
+    summary = json.loads((rendered_run / "viewgraph.json").read_text())
+    assert all("tracks" in r for r in summary["pairs"] if r["step"] not in ("two_view", "two_view_ba"))
+
+    def inputs(tracks: bool, weak_pairs: bool = True) -> set:
+        out = tmp_path / f"out-{tracks}-{weak_pairs}"
+        out.mkdir()
+        fewer.save(out / "viewgraph.npz")
+        rows = [r for r in summary["pairs"] if r["pair"] != pair and r["pair"] != pair[::-1]]
+        rows.append({"pair": pair, "status": "rejected", "step": "acceptance", "tracks": tracks,
+                     "reason": "rotation poorly determined (weak H)" if tracks else "inlier ratio too low"})
+        (out / "viewgraph.json").write_text(json.dumps({**summary, "pairs": rows}))
+        got, _, _ = load_inputs(rendered_run / "work", rot, out / "viewgraph.npz", weak_pairs=weak_pairs)
+        return {(got["names"][i], got["names"][j]) for i, j in got["edges"].tolist()}
+
+    base = {(checked.names[i], checked.names[j]) for i, j in checked.edges[1:].tolist()}
+    extra = {(r["pair"][0], r["pair"][1]) for r in summary["pairs"] if r.get("tracks") and r["status"] == "rejected"}
+    assert inputs(True) == base | extra | {tuple(pair)}
+    assert inputs(False) == base | extra
+    assert inputs(True, weak_pairs=False) == base
