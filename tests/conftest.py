@@ -50,6 +50,31 @@ def damage_item():
     return damage
 
 
+@pytest.fixture
+def rerun_with_a_damaged_item(damage_item, caplog):
+    """``rerun(run, snapshot, store_dir, output, change, what)``: damage one accepted stored pair (``change``, as
+    :func:`damage_item`), remove the stage's ``output`` and ``run()`` it again; asserts one warning naming one
+    damaged pair (its message holds ``what``), only that pair's chunk of 2 recomputed, and ``snapshot()`` (a list of
+    arrays) equal to the undamaged run's, bit for bit."""
+    import logging
+
+    import numpy as np
+
+    def rerun(run, snapshot, store_dir: Path, output: Path, change, what: str) -> None:
+        before = snapshot()
+        damage_item(store_dir, change, which=lambda item: bool(item["ok"]))
+        output.unlink()
+        with caplog.at_level(logging.WARNING):
+            rec = run()
+        warned = [r.getMessage() for r in caplog.records if what in r.getMessage()]
+        assert len(warned) == 1 and "1 pairs'" in warned[0] and "recomputed" in warned[0], warned
+        assert rec.summary["n_computed"] == 2  # the damaged pair's chunk, no more
+        for a, b in zip(before, snapshot()):
+            np.testing.assert_array_equal(a, b)
+
+    return rerun
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO

@@ -181,7 +181,7 @@ def test_damaged_result_is_healed_by_a_plain_rerun(work_copy, name, damage, capl
     lambda f: f.__setitem__("kp_j", f["kp_j"][1:]),              # the inlier arrays disagree in length
     lambda f: f.pop("x_j"),                                      # a field missing
 ], ids=["R-scaled", "t-nan", "kp-past-the-end", "kp-negative", "x-nan", "count", "lengths", "x-missing"])
-def test_a_stored_pair_that_reads_but_is_wrong_is_recomputed(work_copy, change, damage_item, caplog):
+def test_a_stored_pair_that_reads_but_is_wrong_is_recomputed(work_copy, change, rerun_with_a_damaged_item):
     # The stage's output is lost and one stored pair reads well but is wrong: the recompute does not take it back
     # (it would crash, or hand the two-view BA and the tracks keypoints the image lacks), it estimates that pair
     # again, and every array is the first run's, bit for bit.
@@ -189,16 +189,8 @@ def test_a_stored_pair_that_reads_but_is_wrong_is_recomputed(work_copy, change, 
 
     cfg = TwoViewConfig(chunk_size=2, workers=1, progress=False)
     TwoViewStage(work_copy, cfg).run(overwrite=True)
-    before = _snapshot(work_copy)
-    damage_item(work_copy / STORE, change, which=lambda item: bool(item["ok"]))
-    (work_copy / VIEWGRAPH).unlink()
-    with caplog.at_level(logging.WARNING):
-        rec = TwoViewStage(work_copy, cfg).run()
-    warned = [r.getMessage() for r in caplog.records if "two-view results" in r.getMessage()]
-    assert len(warned) == 1 and "1 pairs'" in warned[0] and "recomputed" in warned[0], warned
-    assert rec.summary["n_computed"] == 2  # the damaged pair's chunk, no more
-    for a, b in zip(before, _snapshot(work_copy)):
-        np.testing.assert_array_equal(a, b)
+    rerun_with_a_damaged_item(TwoViewStage(work_copy, cfg).run, lambda: _snapshot(work_copy), work_copy / STORE,
+                              work_copy / VIEWGRAPH, change, "two-view results")
 
 
 def test_readers_fail_in_one_line_naming_the_file(work_copy):
