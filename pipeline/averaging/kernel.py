@@ -347,8 +347,7 @@ class LaplacianSolver:
         On a well-connected graph (:func:`~pipeline.averaging.iterative.solve_iteratively`) conjugate
         gradients with a diagonal preconditioner come first. Otherwise, IRLS weights change little between
         iterations, so conjugate gradients on the current matrix, preconditioned by the previous SuperLU
-        factor, converge in a few
-        steps; when they do not within ``max_cg``, or the gauge changed, the current matrix
+        factor, converge in a few steps; when they do not within ``max_cg``, or the gauge changed, the current matrix
         is factored, as it always is below :data:`REUSE_MIN_N` cameras, where a factorization
         is cheaper than a few preconditioned products. The answer is the current matrix's
         either way (to ``rtol``). The
@@ -359,8 +358,7 @@ class LaplacianSolver:
             bb = np.array(b, dtype=np.float64, copy=True)
             bb[self.pinned] = 0.0
             same_gauge = np.array_equal(self.pinned, self._lu_pinned)
-            x, n_it = solve_without_factoring(self._factor, L, bb, self._lu, same_gauge, rtol, max_cg,
-                                              min_n=REUSE_MIN_N)
+            x, n_it = solve_without_factoring(self._factor, L, bb, self._lu, same_gauge, rtol, max_cg)
             self.n_cg_iterations += n_it
             if x is not None:
                 x[self.pinned] = 0.0

@@ -247,13 +247,15 @@ class ItemStore:
             n_files = self._remove_chunks(bad)
             raise CacheError(f"{len(bad)} {what} damaged, e.g. {first}; their {n_files} chunk file(s) removed")
 
-    def drop_damaged(self, keys: Sequence[str], check: Callable[[int, dict[str, np.ndarray]], Any], what: str) -> int:
+    def drop_damaged(self, keys: Sequence[str], check: Callable[[int, dict[str, np.ndarray]], Any], what: str,
+                     name: Callable[[int], str] | None = None) -> int:
         """Before a stage reuses the items of ``keys`` already in the store: apply ``check(i, item)`` (``i`` the
         item's position in ``keys``) to each, and remove the chunks of those that fail it (it raises
         :class:`CacheError`), with one warning, so that :func:`compute_missing` computes them again: an item that
-        reads well but is wrong is never taken back. Returns the number of damaged items."""
+        reads well but is wrong is never taken back. ``name(i)``, when given, names the item in the warning
+        (``"a.png-b.png: <reason>"``). Returns the number of damaged items."""
         done = self.done(keys)
-        bad, first = self._damaged([i for i, k in enumerate(keys) if k in done], keys, check)
+        bad, first = self._damaged([i for i, k in enumerate(keys) if k in done], keys, check, name)
         if bad:
             n_files = self._remove_chunks(bad)
             logger.warning("%d %s damaged, e.g. %s; their %d chunk file(s) removed, they are recomputed", len(bad),
@@ -261,19 +263,22 @@ class ItemStore:
         return len(bad)
 
     def _damaged(self, positions: Iterable[int], keys: Sequence[str],
-                 check: Callable[[int, dict[str, np.ndarray]], Any]) -> tuple[list[str], str]:
-        """The keys at ``positions`` whose item cannot be read or fails ``check``, and the first reason."""
+                 check: Callable[[int, dict[str, np.ndarray]], Any], name: Callable[[int], str] | None = None
+                 ) -> tuple[list[str], str]:
+        """The keys at ``positions`` whose item cannot be read or fails ``check``, and the first reason (prefixed by
+        ``name(i)`` when given)."""
         bad: list[str] = []
         first = ""
         for i in positions:
             try:
                 check(i, self.get(keys[i]))
+                continue
             except CacheError as exc:
-                bad.append(keys[i])
-                first = first or " ".join(str(exc).split())
+                why = " ".join(str(exc).split())
             except (KeyError, IndexError, ValueError, TypeError) as exc:  # not the layout the stage writes
-                bad.append(keys[i])
-                first = first or f"an item not as the stage writes it ({type(exc).__name__}: {exc})"
+                why = f"an item not as the stage writes it ({type(exc).__name__}: {exc})"
+            bad.append(keys[i])
+            first = first or (f"{name(i)}: {why}" if name is not None else why)
         return bad, first
 
     def _remove_chunks(self, keys: Sequence[str]) -> int:

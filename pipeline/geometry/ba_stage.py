@@ -198,15 +198,9 @@ class TwoViewBAStage(PairStage[BAConfig]):
         fp = cfg.fingerprint()
         keys = [item_key(fp, *task) for task in tasks]
         store = ItemStore(work / self.store)
-
-        def check(k: int, item: dict[str, np.ndarray]) -> None:
-            try:
-                _check_result(item)
-            except CacheError as exc:
-                i, j = vg_in.edges[k]
-                raise CacheError(f"{vg_in.names[i]}-{vg_in.names[j]}: {exc}") from None
-
-        store.drop_damaged(keys, check, f"pairs' two-view BA results in {work / self.store}")
+        store.drop_damaged(keys, lambda k, item: _check_result(item),
+                           f"pairs' two-view BA results in {work / self.store}",
+                           name=lambda k: "-".join(vg_in.names[c] for c in vg_in.edges[k]))
         done = store.done(keys)
         t0 = time.perf_counter()
         with tqdm(total=M, initial=sum(k in done for k in keys), desc="two-view BA", unit="pair",

@@ -349,14 +349,9 @@ class TwoViewStage(PairStage[TwoViewConfig]):
                          lens(cams[a]), lens(cams[b])) for p, (a, b) in enumerate(pairs)]
         store = ItemStore(work / self.store)
         n_kp = functools.cache(lambda a: len(_raw_keypoints(str(fdir / fwhere[fkeys[a]]), fkeys[a])))
-
-        def check(p: int, item: dict[str, np.ndarray]) -> None:
-            try:
-                _check_item(item, (n_kp(pairs[p][0]), n_kp(pairs[p][1])))
-            except CacheError as exc:
-                raise CacheError(f"{names[pairs[p][0]]}-{names[pairs[p][1]]}: {exc}") from None
-
-        store.drop_damaged(keys, check, f"pairs' two-view results in {work / self.store}")
+        store.drop_damaged(keys, lambda p, item: _check_item(item, (n_kp(pairs[p][0]), n_kp(pairs[p][1]))),
+                           f"pairs' two-view results in {work / self.store}",
+                           name=lambda p: "-".join(names[c] for c in pairs[p]))
         done = store.done(keys)
         with tqdm(total=len(keys), initial=sum(k in done for k in keys), desc="two-view", unit="pair",
                   disable=not config.progress) as bar:
