@@ -85,7 +85,6 @@ def global_positioning(pc: Any, rec: Any, pose_graph: Any, cfg: Any) -> tuple[bo
     """Positions and points with the rotations held fixed, then GLOMAP's filters."""
     gp = pc.GlobalMapperOptions().get_global_positioning()
     gp.random_seed = cfg.seed
-    gp.use_parameter_block_ordering = False
     gp.use_gpu = False
     gp.min_num_view_per_track = cfg.min_track_views
     if not pc.run_global_positioning(gp, pose_graph, rec):
