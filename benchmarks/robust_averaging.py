@@ -34,12 +34,13 @@ degrees after the ℓ2 alignment of ``pipeline.evaluate``, every ratio from this
     leaves > 5° and > 30° off, and the wall-time ratio (median of ``--repeat`` calls).
 ``dense-large``
     The same generator at the sizes of 1DSfM's larger graphs: 1000 cameras and 100,000 edges
-    (Vienna Cathedral: 918 / 103k) and 2500 cameras and 320,000 edges (Piccadilly: 2508 / 319k),
-    and at that of an unordered collection's retrieval graph, 2000 cameras and 20,000 edges (random
-    pairs, degree 20: its Laplacian's factor fills, as a 1DSfM graph's does) (``--large-sizes NxM``),
-    seeds ``--seeds``, one call each: ours against pycolmap's ``run_rotation_averaging`` called on
-    the same graph (its time alone), both scored on the cameras both posed (pycolmap leaves a
-    camera or two unposed on these graphs).
+    (Vienna Cathedral: 918 / 103k), 2500 cameras and 320,000 edges (Piccadilly: 2508 / 319k) and
+    5400 cameras and 680,000 edges (Trafalgar, the largest: 5433 / 680k), and at that of an
+    unordered collection's retrieval graph, 2000 cameras and 20,000 edges (random pairs, degree 20:
+    its Laplacian's factor fills, as a 1DSfM graph's does) (``--large-sizes NxM``), seeds ``--seeds``,
+    one call each: ours against pycolmap's ``run_rotation_averaging`` called on the same graph (its
+    time alone), both scored on the cameras both posed (pycolmap leaves a camera or two unposed on
+    these graphs).
 
 Usage::
 
@@ -269,7 +270,7 @@ def dense(seeds: list[int], repeat: int) -> dict[str, Any]:
     return {"rows": rows}
 
 
-LARGE_SIZES = ((2000, 20_000), (1000, 100_000), (2500, 320_000))
+LARGE_SIZES = ((2000, 20_000), (1000, 100_000), (2500, 320_000), (5400, 680_000))
 
 
 def dense_large(seeds: list[int], sizes: tuple[tuple[int, int], ...] = LARGE_SIZES) -> dict[str, Any]:

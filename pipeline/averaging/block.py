@@ -72,6 +72,11 @@ class BlockLaplacianSolver:
         self.n_factorizations = 0
         self.n_cg_iterations = 0
 
+    @property
+    def fills(self) -> bool | None:
+        """Whether this graph's factor fills (:class:`~pipeline.averaging.kernel.SymmetricFactorizer`)."""
+        return self._factor.fills
+
     def matrix(self, B: np.ndarray) -> sp.csc_matrix:
         """The gauge-fixed (3N, 3N) block Laplacian for edge blocks ``B`` (M, 3, 3)."""
         B = np.asarray(B, dtype=np.float64)

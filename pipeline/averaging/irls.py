@@ -251,7 +251,8 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     }
     if cfg.certify:
         what = _final_problem(lossf, cfg, tau, model, trust_used)
-        stats["certificate"] = certify_weights(vg, R, w, kept, what=what, method=f"IRLS-{lossf.name}", theta=theta)
+        stats["certificate"] = certify_weights(vg, R, w, kept, what=what, method=f"IRLS-{lossf.name}", theta=theta,
+                                               fills=solver.fills)
     elapsed = time.perf_counter() - t0
     logger.info("IRLS-%s: %d cameras, %d edges, start %s, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
                 lossf.name, N, M, starts["start_used"], n_l1, it, elapsed, np.rad2deg(np.median(theta)))

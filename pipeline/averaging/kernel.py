@@ -217,6 +217,10 @@ class SymmetricFactorizer:
     :data:`~pipeline.averaging.iterative.ITERATIVE_FILL`, or a matrix dense from
     the start.
 
+    ``fills`` says, once a matrix has been factored, whether the pattern's factor fills (a dense pattern, or a
+    first sparse factor with more than :data:`DENSE_FILL` of n² nonzero), whatever the size: the certificate's
+    matrix, of the same graph, is then factored densely too.
+
     Args:
         dense: True / False forces one factorization; None (default) decides from the first factor's fill.
     """
@@ -224,10 +228,13 @@ class SymmetricFactorizer:
     def __init__(self, dense: bool | None = None) -> None:
         self.dense = dense
         self.jacobi: bool | None = None
+        self.fills: bool | None = None
 
     def __call__(self, A: sp.spmatrix) -> sla.SuperLU | DenseCholesky:
         n = A.shape[0]
         dense_pattern = A.nnz > DENSE_PATTERN * n * n
+        if self.fills is None and dense_pattern:
+            self.fills = True
         if self.dense is None and n <= DENSE_MAX_SIZE and dense_pattern:
             self.dense = True
         if self.dense:
@@ -239,6 +246,8 @@ class SymmetricFactorizer:
                 pass
         lu = factor_symmetric(A)
         fill = (lu.L.nnz + lu.U.nnz) / (n * n)
+        if self.fills is None:
+            self.fills = fill > DENSE_FILL
         if self.jacobi is None:
             self.jacobi = fill > ITERATIVE_FILL
         if self.dense is None and n <= DENSE_MAX_SIZE:
@@ -300,6 +309,11 @@ class LaplacianSolver:
         self._lu_pinned = self.pinned
         self.n_factorizations = 0
         self.n_cg_iterations = 0
+
+    @property
+    def fills(self) -> bool | None:
+        """Whether this graph's factor fills (:class:`SymmetricFactorizer`); None before the first factor."""
+        return self._factor.fills
 
     def _pins(self, w: np.ndarray) -> np.ndarray:
         pinned = np.zeros(self.n, dtype=bool)

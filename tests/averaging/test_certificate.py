@@ -317,6 +317,74 @@ def test_inertia_of_a_dense_matrix_by_cholesky_or_dense_ldl():
     assert not singular.ok and singular.n_negative == -1
 
 
+def test_the_dense_inertia_test_is_taken_where_its_copies_fit_in_memory_and_superlu_decides_elsewhere(monkeypatch):
+    """A dense-pattern matrix is factored densely where two n×n copies fit the byte budget and half the free memory;
+    past either, SuperLU decides, with the same count. The LDLᵀ leaves a caller's array as it was unless told to
+    overwrite it."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    import pipeline.averaging.certificate.eigen as eig_mod
+    from pipeline.averaging.certificate.eigen import DenseLDL, dense_inertia_fits, ldl_inertia
+
+    rng = np.random.default_rng(5)
+    n = 60
+    Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    A = sp.csc_matrix((Q * np.r_[-3.0, np.linspace(0.5, 2.0, n - 1)]) @ Q.T)  # dense pattern, one negative eigenvalue
+    need = 2 * 8 * n * n
+    monkeypatch.setattr(eig_mod, "_free_bytes", lambda: 4.0 * need)
+    monkeypatch.setattr(eig_mod, "DENSE_INERTIA_BYTES", need)
+    assert dense_inertia_fits(n) and not dense_inertia_fits(n + 1)
+    lu, neg, msg = ldl_inertia(A)
+    assert (msg, neg) == ("", 1) and isinstance(lu, DenseLDL)
+    for budget, free in ((need - 1, 4.0 * need), (need, 1.9 * need)):  # over the budget; over half the free memory
+        monkeypatch.setattr(eig_mod, "DENSE_INERTIA_BYTES", budget)
+        monkeypatch.setattr(eig_mod, "_free_bytes", lambda free=free: free)
+        assert not dense_inertia_fits(n)
+        lu, neg, msg = ldl_inertia(A)
+        assert (msg, neg) == ("", 1) and isinstance(lu, sla.SuperLU)
+    dense = np.asfortranarray(A.toarray())
+    keep = dense.copy()
+    assert DenseLDL(dense).n_negative == 1 and np.array_equal(dense, keep)
+    assert DenseLDL(dense, overwrite=True).n_negative == 1 and not np.array_equal(dense, keep)
+
+
+def test_the_averaging_says_whether_its_graph_fills_and_the_certificate_factors_accordingly(monkeypatch):
+    """1200 cameras with 14,400 random pairs: 2% of the Laplacian nonzero (below DENSE_PATTERN), yet its factor
+    fills; a ring's does not. The factorizer says so after its first factor, IRLS hands that to the certificate,
+    and the certificate's matrix of such a graph is then factored densely, with the inertia SuperLU gives."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    import pipeline.averaging.irls as irls_mod
+    from pipeline.averaging.certificate.eigen import DenseLDL, ldl_inertia
+    from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky
+    from pipeline.averaging.solve import average
+
+    rng = np.random.default_rng(2)
+    n = 1200
+    pairs = np.unique(np.sort(rng.integers(0, n, (16000, 2)), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]][:14400]
+    ring = np.sort(np.c_[np.arange(n), (np.arange(n) + 1) % n], axis=1)
+    R = so3.random_rotations(n, rng)
+    seen = []
+    real = irls_mod.certify_weights
+    monkeypatch.setattr(irls_mod, "certify_weights", lambda *a, **k: seen.append(k.get("fills")) or real(*a, **k))
+    for e in (pairs, ring):
+        vg = ViewGraph.from_absolute([str(i) for i in range(n)], R, e)
+        vg = ViewGraph(vg.names, vg.edges, so3.exp(np.deg2rad(0.5) * rng.standard_normal((len(e), 3))) @ vg.R_rel)
+        assert average(vg, "irls").stats["certificate"]["verdict"] == VERIFIED
+    assert seen == [True, False]
+    L = sp.csc_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    L = L + L.T
+    A = sp.kron(sp.diags(np.asarray(L.sum(1)).ravel() + 1.0) - L, sp.identity(3)).tocsc()  # positive-definite
+    assert A.nnz < DENSE_PATTERN * A.shape[0] ** 2
+    by = {hint: ldl_inertia(A, hint) for hint in (None, True, False)}
+    assert isinstance(by[True][0], DenseCholesky)
+    assert isinstance(by[None][0], sla.SuperLU) and isinstance(by[False][0], sla.SuperLU)
+    assert {v[1] for v in by.values()} == {0} and not isinstance(by[None][0], DenseLDL)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_dense_inertia_counts_negative_eigenvalues(seed):
     """Bunch–Kaufman's 1×1 and 2×2 blocks give the inertia: random symmetric matrices (indefinite, nearly

@@ -85,7 +85,8 @@ class Certificate:
 
 def certify(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w: np.ndarray,
             M: np.ndarray | None = None, *, gap_tol: float = 1e-6, do_polish: bool | str = "auto",
-            use_lmi: bool | None = None, polish_iterations: int = 20, k_margin: int = 1) -> tuple[Certificate, np.ndarray]:
+            use_lmi: bool | None = None, polish_iterations: int = 20, k_margin: int = 1, fills: bool | None = None
+            ) -> tuple[Certificate, np.ndarray]:
     """Certify (or refute) global optimality of R for the fixed-weight problem (1).
 
     ``do_polish="auto"`` (default) first tests R as given (bound (2) needs no stationarity) and
@@ -94,23 +95,23 @@ def certify(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w: np.n
     """
     if do_polish == "auto":
         cert, Rc = _certify_once(n, edges, R_rel, R, w, M, gap_tol=gap_tol, do_polish=False, use_lmi=use_lmi,
-                                 polish_iterations=polish_iterations, k_margin=k_margin)
+                                 polish_iterations=polish_iterations, k_margin=k_margin, fills=fills)
         if cert.verdict == VERIFIED:
             return cert, Rc
         t_first = cert.times.get("total_s", 0.0)
         cert, Rc = _certify_once(n, edges, R_rel, R, w, M, gap_tol=gap_tol, do_polish=True, use_lmi=use_lmi,
-                                 polish_iterations=polish_iterations, k_margin=k_margin)
+                                 polish_iterations=polish_iterations, k_margin=k_margin, fills=fills)
         cert.times["unpolished_attempt_s"] = t_first
         cert.times["total_s"] += t_first
         return cert, Rc
     return _certify_once(n, edges, R_rel, R, w, M, gap_tol=gap_tol, do_polish=bool(do_polish), use_lmi=use_lmi,
-                         polish_iterations=polish_iterations, k_margin=k_margin)
+                         polish_iterations=polish_iterations, k_margin=k_margin, fills=fills)
 
 
 def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w: np.ndarray,
                   M: np.ndarray | None = None, *, gap_tol: float = 1e-6, do_polish: bool = True,
-                  use_lmi: bool | None = None, polish_iterations: int = 20, k_margin: int = 1
-                  ) -> tuple[Certificate, np.ndarray]:
+                  use_lmi: bool | None = None, polish_iterations: int = 20, k_margin: int = 1,
+                  fills: bool | None = None) -> tuple[Certificate, np.ndarray]:
     """Certify (or refute) global optimality of R for the fixed-weight problem (1).
 
     Args:
@@ -125,6 +126,8 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         use_lmi: apply the conv(SO(3)) LMI multipliers (default: only when M is given).
         polish_iterations: Newton iteration cap.
         k_margin: non-trivial eigenvalues to report near 0.
+        fills: whether the graph's sparse factor fills, when the caller's averaging knows (its factorizer's
+            ``fills``): the certificate's matrices are then factored densely (:func:`~.eigen.ldl_inertia`).
 
     Returns:
         (Certificate, the rotations that were certified: polished R or R itself).
@@ -154,7 +157,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
     pinfo: dict[str, Any] = {"iterations": 0}
     if do_polish:
         t = time.perf_counter()
-        R, pinfo = polish(n, e, C, D, R, max_iterations=polish_iterations)
+        R, pinfo = polish(n, e, C, D, R, max_iterations=polish_iterations, fills=fills)
         times["polish_s"] = time.perf_counter() - t
     t = time.perf_counter()
     lmi_edges, lmi_trace = 0, 0.0
@@ -178,7 +181,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
     cost_floor = 1e3 * eps * float(np.abs(np.trace(D, axis1=1, axis2=2)).sum())
     target = gap_tol * max(cost, 0.0) + cost_floor
     eta = max(target / (3 * n), eta_num)
-    eig = min_eigenvalue(S, Y, eta, k_margin=k_margin)
+    eig = min_eigenvalue(S, Y, eta, k_margin=k_margin, fills=fills)
     times.update(eig.times)
     msg = eig.message
     witness: list[int] = []
@@ -235,7 +238,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
 def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarray | None = None, *,
                     M: np.ndarray | None = None, chordal: bool | None = None, what: str = "the final weighted cost",
                     method: str = "IRLS", gap_tol: float | None = None, kappa: float = KAPPA,
-                    k_margin: int = 0, theta: np.ndarray | None = None) -> dict[str, Any]:
+                    k_margin: int = 0, theta: np.ndarray | None = None, fills: bool | None = None) -> dict[str, Any]:
     """The certificate of an IRLS result's final fixed-weight problem, JSON-ready, with its statement.
 
     Isotropic (``M`` None): IRLS's last step solves the geodesic problem ``Σ w_e θ_e²``;
@@ -261,6 +264,7 @@ def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarra
         kappa: see ``gap_tol``.
         k_margin: non-trivial eigenvalues near 0 to report (0: skip; they cost a Lanczos run).
         theta: (M,) the residual angles at ``R`` when the caller has them (radians).
+        fills: whether the graph's sparse factor fills, when the caller's solver knows (:func:`certify`).
 
     Returns:
         :meth:`Certificate.to_dict` plus ``statement``, ``n_kept``, ``n_rejected``,
@@ -277,7 +281,7 @@ def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarra
     if gap_tol is None:
         gap_tol = max(kappa * (vg.n_cameras - 1) / max(n_k - vg.n_cameras + 1, 1), 1e-6)
     cert, Rc = certify(vg.n_cameras, vg.edges, vg.R_rel, R, np.maximum(wc, 0.0), M, gap_tol=gap_tol,
-                       k_margin=k_margin)
+                       k_margin=k_margin, fills=fills)
     rej = ~kept
     rej_min = float(np.rad2deg(theta[rej].min())) if rej.any() else None
     med_kept = float(np.median(w[kept])) if kept.any() else 1.0

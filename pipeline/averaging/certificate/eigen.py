@@ -20,13 +20,33 @@ import scipy.sparse.linalg as sla
 from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky, factor_symmetric
 
 __all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX",
-           "DENSE_INERTIA_MAX"]
+           "DENSE_INERTIA_BYTES", "dense_inertia_fits"]
 
 #: Largest S (3N) whose witness eigenpair is found by a dense eigendecomposition instead of Lanczos.
 DENSE_MAX = 600
-#: Largest S (3N) of a dense view graph factored densely (8000²·8 bytes = 512 MB a copy): 1DSfM's
-#: Piccadilly (2508 cameras, 7524 rows) still is.
-DENSE_INERTIA_MAX = 8000
+#: Most memory the dense inertia test of a dense view graph's S may take (two n×n float64 copies at most: the
+#: failed Cholesky's and the LDLᵀ's): 8 GB, 22,000 rows. 1DSfM's largest graph (Trafalgar: 5433 cameras, 680k
+#: edges) has 16,299. Past it, or past half the memory the machine has free, SuperLU factors S, as for a sparse
+#: graph. SuperLU gains nothing on such a matrix (its factor fills): 21.7 s on 9000 rows of 5% nonzeros, where
+#: the dense Cholesky takes 4.5 s (measured, 2 cores).
+DENSE_INERTIA_BYTES = 8 * 1024**3
+
+
+def _free_bytes() -> float:
+    """Physical memory free now (Linux ``sysconf``), or infinity where the system does not say."""
+    import os  # noqa: PLC0415
+
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return float("inf")
+
+
+def dense_inertia_fits(n: int) -> bool:
+    """Whether the dense inertia test of an n-row matrix fits :data:`DENSE_INERTIA_BYTES` and half the free
+    memory (two n×n float64 copies)."""
+    need = 2.0 * 8.0 * float(n) ** 2
+    return need <= DENSE_INERTIA_BYTES and need <= 0.5 * _free_bytes()
 
 
 @dataclass
@@ -67,9 +87,10 @@ class DenseLDL:
             of A (−1 when not ``ok``).
     """
 
-    def __init__(self, A: np.ndarray) -> None:
-        self._ldu, self._ipiv, info = lapack.dsytrf(np.array(A, dtype=np.float64, order="F"), lower=1,
-                                                    overwrite_a=1)
+    def __init__(self, A: np.ndarray, overwrite: bool = False) -> None:
+        # overwrite: an n×n float64 Fortran array of the caller's is factored in place (no second n×n copy) and lost
+        a = np.asarray(A, dtype=np.float64, order="F") if overwrite else np.array(A, dtype=np.float64, order="F")
+        self._ldu, self._ipiv, info = lapack.dsytrf(a, lower=1, overwrite_a=1)
         # info > 0: an exactly zero pivot (singular: no solves); < 0: a bad argument; non-finite: overflow
         self.ok = info == 0 and bool(np.isfinite(self._ldu).all())
         self.n_negative = self._count() if self.ok else -1
@@ -98,26 +119,31 @@ def dense_inertia(A: np.ndarray) -> int:
     return DenseLDL(A).n_negative
 
 
-def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | DenseLDL | None, int, str]:
+def ldl_inertia(A: sp.csc_matrix, fills: bool | None = None
+                ) -> tuple[sla.SuperLU | DenseCholesky | DenseLDL | None, int, str]:
     """LDLᵀ-equivalent SuperLU factor (symmetric mode, no off-diagonal pivoting).
 
-    A matrix with more nonzeros than :data:`~pipeline.averaging.kernel.DENSE_PATTERN` of its n² (a dense view
-    graph's), up to :data:`DENSE_INERTIA_MAX` rows, is first tried by a dense Cholesky: where it succeeds the
-    matrix is positive-definite, no pivot is negative, and that factor serves (ten times faster on a 247-camera
-    graph of 20,000 edges); where it fails (an eigenvalue below 0, or one at the rounding level), a pivoted
-    dense LDLᵀ (:class:`DenseLDL`) counts the negative eigenvalues and serves as the factor (SuperLU took
-    7.5 s on a 2000-camera graph with 200k edges where the dense LDLᵀ takes 0.6 s).
+    A matrix whose sparse factor would fill, where its dense copies fit in memory (:func:`dense_inertia_fits`), is
+    factored densely. It fills where ``fills`` says so (the averaging's own factor of the same graph filled:
+    :attr:`~pipeline.averaging.kernel.SymmetricFactorizer.fills`; 1DSfM's Trafalgar has 4.7% of its entries
+    nonzero, and SuperLU took 150 s on its 16,197 rows where the dense factor takes 20 s) or, with no such word,
+    where more than :data:`~pipeline.averaging.kernel.DENSE_PATTERN` of its n² entries are nonzero (a dense view
+    graph's). Such a matrix is first tried by a dense Cholesky: where it succeeds the matrix is positive-definite, no pivot is negative, and that factor serves
+    (ten times faster on a 247-camera graph of 20,000 edges); where it fails (an eigenvalue below 0, or one at
+    the rounding level), a pivoted dense LDLᵀ (:class:`DenseLDL`) counts the negative eigenvalues and serves as
+    the factor (SuperLU took 7.5 s on a 2000-camera graph with 200k edges where the dense LDLᵀ takes 0.6 s).
 
     Returns the factor, the number of negative pivots and an error message ("" if fine).
     """
     n = A.shape[0]
-    if n <= DENSE_INERTIA_MAX and A.nnz > DENSE_PATTERN * n * n:
+    if (A.nnz > DENSE_PATTERN * n * n if fills is None else fills) and dense_inertia_fits(n):
         try:
             return DenseCholesky(A), 0, ""
         except np.linalg.LinAlgError:  # not positive-definite to rounding: a pivoted dense LDLᵀ decides
-            ldl = DenseLDL(A.toarray())
-            if ldl.ok:
-                return ldl, ldl.n_negative, ""
+            pass  # (outside the handler: its traceback would hold the failed n×n copy while the LDLᵀ makes its own)
+        ldl = DenseLDL(A.toarray(order="F"), overwrite=True)
+        if ldl.ok:
+            return ldl, ldl.n_negative, ""
     try:
         lu = factor_symmetric(A)
     except RuntimeError as exc:  # exactly singular
@@ -131,7 +157,7 @@ def ldl_inertia(A: sp.csc_matrix) -> tuple[sla.SuperLU | DenseCholesky | DenseLD
 
 
 def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 1,
-                   lanczos_tol: float = 1e-8, maxiter: int = 3000) -> EigenResult:
+                   lanczos_tol: float = 1e-8, maxiter: int = 3000, fills: bool | None = None) -> EigenResult:
     """Decide ``S ⪰ −ηI`` and report the numbers behind it (module docstring).
 
     Args:
@@ -141,12 +167,13 @@ def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 
         k_margin: non-trivial eigenvalues to compute near 0 when S ⪰ −ηI (0 skips).
         lanczos_tol: relative tolerance of eigsh.
         maxiter: Lanczos iteration cap.
+        fills: whether S's sparse factor fills, when the caller knows (:func:`ldl_inertia`).
     """
     times: dict[str, float] = {}
     n3 = S.shape[0]
     t0 = time.perf_counter()
     A = (S + eta * sp.identity(n3, format="csc")).tocsc()
-    lu, n_neg, msg = ldl_inertia(A)
+    lu, n_neg, msg = ldl_inertia(A, fills)
     times["factor_s"] = time.perf_counter() - t0
     if msg:
         return EigenResult(False, -1, np.nan, np.nan, None, np.nan, msg, times)

@@ -44,7 +44,8 @@ def newton_system(n: int, edges: np.ndarray, C: np.ndarray, D: np.ndarray, L: sp
 
 
 def polish(n: int, edges: np.ndarray, C: np.ndarray, D: np.ndarray, R0: np.ndarray,
-           max_iterations: int = 20, grad_tol: float = 1e-12, ref: int = 0) -> tuple[np.ndarray, dict[str, Any]]:
+           max_iterations: int = 20, grad_tol: float = 1e-12, ref: int = 0, fills: bool | None = None
+           ) -> tuple[np.ndarray, dict[str, Any]]:
     """Riemannian Newton (Levenberg-damped) on the fixed-weight problem (1).
 
     The Newton matrix is factored by the same LDLᵀ as the certificate; a negative pivot
@@ -56,6 +57,7 @@ def polish(n: int, edges: np.ndarray, C: np.ndarray, D: np.ndarray, R0: np.ndarr
         R0: (N, 3, 3) start (e.g. the IRLS output).
         max_iterations: Newton iteration cap.
         grad_tol: stop when ‖g‖_∞ ≤ grad_tol·(f + Σ|w|) (relative to the cost scale).
+        fills: whether the graph's sparse factor fills (:func:`~pipeline.averaging.certificate.eigen.ldl_inertia`).
         ref: camera pinned for the gauge.
 
     Returns:
@@ -80,7 +82,7 @@ def polish(n: int, edges: np.ndarray, C: np.ndarray, D: np.ndarray, R0: np.ndarr
         accepted = False
         for _ in range(30):
             A = (Hr + mu * sp.diags(dscale)).tocsc()
-            lu, n_neg, msg = ldl_inertia(A)
+            lu, n_neg, msg = ldl_inertia(A, fills)
             if msg or n_neg > 0:
                 mu = max(1e-8, 10.0 * mu)
                 continue
