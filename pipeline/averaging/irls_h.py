@@ -203,7 +203,7 @@ def irls_h(vg: ViewGraph, config: IRLSHConfig | None = None, *, init: str | np.n
     res, P, what = solve(vg, cfg, init, init_weights, t0)
     if cfg.certify:
         res.stats["certificate"] = certify_weights(vg, res.R, res.weights, res.kept, M=metric_from_H(P), what=what,
-                                                   method=res.method)
+                                                   method=res.method, fills=res.stats["factor_fills"])
     res.time_s = time.perf_counter() - t0
     return res
 
@@ -243,6 +243,7 @@ def _calibrated(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.nda
             "irls_iterations": start.stats["irls_iterations"], "n_kept": int(kept.sum()),
             "normalized_residuals": normalized.tolist(),
             "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
+            "factor_fills": solver.fills,
             "candidates": {k: {"loglik": v.loglik, "nu": v.nu, "s": v.s, "eps": v.eps, "iterations": v.iterations,
                                "converged": v.converged, "n_outliers": int(np.sum(v.gamma < 0.5))}
                            for k, v in fits.items()}})
@@ -293,7 +294,7 @@ def _global_scale(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.n
             "normalized_residuals": t.tolist(), "n_trimmed": n_trimmed, "converged": ok,
             "l1_iterations": sum(1 for h in history if h.get("stage") == "l1"), "irls_iterations": it,
             "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
-            "refine": cfg.refine, "n_kept": int(kept.sum())})
+            "factor_fills": solver.fills, "refine": cfg.refine, "n_kept": int(kept.sum())})
     what = (f"the trimmed least-squares cost of IRLS-H (t ≤ {TRIM_T}, s² = {s2_final:.3g})" if cfg.refine
             else f"the final reweighted cost of IRLS-H-{lossf.name}")
     return res, vg.H, what

@@ -375,6 +375,17 @@ def test_the_averaging_says_whether_its_graph_fills_and_the_certificate_factors_
         vg = ViewGraph(vg.names, vg.edges, so3.exp(np.deg2rad(0.5) * rng.standard_normal((len(e), 3))) @ vg.R_rel)
         assert average(vg, "irls").stats["certificate"]["verdict"] == VERIFIED
     assert seen == [True, False]
+    # IRLS-H's block solver (the certificate's own size, 3N) says the same, and its certificate is told
+    import pipeline.averaging.irls_h as irls_h_mod
+
+    real_h = irls_h_mod.certify_weights
+    monkeypatch.setattr(irls_h_mod, "certify_weights", lambda *a, **k: seen.append(k.get("fills")) or real_h(*a, **k))
+    vg = ViewGraph.from_absolute([str(i) for i in range(n)], R, pairs)
+    H = np.broadcast_to(np.diag([1e4, 2e4, 4e4]), (len(pairs), 3, 3)).copy()
+    vg = ViewGraph(vg.names, vg.edges, so3.exp(np.deg2rad(0.5) * rng.standard_normal((len(pairs), 3))) @ vg.R_rel,
+                   H=H)
+    res = average(vg, "irls-h", calibrate=False)
+    assert res.stats["factor_fills"] is True and seen[-1] is True
     L = sp.csc_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     L = L + L.T
     A = sp.kron(sp.diags(np.asarray(L.sum(1)).ravel() + 1.0) - L, sp.identity(3)).tocsc()  # positive-definite
