@@ -9,18 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
 from pipeline.averaging.iterative import solve_without_factoring
-from pipeline.averaging.kernel import (REUSE_MIN_N, DenseCholesky, LaplacianSolver, SymmetricFactorizer,
-                                       effective_weights, graph_residuals)
+from pipeline.averaging.kernel import REUSE_MIN_N, FactorState, LaplacianSolver, effective_weights, graph_residuals
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["BlockLaplacianSolver", "edge_metric", "jl_inv", "left_errors", "anisotropic_step"]
 
 
-class BlockLaplacianSolver:
+class BlockLaplacianSolver(FactorState):
     """Factor and solve gauge-fixed block Laplacians ``Σ_k A_kᵀ B_k A_k`` with 3×3 edge blocks.
 
     The (3N, 3N) sparsity pattern and the map from the (M, 3, 3) blocks to matrix
@@ -65,17 +63,7 @@ class BlockLaplacianSolver:
         self._nnz = ukeys.size
         self._indptr = np.searchsorted(self._col, np.arange(N3 + 1)).astype(np.int32)
         self._indices = self._row.astype(np.int32)
-        self._lu: sla.SuperLU | DenseCholesky | None = None
-        self._factor = SymmetricFactorizer(dense)
-        self.pinned = np.zeros(n, dtype=bool)
-        self._lu_pinned = self.pinned
-        self.n_factorizations = 0
-        self.n_cg_iterations = 0
-
-    @property
-    def fills(self) -> bool | None:
-        """Whether this graph's factor fills (:class:`~pipeline.averaging.kernel.SymmetricFactorizer`)."""
-        return self._factor.fills
+        self._init_factor(n, dense)
 
     def matrix(self, B: np.ndarray) -> sp.csc_matrix:
         """The gauge-fixed (3N, 3N) block Laplacian for edge blocks ``B`` (M, 3, 3)."""

@@ -61,7 +61,7 @@ DENSE_SINGLE_THREAD_SIZE = 1500
 __all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "DENSE_MAX_SIZE",
            "DENSE_SINGLE_THREAD_SIZE", "effective_weights", "edge_residuals", "graph_residuals", "apply_update",
            "LaplacianSolver", "check_graph", "factor_symmetric", "DenseCholesky",
-           "SymmetricFactorizer"]
+           "SymmetricFactorizer", "FactorState"]
 
 _BLAS: list[Any] = []  # threadpoolctl's controller, made once (0.25 ms per threadpool_limits call, 6 µs per limit)
 
@@ -255,7 +255,26 @@ class SymmetricFactorizer:
         return lu
 
 
-class LaplacianSolver:
+class FactorState:
+    """What the Laplacian solvers share: their factorizer, the last factor and the gauge it was made for, counters."""
+
+    _lu: sla.SuperLU | DenseCholesky | None
+
+    def _init_factor(self, n: int, dense: bool | None) -> None:
+        self._lu = None
+        self._factor = SymmetricFactorizer(dense)
+        self.pinned = np.zeros(n, dtype=bool)
+        self._lu_pinned = self.pinned
+        self.n_factorizations = 0
+        self.n_cg_iterations = 0
+
+    @property
+    def fills(self) -> bool | None:
+        """Whether this graph's factor fills (:class:`SymmetricFactorizer`); None before the first factor."""
+        return self._factor.fills
+
+
+class LaplacianSolver(FactorState):
     """Factor and solve gauge-fixed weighted Laplacians ``Aᵀ diag(w) A`` on a fixed pattern.
 
     The sparsity pattern and the map from edge weights to matrix entries are
@@ -303,17 +322,7 @@ class LaplacianSolver:
         A = sp.csr_matrix((np.tile([-1.0, 1.0], M), (np.repeat(np.arange(M), 2), edges.ravel())), shape=(M, n))
         self.A = A
         self.AT = A.T.tocsr()
-        self._lu: sla.SuperLU | DenseCholesky | None = None
-        self._factor = SymmetricFactorizer(dense)
-        self.pinned = np.zeros(n, dtype=bool)
-        self._lu_pinned = self.pinned
-        self.n_factorizations = 0
-        self.n_cg_iterations = 0
-
-    @property
-    def fills(self) -> bool | None:
-        """Whether this graph's factor fills (:class:`SymmetricFactorizer`); None before the first factor."""
-        return self._factor.fills
+        self._init_factor(n, dense)
 
     def _pins(self, w: np.ndarray) -> np.ndarray:
         pinned = np.zeros(self.n, dtype=bool)
