@@ -407,3 +407,21 @@ def test_a_camera_matched_mostly_wrong_is_moved_to_the_rotation_its_right_edges_
         assert n_right == 8 and (0 in res3.cameras) == moved
         if moved:
             assert np.rad2deg(so3.angle_between(res3.R[0], R[0])) < 0.5
+
+
+def test_dense_factors_take_one_blas_thread_where_threads_gain_nothing_or_crash():
+    """One BLAS thread below DENSE_SINGLE_THREAD_SIZE rows and above BLAS_THREADS_MAX_SIZE (OpenBLAS's threaded
+    Cholesky dies with a segmentation fault from about 16,000 rows), every thread between."""
+    from threadpoolctl import threadpool_info
+
+    import pipeline.averaging.kernel as kernel
+
+    def blas_threads_inside(n: int) -> set[int]:
+        with kernel.blas_threads(n):
+            return {int(d["num_threads"]) for d in threadpool_info() if d["user_api"] == "blas"}
+
+    outside = {int(d["num_threads"]) for d in threadpool_info() if d["user_api"] == "blas"}
+    assert blas_threads_inside(kernel.DENSE_SINGLE_THREAD_SIZE - 1) == {1}
+    assert blas_threads_inside(kernel.BLAS_THREADS_MAX_SIZE + 1) == {1}
+    assert blas_threads_inside(kernel.DENSE_SINGLE_THREAD_SIZE) == outside
+    assert blas_threads_inside(kernel.BLAS_THREADS_MAX_SIZE) == outside

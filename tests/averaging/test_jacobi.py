@@ -119,3 +119,31 @@ def test_irls_gives_the_rotations_of_the_factored_path(monkeypatch, method):
     slow = average(vg, method).R
     assert rotation_errors_deg(fast, slow, align="none").max() < 1e-4
     assert np.median(rotation_errors_deg(fast, g.R_true)) < 1.0
+
+
+def test_an_expander_is_recognised_before_its_first_factor_and_a_spatial_graph_is_not(monkeypatch):
+    """From FILL_PROBE_MIN_N rows, a first matrix is probed: 1200 cameras with random pairs (degree 16, 1.4% of
+    the Laplacian nonzero: a sparse pattern whose factor fills) are solved to 1e-6 by diagonal-preconditioned CG
+    within the probe's steps, so the very first factor is dense, with no SuperLU factor at all; a grid's and a
+    band's (streets, video) are not, and SuperLU factors them as before. The solutions are the systems' own."""
+    rng = np.random.default_rng(4)
+    n = 1200
+    pairs = np.unique(np.sort(rng.integers(0, n, (11000, 2)), axis=1), axis=0)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]][:9600]
+    side = np.arange(n).reshape(30, 40)
+    grid = np.r_[np.c_[side[:, :-1].ravel(), side[:, 1:].ravel()], np.c_[side[:-1].ravel(), side[1:].ravel()]]
+    band = np.r_[np.c_[np.arange(n - 1), np.arange(1, n)], np.c_[np.arange(n - 6), np.arange(6, n)]]
+    superlu_calls = []
+    real = kernel.factor_symmetric
+    monkeypatch.setattr(kernel, "factor_symmetric", lambda A: superlu_calls.append(A.shape[0]) or real(A))
+    for name, e, expander in (("random", pairs, True), ("grid", grid, False), ("band", band, False)):
+        superlu_calls.clear()
+        solver = LaplacianSolver(e, n)
+        w = rng.uniform(0.5, 2.0, len(e))
+        solver.factor(w)
+        A = solver.matrix(w)
+        assert A.nnz < kernel.DENSE_PATTERN * n * n, name
+        assert kernel.well_conditioned(A) is expander, name
+        assert solver.fills is expander and (not superlu_calls) is expander, name
+        b = rng.standard_normal((n, 3))
+        np.testing.assert_allclose(solver.solve(b), _direct(solver, A, b), atol=1e-8, err_msg=name)

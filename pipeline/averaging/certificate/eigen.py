@@ -17,7 +17,7 @@ import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
-from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky, factor_symmetric
+from pipeline.averaging.kernel import DENSE_PATTERN, DenseCholesky, blas_threads, factor_symmetric
 
 __all__ = ["EigenResult", "DenseLDL", "ldl_inertia", "dense_inertia", "min_eigenvalue", "DENSE_MAX",
            "DENSE_INERTIA_BYTES", "dense_inertia_fits"]
@@ -33,9 +33,17 @@ DENSE_INERTIA_BYTES = 8 * 1024**3
 
 
 def _free_bytes() -> float:
-    """Physical memory free now (Linux ``sysconf``), or infinity where the system does not say."""
+    """Memory available now: Linux's ``MemAvailable`` (free pages plus the page cache it can drop), else the free
+    pages (``sysconf``), else infinity where the system says neither."""
     import os  # noqa: PLC0415
 
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
     except (AttributeError, ValueError, OSError):
@@ -90,7 +98,8 @@ class DenseLDL:
     def __init__(self, A: np.ndarray, overwrite: bool = False) -> None:
         # overwrite: an n×n float64 Fortran array of the caller's is factored in place (no second n×n copy) and lost
         a = np.asarray(A, dtype=np.float64, order="F") if overwrite else np.array(A, dtype=np.float64, order="F")
-        self._ldu, self._ipiv, info = lapack.dsytrf(a, lower=1, overwrite_a=1)
+        with blas_threads(a.shape[0]):  # threaded OpenBLAS crashes on the largest (kernel.BLAS_THREADS_MAX_SIZE)
+            self._ldu, self._ipiv, info = lapack.dsytrf(a, lower=1, overwrite_a=1)
         # info > 0: an exactly zero pivot (singular: no solves); < 0: a bad argument; non-finite: overflow
         self.ok = info == 0 and bool(np.isfinite(self._ldu).all())
         self.n_negative = self._count() if self.ok else -1
@@ -107,7 +116,8 @@ class DenseLDL:
         return int(np.sum(d[~two] < 0) + np.sum(np.where(a * c - b * b < 0, 1, 2 * (a < 0))))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        x, info = lapack.dsytrs(self._ldu, self._ipiv, np.asarray(b, dtype=np.float64), lower=1)
+        with blas_threads(self._ldu.shape[0]):
+            x, info = lapack.dsytrs(self._ldu, self._ipiv, np.asarray(b, dtype=np.float64), lower=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"LAPACK dsytrs failed (info {info})")
         return x
