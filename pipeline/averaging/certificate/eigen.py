@@ -137,11 +137,12 @@ def ldl_inertia(A: sp.csc_matrix, fills: bool | None = None
     factored densely. It fills where ``fills`` says so (the averaging's own factor of the same graph filled:
     :attr:`~pipeline.averaging.kernel.SymmetricFactorizer.fills`; a Trafalgar-size graph, 5400 cameras and 680k
     edges, has 4.7% of its entries nonzero, and SuperLU took 165 s on its 16,197 rows where the dense factor takes
-    23 s) or, with no such word, where more than :data:`~pipeline.averaging.kernel.DENSE_PATTERN` of its n² entries
-    are nonzero (a dense view graph's). Such a matrix is first tried by a dense Cholesky: where it succeeds the
-    matrix is positive-definite, no pivot is negative, and that factor serves (ten times faster on a 247-camera
-    graph of 20,000 edges); where it fails (an eigenvalue below 0, or one at the rounding level), a pivoted dense
-    LDLᵀ (:class:`DenseLDL`) counts the negative eigenvalues and serves as the factor (SuperLU took 7.5 s on a
+    35 s, on the one BLAS thread :func:`~pipeline.averaging.kernel.blas_threads` gives a matrix that size) or, with
+    no such word, where more than :data:`~pipeline.averaging.kernel.DENSE_PATTERN` of its n² entries are nonzero (a
+    dense view graph's). Such a matrix is first tried by a dense Cholesky: where it succeeds the matrix is
+    positive-definite, no pivot is negative, and that factor serves (ten times faster on a 247-camera graph of
+    20,000 edges); where it fails (an eigenvalue below 0, or one at the rounding level), a pivoted dense LDLᵀ
+    (:class:`DenseLDL`) counts the negative eigenvalues and serves as the factor (SuperLU took 7.5 s on a
     2000-camera graph with 200k edges where the dense LDLᵀ takes 0.6 s).
 
     Returns the factor, the number of negative pivots and an error message ("" if fine).
