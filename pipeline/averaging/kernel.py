@@ -264,16 +264,16 @@ class SymmetricFactorizer:
 
     def __call__(self, A: sp.spmatrix) -> sla.SuperLU | DenseCholesky:
         n = A.shape[0]
-        dense_pattern = A.nnz > DENSE_PATTERN * n * n
-        if self.fills is None and not dense_pattern and n >= FILL_PROBE_MIN_N and well_conditioned(A):
-            dense_pattern = True  # an expander: its factor fills as a dense pattern's does
-        if self.fills is None and dense_pattern:
+        # a dense pattern, or (first matrix only) an expander's, whose factor fills as a dense pattern's does
+        dense_like = A.nnz > DENSE_PATTERN * n * n or (self.fills is None and n >= FILL_PROBE_MIN_N
+                                                       and well_conditioned(A))
+        if self.fills is None and dense_like:
             self.fills = True
-        if self.dense is None and n <= DENSE_MAX_SIZE and dense_pattern:
+        if self.dense is None and n <= DENSE_MAX_SIZE and dense_like:
             self.dense = True
         if self.dense:
             if self.jacobi is None:
-                self.jacobi = dense_pattern
+                self.jacobi = dense_like
             try:
                 return DenseCholesky(A)
             except np.linalg.LinAlgError:

@@ -57,8 +57,8 @@ def polish(n: int, edges: np.ndarray, C: np.ndarray, D: np.ndarray, R0: np.ndarr
         R0: (N, 3, 3) start (e.g. the IRLS output).
         max_iterations: Newton iteration cap.
         grad_tol: stop when ‖g‖_∞ ≤ grad_tol·(f + Σ|w|) (relative to the cost scale).
-        fills: whether the graph's sparse factor fills (:func:`~pipeline.averaging.certificate.eigen.ldl_inertia`).
         ref: camera pinned for the gauge.
+        fills: whether the graph's sparse factor fills (:func:`~pipeline.averaging.certificate.eigen.ldl_inertia`).
 
     Returns:
         R: polished rotations; info: iterations, costs, gradient norms, max move (rad).
