@@ -96,3 +96,41 @@ def test_kept_edges_are_reconnected_by_increasing_residual():
     assert added == 1 and new[cut[-1]] and new.sum() == keep.sum() + 1
     same, none = connect_kept(vg, np.ones(vg.n_edges, bool), resid)
     assert none == 0 and same.all()
+
+
+def test_a_start_its_dual_certificate_proves_optimal_needs_no_conic_solve():
+    """SE-Sync's way: the robust stage's rotations, polished on the SDP's cost, are proven its optimum by their dual
+    certificate, and the conic program is not solved; the rotations are those the conic solve reaches."""
+    g = paper2_graph(12, 0.6, eig_range=(1e3, 1e4), seed=1)
+    vg, _ = with_outliers(g.vg, 0.15, seed=3)
+    fast = average(vg, "sdp", solver="clarabel")
+    conic = average(vg, "sdp", solver="clarabel", certify_start=False)
+    st = fast.stats
+    assert st["solver"] == "none" and st["solver_iterations"] == 0 and st["certified"]
+    assert st["certified_by"].startswith("the dual certificate of the robust stage's rotations")
+    assert st["gap_vs_resolution"] <= st["cert_kappa"] and st["lower_bound"] <= st["primal_cost"]
+    assert conic.stats["solver"] == "clarabel" and conic.stats["solver_iterations"] > 0 and conic.stats["certified"]
+    assert np.array_equal(fast.kept, conic.kept)
+    assert rotation_errors_deg(fast.R, conic.R).max() < 1e-4  # the same optimum, both proven
+    assert st["primal_cost"] <= conic.stats["primal_cost"] + conic.stats["gap_abs"]
+
+
+@pytest.mark.parametrize("variant", ["cso3-iso", "o3-iso"])
+def test_a_start_at_a_local_minimum_is_not_taken_and_the_conic_program_is_solved(variant):
+    """The 2π-twisted planar ring is a local minimum of the isotropic cost: its certificate fails, so the SDP is
+    solved and finds the global optimum (the truth); started at the truth, no conic solve runs."""
+    from pipeline.averaging.sdp.solve import SdpConfig, _solve
+
+    n = 12
+    rng = np.random.default_rng(0)
+    R_true = so3.exp(np.outer(rng.uniform(-3, 3, n), [0.0, 0.0, 1.0])) @ so3.random_rotations(1, rng)[0]
+    vg = ViewGraph.from_absolute([str(i) for i in range(n)], R_true, np.stack([np.arange(n), (np.arange(n) + 1) % n], 1))
+    twisted = so3.exp(np.outer(2 * np.pi * np.arange(n) / n, [0.0, 0.0, 1.0])) @ R_true
+    cfg = SdpConfig.from_dict({"variant": variant, "solver": "clarabel"})
+    assert cfg.certify_start
+    res = _solve(vg, cfg, {}, twisted)
+    assert res.stats["solver"] == "clarabel" and res.stats["solver_iterations"] > 0
+    assert rotation_errors_deg(res.R, R_true).max() < 1e-3 and res.stats["certified"]
+    good = _solve(vg, cfg, {}, R_true)
+    assert good.stats["solver"] == "none" and good.stats["certified"]
+    assert rotation_errors_deg(good.R, R_true).max() < 1e-6

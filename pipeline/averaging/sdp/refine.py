@@ -48,7 +48,8 @@ def polish_rounding(vg: ViewGraph, C: np.ndarray, R: np.ndarray) -> tuple[np.nda
     return Rp, float(np.rad2deg(so3.angle_between(Rp, R).max()))
 
 
-def dual_certificate_gap(vg: ViewGraph, C: np.ndarray, scale: float, R: np.ndarray, target: float) -> float | None:
+def dual_certificate_gap(vg: ViewGraph, C: np.ndarray, scale: float, R: np.ndarray, target: float,
+                         use_lmi: bool | None = None) -> float | None:
     """A proven bound on ``f(R) − f*`` (unscaled units) from the dual certificate, or None if not verified.
 
     Args:
@@ -57,6 +58,8 @@ def dual_certificate_gap(vg: ViewGraph, C: np.ndarray, scale: float, R: np.ndarr
         scale: the cost scale (costs in the unscaled units are ``scale`` × the scaled ones).
         R: (N, 3, 3) the rotations to certify.
         target: the gap (unscaled) the caller needs; the certificate is asked for that much.
+        use_lmi: the conv(SO(3)) multipliers (None: where the cost is anisotropic; False for a relaxation
+            without those constraints, SDP-O(3)-ANISO, whose dual has no such multipliers).
     """
     # the certificate's cost is Σ 2 (tr M_e − ⟨M_e R̃_e, Q_e⟩): twice the SDP's residual cost, scaled
     f_res = 2.0 * (edge_cost(vg.edges, C, R) + float(np.trace(_metrics(vg, C), axis1=1, axis2=2).sum()))
@@ -65,7 +68,7 @@ def dual_certificate_gap(vg: ViewGraph, C: np.ndarray, scale: float, R: np.ndarr
     gap_tol = min(0.9 * 2.0 * target / scale / f_res, 0.5)  # 0.9: a verified bound stays clear of the target
     try:
         cert, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, R, np.ones(vg.n_edges), _metrics(vg, C),
-                          gap_tol=gap_tol, do_polish=False, k_margin=0)
+                          gap_tol=gap_tol, do_polish=False, k_margin=0, use_lmi=use_lmi)
     except (np.linalg.LinAlgError, RuntimeError, ValueError):
         return None
     return float(cert.gap_bound * scale / 2.0) if cert.verdict == VERIFIED else None

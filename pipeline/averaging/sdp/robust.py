@@ -93,8 +93,9 @@ def _final_precisions(vg: ViewGraph, robust: AveragingResult) -> np.ndarray:
 
 
 def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
-                 solve_fn: Callable[[ViewGraph, Any, dict[str, Any]], AveragingResult]) -> AveragingResult:
-    """The SDP on the robust stage's edges (module docstring); ``solve_fn`` solves one SDP (``solve._solve``)."""
+                 solve_fn: Callable[[ViewGraph, Any, dict[str, Any], np.ndarray], AveragingResult]) -> AveragingResult:
+    """The SDP on the robust stage's edges (module docstring); ``solve_fn`` solves one SDP (``solve._solve``) from
+    the robust stage's rotations (which, with ``certify_start``, are tested first)."""
     t0 = time.perf_counter()
     aniso = VARIANTS[cfg.variant][0]
     name = cfg.robust_method if cfg.robust_method != "auto" else ("irls-h" if aniso and vg.H is not None else "irls")
@@ -118,7 +119,7 @@ def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
         H, cost_desc = vg.H, "paper 2's anisotropic cost with the two-view H"
     sub = ViewGraph(vg.names, vg.edges[mask], vg.R_rel[mask], H=None if H is None else H[mask],
                     inliers=None if vg.inliers is None else vg.inliers[mask])
-    res = solve_fn(sub, cfg, settings)
+    res = solve_fn(sub, cfg, settings, robust.R)
     st = res.stats
     G = so3.project_to_so3(np.sum(np.swapaxes(robust.R, 1, 2) @ res.R, axis=0))  # the gauge: R_sdp ≈ R_robust G
     agree = float(np.rad2deg(so3.angle_between(res.R, robust.R @ G).max()))

@@ -92,6 +92,10 @@ class SdpConfig(Config):
     fallback: bool = option(True, "re-solve a small uncertified or loose problem with Clarabel at 1e-12")
     polish: bool = option(True, "refine the rounded rotations by Newton on the same cost (never raises it) and "
                                 "bound them by their own dual certificate too (false: the solver's answer alone)")
+    certify_start: bool = option(True, "robust edges: first polish the robust stage's rotations on the SDP's cost "
+                                       "and test their dual certificate; when it proves them optimal as a solve's "
+                                       "would be, the conic program is not solved (SE-Sync's verification; needs "
+                                       "polish; false: always solve it)")
     fallback_max_cameras: int = option(FALLBACK_MAX_CAMERAS, "largest N for the fallback", ge=0)
     fallback_scs_max_iterations: int | None = option(
         FALLBACK_SCS_MAX_ITERS, "SCS cap when the fallback applies and max_iterations is null; "
@@ -243,7 +247,8 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
     fields = {f.name for f in dataclasses.fields(SdpConfig)}
     opts = {k: v for k, v in options.items() if k in fields}
     opts.update({k: v for k, v in (("variant", variant), ("solver", solver)) if v is not None})
-    cfg = method_config(SdpConfig, config, opts, bare={"fallback_scs_max_iterations": None, "edges": "all"})
+    cfg = method_config(SdpConfig, config, opts, bare={"fallback_scs_max_iterations": None, "edges": "all",
+                                                        "certify_start": False})
     settings = {k: v for k, v in options.items() if k not in fields}
     if cfg.edges == "robust":
         from pipeline.averaging.sdp.robust import solve_robust  # noqa: PLC0415 - it runs the IRLS methods
@@ -252,7 +257,9 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
     return _solve(vg, cfg, settings)
 
 
-def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any]) -> AveragingResult:
+def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any], start: np.ndarray | None = None
+           ) -> AveragingResult:
+    """One SDP on ``vg``; with ``start`` (N, 3, 3) and ``certify_start``, first :func:`_verified_start`."""
     # SCS converges in fewer iterations on the primal form (as JuMP states it for
     # paper 2); Clarabel on the dual form, whose slack carries the graph's sparsity
     # that its chordal decomposition exploits.
@@ -268,14 +275,16 @@ def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any]) -> Averaging
     lmi_edges = np.argwhere(np.triu(np.ones((vg.n_cameras,) * 2, bool), 1)) if cfg.lmi_pairs == "all" else None
     common = dict(vg=vg, C=C, scale=scale, offset=offset, cso3=cso3, lmi_edges=lmi_edges, kappa=cfg.cert_kappa,
                   polish=cfg.polish)
-    small = cfg.fallback and vg.n_cameras <= cfg.fallback_max_cameras
-    max_iters = cfg.max_iterations
-    if cfg.fallback_scs_max_iterations is not None and solver == "scs" and max_iters is None and small:
-        max_iters = int(cfg.fallback_scs_max_iterations)
-    first = _attempt(solver=solver, form=form, eps_abs=cfg.eps_abs, eps_rel=cfg.eps_rel, max_iters=max_iters,
-                     verbose=cfg.solver_log, kw=settings, **common)
-    tight = min(cfg.eps_abs, cfg.eps_rel) <= FALLBACK_EPS and solver == "clarabel"
-    att = _fallback(first, cfg, common) if small and not tight else first
+    first = att = _verified_start(start, **common) if start is not None and cfg.certify_start else None
+    if first is None:
+        small = cfg.fallback and vg.n_cameras <= cfg.fallback_max_cameras
+        max_iters = cfg.max_iterations
+        if cfg.fallback_scs_max_iterations is not None and solver == "scs" and max_iters is None and small:
+            max_iters = int(cfg.fallback_scs_max_iterations)
+        first = _attempt(solver=solver, form=form, eps_abs=cfg.eps_abs, eps_rel=cfg.eps_rel, max_iters=max_iters,
+                         verbose=cfg.solver_log, kw=settings, **common)
+        tight = min(cfg.eps_abs, cfg.eps_rel) <= FALLBACK_EPS and solver == "clarabel"
+        att = _fallback(first, cfg, common) if small and not tight else first
     t3 = time.perf_counter()
     method = f"sdp-{cfg.variant}"
     if not att["certified"]:
@@ -414,6 +423,48 @@ def _attempt(vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bo
         "certificate_s": time.perf_counter() - t2,
         "n_variables": int(prob.A.shape[1]), "n_constraints": int(prob.A.shape[0]),
         "eps_abs": eps_abs, "eps_rel": eps_rel, "polish_move_deg": polish_move,
+    }
+
+
+def _verified_start(start: np.ndarray, vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bool,
+                    lmi_edges: np.ndarray | None, kappa: float, polish: bool) -> dict[str, Any] | None:
+    """``start`` polished on the SDP's cost and proven its global optimum by its dual certificate, or None.
+
+    This is how SE-Sync solves its SDP: a local solution of the rank-3 problem, then the dual
+    certificate of :mod:`pipeline.averaging.certificate` (with the conv(SO(3)) multipliers only
+    where the relaxation has them, ``cso3``). If it proves a gap within the same resolution test a
+    conic solve must pass, ``X = YYᵀ`` of these rotations solves the SDP to that gap, and the conic
+    program (minutes by SCS at 50 cameras) need not run; otherwise the caller solves it. The
+    robust stage's rotations on the calibrated cost are already its stationary point (the polish
+    moves them by ~1e-3°). Returns an attempt record as :func:`_attempt`'s (no solver: ``solver``
+    "none", 0 iterations).
+    """
+    if not polish:  # the caller asked for the solver's answer alone
+        return None
+    t0 = time.perf_counter()
+    R, move = start, 0.0
+    polished = polish_rounding(vg, C, start)
+    if polished is not None:
+        R, move = polished
+    primal_cost = edge_cost(vg.edges, C, R) * scale
+    need = resolution_check(0.0, primal_cost, offset, vg.n_cameras, vg.n_edges, 3, kappa)
+    gap_abs = dual_certificate_gap(vg, C, scale, R, kappa * need["resolution"] + need["cost_rounding"],
+                                   use_lmi=None if cso3 else False)
+    if gap_abs is None:
+        return None
+    check = resolution_check(gap_abs, primal_cost, offset, vg.n_cameras, vg.n_edges, 3, kappa)
+    if not check["certified"]:
+        return None
+    n = vg.n_cameras
+    return {
+        "solver": "none", "form": None, "R": R, "rank": 3, "eigenvalues": [float(n)] * 3 + [0.0] * 3,  # X = YYᵀ
+        "lower_bound": primal_cost - gap_abs, "sdp_value": primal_cost, "primal_cost": primal_cost,
+        "gap": relative_gap(primal_cost, primal_cost - gap_abs), "gap_abs": gap_abs, **check,
+        "certified_by": "the dual certificate of the robust stage's rotations polished on this cost, with no "
+                        "conic solve",
+        "status": "verified at the start", "iterations": 0, "dual_lambda_min": None, "build_s": 0.0,
+        "solve_s": 0.0, "certificate_s": time.perf_counter() - t0, "n_variables": None, "n_constraints": None,
+        "eps_abs": None, "eps_rel": None, "polish_move_deg": move,
     }
 
 
