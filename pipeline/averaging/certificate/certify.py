@@ -11,7 +11,8 @@ import numpy as np
 from pipeline.averaging.certificate.eigen import min_eigenvalue
 from pipeline.averaging.certificate.newton import polish
 from pipeline.averaging.certificate.problem import (certificate_matrix, chordal_weights, connection_laplacian,
-                                                    diag_blocks, lagrange_multipliers, lmi_adjusted_C, sym)
+                                                    diag_blocks, lagrange_multipliers, lmi_apply, lmi_ascent,
+                                                    lmi_multipliers, sym)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -22,6 +23,11 @@ NOT_VERIFIED = "not verified"
 UNDECIDED = "could not decide"
 #: Share of the cost's resolution (the cost of one standard error) the proven gap may reach.
 KAPPA = 0.01
+#: Eigenvalue tests the search for better conv(SO(3)) multipliers may take when the smallest ones leave a negative
+#: direction (:func:`~.problem.lmi_ascent`; only anisotropic costs).
+LMI_ASCENT_EVALS = 24
+#: Eigenvectors of the negative eigenvalues the search moves together.
+LMI_WITNESSES = 6
 
 
 @dataclass
@@ -41,6 +47,7 @@ class Certificate:
         gap_bound, rel_gap_bound: proven bound on f(Y) − f* (absolute, relative to f(Y)).
         stationarity, stationarity_bound: ‖SY‖_F and ‖SY‖_F/√N.
         lmi_edges, lmi_trace: edges whose weight the conv(SO(3)) multipliers changed, Σ tr W_e.
+        lmi_steps: supergradient steps taken on those multipliers (:func:`~.problem.lmi_ascent`).
         polish: Newton polish report (iterations, max_move_rad, ...).
         times: seconds per step; ``total_s``.
         message: why "could not decide" (or solver notes).
@@ -69,6 +76,7 @@ class Certificate:
     times: dict[str, float]
     message: str = ""
     witness_cameras: list[int] = field(default_factory=list)
+    lmi_steps: int = 0
 
     def summary(self) -> str:
         return (f"{self.verdict}: λ_min(S) ≈ {self.lambda_min:.3g}, ≥ {self.lambda_min_lower:.3g} "
@@ -160,29 +168,53 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         R, pinfo = polish(n, e, C, D, R, max_iterations=polish_iterations, fills=fills)
         times["polish_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    lmi_edges, lmi_trace = 0, 0.0
-    C_cert = C
-    if use_lmi:
-        C_cert, trV = lmi_adjusted_C(e, C, R)
-        lmi_edges, lmi_trace = int(np.sum(trV > 0)), float(trV.sum())
-    L = connection_laplacian(n, e, C_cert, D)
+    V = lmi_multipliers(e, C, R) if use_lmi else None
+    L = connection_laplacian(n, e, C if V is None else lmi_apply(e, C, R, V), D)
     Lam, G = lagrange_multipliers(L, R)
     S = certificate_matrix(L, Lam)
     Y = R.reshape(3 * n, 3)
-    L_cost = L if C_cert is C else connection_laplacian(n, e, C, D)
+    L_cost = L if V is None else connection_laplacian(n, e, C, D)
     cost = float(np.einsum("ab,ab->", Y, (L_cost @ Y)))
     times["build_s"] = time.perf_counter() - t
     stat = float(np.sqrt(np.square(G).sum()))
     stat_bound = stat / np.sqrt(n)
-    norm1 = float(abs(S).sum(axis=0).max())
     eps = np.finfo(float).eps
-    eta_num = 1e3 * eps * norm1
     # f(Y) is a difference of terms of size Σ_i tr D_i; below this it is rounding noise.
     cost_floor = 1e3 * eps * float(np.abs(np.trace(D, axis1=1, axis2=2)).sum())
     target = gap_tol * max(cost, 0.0) + cost_floor
+    eta_num = 1e3 * eps * float(abs(S).sum(axis=0).max())
     eta = max(target / (3 * n), eta_num)
-    eig = min_eigenvalue(S, Y, eta, k_margin=k_margin, fills=fills)
+    n_witness = LMI_WITNESSES if use_lmi and not isotropic else 1
+    eig = min_eigenvalue(S, Y, eta, k_margin=k_margin, fills=fills, n_witness=n_witness)
     times.update(eig.times)
+    steps = evals = 0
+    # The conv(SO(3)) multipliers are the certificate's choice: where the smallest ones leave a negative direction,
+    # better ones are searched for (λ_min is concave in them), as SDP-cSO(3)'s solver would: supergradient steps,
+    # each the longest of 2, 8, 32, ... × Polyak's that still raises λ_min
+    while (V is not None and not isotropic and eig.ok and eig.n_below > 0 and eig.witnesses is not None
+           and evals < LMI_ASCENT_EVALS):
+        steps += 1
+        best = None
+        for factor in 2.0 * 4.0 ** np.arange(LMI_ASCENT_EVALS - evals):
+            evals += 1
+            V_try = lmi_ascent(e, R, V, eig.witnesses, eig.lambda_min, factor)
+            L_try = connection_laplacian(n, e, lmi_apply(e, C, R, V_try), D)
+            S_try = certificate_matrix(L_try, lagrange_multipliers(L_try, R)[0])
+            eta_try = max(target / (3 * n), 1e3 * eps * float(abs(S_try).sum(axis=0).max()))
+            eig_try = min_eigenvalue(S_try, Y, eta_try, k_margin=k_margin, fills=fills, n_witness=n_witness)
+            times["lmi_ascent_s"] = times.get("lmi_ascent_s", 0.0) + sum(eig_try.times.values())
+            last = eig.lambda_min if best is None else best[2].lambda_min
+            if not eig_try.ok or (eig_try.n_below > 0 and not eig_try.lambda_min > last):
+                break  # longer steps raise λ_min no further
+            best = (V_try, S_try, eig_try, eta_try)
+            if eig_try.n_below == 0:
+                break
+        if best is None:
+            break  # no step raises λ_min: the last multipliers stand
+        V, S, eig, eta = best
+        eta_num = 1e3 * eps * float(abs(S).sum(axis=0).max())
+    lmi_edges = 0 if V is None else int(np.sum(np.trace(V, axis1=1, axis2=2) > 0))
+    lmi_trace = 0.0 if V is None else float(np.trace(V, axis1=1, axis2=2).sum())
     msg = eig.message
     witness: list[int] = []
     if not eig.ok:
@@ -205,8 +237,8 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
             # direction refutes that choice, not the point. SDP-cSO(3) optimizes them.
             verdict = UNDECIDED
             msg = (f"λ_min(S) = {eig.lambda_min:.3g} < 0 with this certificate's choice of the conv(SO(3)) "
-                   "multipliers; for an anisotropic cost that refutes nothing (SDP-cSO(3), which optimizes "
-                   "them, decides this cost)")
+                   f"multipliers ({steps} supergradient step(s) on them); for an anisotropic cost that refutes "
+                   "nothing (SDP-cSO(3), which optimizes them fully, decides this cost)")
         elif eig.lambda_min < -max(eta, stat_bound):
             verdict = NOT_VERIFIED
             v = eig.witness.reshape(n, 3)
@@ -230,7 +262,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         eta_numerical=float(eta_num), gap_bound=float(gap), rel_gap_bound=rel,
         gap_tol=gap_tol, stationarity=stat, stationarity_bound=float(stat_bound), n_cameras=n,
         n_edges=int(edges.shape[0]), n_weighted_edges=int(e.shape[0]), lmi_edges=lmi_edges, lmi_trace=lmi_trace,
-        polish=pinfo, times=times, message=msg, witness_cameras=witness,
+        polish=pinfo, times=times, message=msg, witness_cameras=witness, lmi_steps=steps,
     )
     return cert, R
 

@@ -69,6 +69,8 @@ class EigenResult:
         lambda_nontrivial: first eigenvalue of S on span(Y)⊥ near 0 (the margin), NaN if
             not computed.
         witness: (3N,) unit eigenvector of ``lambda_min`` when n_below > 0, else None.
+        witnesses: (3N, k) unit eigenvectors of the k ≤ ``n_witness`` smallest eigenvalues below −η (the
+            first is ``witness``), or None.
         residual: ‖S v − λ v‖ of the reported eigenpair.
         message: what failed, if anything.
         times: seconds per step.
@@ -82,6 +84,7 @@ class EigenResult:
     residual: float
     message: str = ""
     times: dict[str, float] = field(default_factory=dict)
+    witnesses: np.ndarray | None = None
 
 
 class DenseLDL:
@@ -169,7 +172,8 @@ def ldl_inertia(A: sp.csc_matrix, fills: bool | None = None
 
 
 def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 1,
-                   lanczos_tol: float = 1e-8, maxiter: int = 3000, fills: bool | None = None) -> EigenResult:
+                   lanczos_tol: float = 1e-8, maxiter: int = 3000, fills: bool | None = None,
+                   n_witness: int = 1) -> EigenResult:
     """Decide ``S ⪰ −ηI`` and report the numbers behind it (module docstring).
 
     Args:
@@ -180,6 +184,7 @@ def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 
         lanczos_tol: relative tolerance of eigsh.
         maxiter: Lanczos iteration cap.
         fills: whether S's sparse factor fills, when the caller knows (:func:`ldl_inertia`).
+        n_witness: eigenvectors below −η to return (``witnesses``) when there are negative ones.
     """
     times: dict[str, float] = {}
     n3 = S.shape[0]
@@ -218,14 +223,18 @@ def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 
             lam, V = np.linalg.eigh(S.toarray())
         else:
             rng = np.random.default_rng(1)
-            lam, V = sla.eigsh(S, k=1, which="SA", tol=lanczos_tol, maxiter=maxiter,
+            lam, V = sla.eigsh(S, k=max(1, min(n_witness, n_neg)), which="SA", tol=lanczos_tol, maxiter=maxiter,
                                v0=rng.standard_normal(n3))
-        v = V[:, 0] / np.linalg.norm(V[:, 0])
+            order = np.argsort(lam)
+            lam, V = lam[order], V[:, order]
+        k = max(1, min(n_witness, n_neg, int(np.sum(lam < -eta))))
+        W = V[:, :k] / np.linalg.norm(V[:, :k], axis=0)
+        v = W[:, 0]
         rq = float(v @ (S @ v))
         res = float(np.linalg.norm(S @ v - rq * v))
         ok = rq < -eta
         message = "" if ok else f"Lanczos found no eigenvalue below −η (Rayleigh quotient {rq:.3g})"
     except sla.ArpackNoConvergence as exc:
-        v, rq, res, ok, message = None, np.nan, np.nan, False, f"Lanczos did not converge ({exc})"
+        v, W, rq, res, ok, message = None, None, np.nan, np.nan, False, f"Lanczos did not converge ({exc})"
     times["lanczos_s"] = time.perf_counter() - t1
-    return EigenResult(ok, n_neg, rq, np.nan, v, res, message, times)
+    return EigenResult(ok, n_neg, rq, np.nan, v, res, message, times, W)

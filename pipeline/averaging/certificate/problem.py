@@ -20,7 +20,8 @@ import scipy.sparse as sp
 from pipeline.core import so3
 
 __all__ = ["metric_from_H", "chordal_weights", "edge_costs", "connection_laplacian", "diag_blocks",
-           "lagrange_multipliers", "certificate_matrix", "lmi_adjusted_C", "block_matrix", "sym", "vee_skew"]
+           "lagrange_multipliers", "certificate_matrix", "lmi_adjusted_C", "lmi_multipliers", "lmi_apply",
+           "lmi_ascent", "block_matrix", "sym", "vee_skew"]
 
 
 def sym(A: np.ndarray) -> np.ndarray:
@@ -146,12 +147,49 @@ def lmi_adjusted_C(edges: np.ndarray, C: np.ndarray, R: np.ndarray) -> tuple[np.
     Returns:
         C': (M, 3, 3) adjusted weights; trV: (M,) ``tr V_e = tr W_e`` (0 where unchanged).
     """
+    V = lmi_multipliers(edges, C, R)
+    return lmi_apply(edges, C, R, V), np.trace(V, axis1=1, axis2=2)
+
+
+def lmi_multipliers(edges: np.ndarray, C: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The smallest multipliers ``V_e`` (M, 3, 3) of :func:`lmi_adjusted_C`: ``½ max(0, η₁ − η₂ − η₃) u₁u₁ᵀ``."""
     Q = so3.relative(R, edges)
     P = sym(C @ np.swapaxes(Q, 1, 2))
-    Heff = _H_from_metric(P)
-    eta, U = np.linalg.eigh(Heff)  # ascending: η₃ ≤ η₂ ≤ η₁
+    eta, U = np.linalg.eigh(_H_from_metric(P))  # ascending: η₃ ≤ η₂ ≤ η₁
     excess = np.maximum(0.0, eta[:, 2] - eta[:, 1] - eta[:, 0])
     u1 = U[:, :, 2]
-    V = 0.5 * excess[:, None, None] * u1[:, :, None] * u1[:, None, :]
-    Cp = C - 2.0 * metric_from_H(V) @ Q
-    return Cp, 0.5 * excess
+    return 0.5 * excess[:, None, None] * u1[:, :, None] * u1[:, None, :]
+
+
+def lmi_apply(edges: np.ndarray, C: np.ndarray, R: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """``C'_e = C_e − 2𝓜(V_e) Q_e`` for multipliers ``V`` (M, 3, 3), each PSD.
+
+    Every PSD ``V_e`` is a multiplier of the edge's conv(SO(3)) LMI at the rotations ``R``: the LMI's dual
+    variables with complementary slackness are ``W_e = B Z Bᵀ ⪰ 0`` (``B`` spanning the null space of the
+    rank-one ``𝒜(Q_e) + I``), and ``𝒜*(W_e) = −2𝓜(V_e) Q_e`` with ``V_e`` congruent to ``Z`` (checked in
+    ``tests/averaging/test_certificate.py``). ``𝓜(V_e)`` is symmetric, so ``C'`` keeps ``R``'s stationarity.
+    """
+    return C - 2.0 * metric_from_H(V) @ so3.relative(R, edges)
+
+
+def lmi_ascent(edges: np.ndarray, R: np.ndarray, V: np.ndarray, witnesses: np.ndarray, lam: float,
+               factor: float = 2.0) -> np.ndarray:
+    """One projected supergradient step on the PSD multipliers ``V`` (M, 3, 3), raising S's negative eigenvalues.
+
+    ``S`` depends on ``V_e`` through ``−2 (x_j − Q_e x_i)ᵀ 𝓜(V_e) (x_j − Q_e x_i)`` (the edge's block and, by
+    stationarity, its two multipliers Λ), so for a unit eigenvector v, with ``z_e = v_j − Q_e v_i``, the
+    supergradient of its eigenvalue is ``g_e = 2 z_e z_eᵀ − |z_e|² I``; over the ``witnesses`` (3N, k), the
+    eigenvectors of the negative eigenvalues, the sum of theirs (a supergradient of their sum, which moves them
+    together where one at a time would zigzag between them). The step is ``factor``·|lam|/‖g‖² (``factor`` 2:
+    Polyak's towards ``|lam|``, ``lam`` < 0 the smallest eigenvalue; the caller searches longer ones), and each
+    ``V_e`` is projected back onto the PSD cone. Every PSD V keeps the certificate valid (:func:`lmi_apply`).
+    """
+    W = np.asarray(witnesses, dtype=np.float64).reshape(3 * R.shape[0], -1)
+    Vb = W.T.reshape(W.shape[1], -1, 3)  # (k, N, 3)
+    z = Vb[:, edges[:, 1]] - np.einsum("mab,kmb->kma", so3.relative(R, edges), Vb[:, edges[:, 0]])
+    g = 2.0 * np.einsum("kma,kmb->mab", z, z) - np.einsum("kma,kma->m", z, z)[:, None, None] * np.eye(3)
+    g2 = float(np.sum(g * g))
+    if not g2 > 0:
+        return V
+    w, E = np.linalg.eigh(V + (factor * abs(lam) / g2) * g)
+    return np.einsum("mab,mb,mcb->mac", E, np.maximum(w, 0.0), E)
