@@ -257,7 +257,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     logger.info("IRLS-%s: %d cameras, %d edges, start %s, %d ℓ1 + %d IRLS iterations, %.3f s, median residual %.3f°",
                 lossf.name, N, M, starts["start_used"], n_l1, it, elapsed, np.rad2deg(np.median(theta)))
     return AveragingResult(
-        method=f"irls-{lossf.name}" + ("+refine" if cfg.refine else ""), names=list(vg.names), R=R, time_s=elapsed,
+        method=f"irls-{lossf.name}" + ("+polish" if cfg.refine else ""), names=list(vg.names), R=R, time_s=elapsed,
         iterations=it, dropped_names=[], edge_index=np.arange(M), residuals_rad=theta, weights=w, kept=kept,
         history=history, stats=stats)
 

@@ -286,7 +286,7 @@ def _global_scale(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.n
     logger.info("IRLS-H-%s: %d cameras, %d edges, %d IRLS iterations, s² = %.3g, %d edges trimmed, %.3f s",
                 lossf.name, vg.n_cameras, vg.n_edges, it, s2_final, n_trimmed, time.perf_counter() - t0)
     res = AveragingResult(
-        method=f"irls-h-{lossf.name}" + ("+refine" if cfg.refine else ""), names=list(vg.names), R=R, time_s=0.0,
+        method=f"irls-h-{lossf.name}" + ("+polish" if cfg.refine else ""), names=list(vg.names), R=R, time_s=0.0,
         iterations=it, edge_index=np.arange(vg.n_edges), residuals_rad=np.linalg.norm(left_errors(vg, R)[0], axis=1),
         weights=phi / s2_final, kept=kept, history=history, stats={
             "loss": lossf.name, "calibrate": False, "alpha": float(cfg.alpha_sigma), "scale_s2": float(s2),

@@ -328,7 +328,7 @@ def test_outliers_are_rejected(seed):
     assert np.all(res.weights[out] == 0.0)
     assert res.stats["n_trimmed"] >= out.sum()
     assert res.stats["n_trimmed"] - out.sum() <= 0.03 * (~out).sum()
-    assert res.method == "irls-h-l0.5+refine"
+    assert res.method == "irls-h-l0.5+polish"
     prod = average(vg, method="irls-h")
     med = np.median(rotation_errors_deg(prod.R, g.R_true))
     assert med < 1.5 * med_oracle, (med, med_oracle)
@@ -459,7 +459,7 @@ def test_cli_irls_h_forwards_its_options(graph_file, tmp_path):
                    "--no-calibrate", "--out", str(tmp_path / "r2.txt"), "--json", str(js), "-q"])
     assert rc == 0
     stats = json.loads(js.read_text())
-    assert stats["method"] == "irls-h-cauchy+refine" and stats["alpha"] == 3.0 and stats["l1_iterations"] == 0
+    assert stats["method"] == "irls-h-cauchy+polish" and stats["alpha"] == 3.0 and stats["l1_iterations"] == 0
 
 
 # ------------------------------------------------------------- factor reuse (speed)
