@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.refine.mapper import ba_config
 
 __all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance",
-           "camera_covariances", "param_sd", "principal_point_sd", "radial_corner_sd"]
+           "camera_covariances", "param_sd", "principal_point_sd", "radial_corner_sd", "focal_corner_sd"]
 
 
 def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
@@ -124,6 +124,20 @@ def radial_corner_sd(rec: Any, covs: dict[int, np.ndarray | None]) -> dict[int, 
             continue
         d = 0.5 * float(np.hypot(cam.width, cam.height))
         out[cid] = param_sd(C, idx) * d**3 / float(cam.mean_focal_length()) ** 2
+    return out
+
+
+def focal_corner_sd(rec: Any, covs: dict[int, np.ndarray | None]) -> dict[int, float]:
+    """Camera id → the standard deviation (px) of the image corner's displacement by the focal length's.
+
+    A point at ``d`` px from the principal point moves by ``δf · d / f`` when the focal length moves by ``δf``; at
+    the corner (``d`` the half-diagonal) that is ``sd(f) d / f``: ``inf`` where the focal is not determined.
+    """
+    out = {}
+    for cid, C in covs.items():
+        cam = rec.camera(cid)
+        d = 0.5 * float(np.hypot(cam.width, cam.height))
+        out[cid] = param_sd(C, list(cam.focal_length_idxs())) * d / float(cam.mean_focal_length())
     return out
 
 

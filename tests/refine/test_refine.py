@@ -254,3 +254,34 @@ def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
     assert cam.model.name == "PINHOLE" and "principal_point" not in kept.stats
     assert np.all(np.abs(f(free) - 1280.0) < 0.3 * 1280.0 * 0.03)
     assert free.status == "ok" and free.stats["mean_reprojection_error_px"] < kept.stats["mean_reprojection_error_px"]
+
+
+def test_undetermined_focal_length_is_held_at_the_given_one(problem0):
+    """A focal length the model does not determine (here: a limit no estimate meets) is held at the cameras stage's
+    estimate: the refinement runs again with it constant, says so and records what it refined before; with the
+    default limit the same focal lengths are refined (they are determined on this scene)."""
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    K[:, 0, 0] = K[:, 1, 1] = K[:, 0, 0] * (1.04 + 0.002 * np.arange(len(K)))  # 4-6% off, one camera per image
+    held = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
+                            config=ONE_THREAD.replace(max_focal_sd=1e-9))
+    free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    assert held.status == free.status == "ok" and held.refined.all()
+    assert any(f"focal length of {len(K)} camera(s) is not determined" in w for w in held.warnings), held.warnings
+    assert len(held.stats["focal_held"]) == len(K) and "focal_held" not in free.stats
+    for res, same in ((held, True), (free, False)):
+        for iid, im in res.reconstruction.images.items():
+            f = res.reconstruction.cameras[im.camera_id].mean_focal_length()
+            assert np.isclose(f, K[iid - 1, 0, 0], rtol=1e-9) == same, (iid, f, K[iid - 1, 0, 0])
+
+
+def test_focal_corner_sd_is_the_corner_displacement_of_one_standard_deviation():
+    from types import SimpleNamespace
+
+    from pipeline.refine.covariance import focal_corner_sd
+
+    cam = SimpleNamespace(width=800, height=600, focal_length_idxs=lambda: [0], mean_focal_length=lambda: 1000.0)
+    rec = SimpleNamespace(camera=lambda cid: cam)
+    C = np.diag([4.0, np.nan, np.nan, 1e-6])  # sd(f) = 2 px; the constant principal point is NaN
+    out = focal_corner_sd(rec, {1: C, 2: None})
+    assert out[1] == pytest.approx(2.0 * 500.0 / 1000.0) and out[2] == float("inf")
