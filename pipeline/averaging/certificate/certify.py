@@ -292,7 +292,7 @@ def certify_weights(vg: ViewGraph, R: np.ndarray, w: np.ndarray, kept: np.ndarra
             rotations by one standard error costs about ``ρ f`` (χ² with 3(N − 1) against
             3(K − N + 1) degrees of freedom), so the default is a gap within ``kappa`` (1%)
             of that: the optimum is found to within ~10% of a standard error, the same
-            criterion as the SDP's (:func:`pipeline.averaging.sdp.robust.resolution_check`).
+            criterion as the SDP's (:func:`pipeline.averaging.sdp.certificate.resolution_check`).
         kappa: see ``gap_tol``.
         k_margin: non-trivial eigenvalues near 0 to report (0: skip; they cost a Lanczos run).
         theta: (M,) the residual angles at ``R`` when the caller has them (radians).

@@ -1,4 +1,4 @@
-"""Certificate of an SDP rotation-averaging solution: rank, rounding, costs, gap.
+"""Certificate of an SDP rotation-averaging solution: rank, rounding, costs, gap, and the test it must pass.
 
 Conventions (``../shared/DESIGN.md``): ``Y = [R_1; …; R_N]`` (3N, 3) stacks the
 cam_from_world rotations and ``X = Y Yᵀ``, so the block ``X_ji = R_j R_iᵀ`` is the
@@ -24,10 +24,17 @@ __all__ = [
     "numerical_rank",
     "round_to_rotations",
     "relative_gap",
+    "resolution_check",
+    "CERT_KAPPA",
+    "COST_ROUNDING",
 ]
 
 #: Fraction of the trace the leading eigenvalues must exceed (paper 2, footnote 3).
 RANK_FRACTION = 0.999
+#: Certified: the gap is at most this share of the cost's resolution (:func:`resolution_check`).
+CERT_KAPPA = 0.01
+#: The cost cannot be judged below its own rounding: 1e3·ε of Σ|tr M_e| (as the IRLS certificate).
+COST_ROUNDING = 1e3 * np.finfo(float).eps
 
 
 def weight_matrices(H: np.ndarray) -> np.ndarray:
@@ -121,3 +128,31 @@ def relative_gap(primal_cost: float, lower_bound: float) -> float:
     minimizer.
     """
     return float((primal_cost - lower_bound) / max(abs(lower_bound), 1e-300))
+
+
+def resolution_check(gap_abs: float, primal_cost: float, offset: float, n_cameras: int, n_edges: int, rank: int,
+                     kappa: float = CERT_KAPPA) -> dict[str, float | bool]:
+    """Is the gap small against the accuracy the cost can resolve? (``certified`` of every SDP solve).
+
+    ``f_res = f(R̂) + Σ tr M_e ≥ 0`` is the part of the cost the rotations change; with the
+    redundancy ``ρ = (N − 1)/(M − N + 1)``, moving the rotations by one standard error costs
+    about ``ρ · f_res`` (a χ² with 3(N − 1) degrees of freedom against 3(M − N + 1) for the
+    residual), the cost's *resolution*. A rank-3 solution is certified when its gap is at
+    most ``kappa`` (1%) of that, i.e. within ~10% of a standard error (the cost is
+    quadratic there): ``gap_residual ≤ kappa · ρ``. The relative gap ``gap/|d*|`` cannot
+    tell: ``|d*| ≈ Σ tr M_e``, which one edge with a huge H makes as large as it likes (a
+    noise-free 5-camera graph with one H 1e5× the others: SCS 6.13° off at a relative gap
+    of 5e-7). Below the rounding of the cost itself (:data:`COST_ROUNDING` of ``|offset|``)
+    nothing can be told apart, so that much gap is always allowed; exact data, whose
+    resolution is 0, are certified only when solved to that rounding.
+
+    Returns:
+        ``{"certified", "resolution", "gap_vs_resolution", "gap_residual", "cost_rounding"}``.
+    """
+    f_res = max(float(primal_cost + offset), 0.0)
+    resolution = (n_cameras - 1) / max(n_edges - n_cameras + 1, 1) * f_res
+    ratio = gap_abs / resolution if resolution > 0 else float("inf")
+    floor = COST_ROUNDING * abs(offset)
+    return {"certified": bool(rank == 3 and gap_abs <= kappa * resolution + floor), "resolution": resolution,
+            "gap_vs_resolution": float(ratio), "gap_residual": float(gap_abs / max(f_res, 1e-300)),
+            "cost_rounding": floor}

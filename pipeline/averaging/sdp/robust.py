@@ -19,7 +19,7 @@ certificate was right (the global optimum of the anisotropic least-squares cost 
    *global* optimum of its own final problem; or ``"raw"``, paper 2's cost with the
    two-view H. Isotropic variants use paper 2's isotropic cost (M = I).
 3. **Certified** only when the rank is 3 and the gap is small against what the cost
-   can resolve (:func:`pipeline.averaging.sdp.solve.resolution_check`); an uncertified
+   can resolve (:func:`pipeline.averaging.sdp.certificate.resolution_check`); an uncertified
    small problem is re-solved by Clarabel at 1e-12 (``fallback``).
 4. **The statement** names the cost, the edge set and the rejected edges, e.g.
    "globally optimal for … on 234 of 266 edges; 32 rejected by irls-h (…; their

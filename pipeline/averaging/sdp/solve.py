@@ -22,14 +22,16 @@ import scipy.sparse as sp
 
 from pipeline.averaging.result import AveragingResult, method_config
 from pipeline.averaging.sdp.certificate import (
+    CERT_KAPPA,
     edge_cost,
     numerical_rank,
     relative_gap,
+    resolution_check,
     round_to_rotations,
     weight_matrices,
 )
 from pipeline.averaging.sdp.conic import SOLVERS, VARIANTS, ConicProblem, build_conic, check_inputs, edge_weights, unsvec
-from pipeline.averaging.sdp.refine import dual_certificate_gap, polish_rounding
+from pipeline.averaging.sdp.refine import dual_certificate_gap, polish_rounding, verified_start
 from pipeline.core import so3
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError, PipelineError
@@ -55,10 +57,6 @@ FALLBACK_SCS_MAX_ITERS = 2000
 #: A solve whose gap exceeds this share of the residual cost (plus the requested relative
 #: accuracy of |d*|) is re-solved as an uncertified one is.
 FALLBACK_RESIDUAL_GAP = 1e-2
-#: Certified: the gap is at most this share of the cost's resolution (:func:`resolution_check`).
-CERT_KAPPA = 0.01
-#: The cost cannot be judged below its own rounding: 1e3·ε of Σ|tr M_e| (as the IRLS certificate).
-COST_ROUNDING = 1e3 * np.finfo(float).eps
 _SCS_SETTINGS = {
     "normalize", "scale", "adaptive_scale", "rho_x", "max_iters", "eps_abs", "eps_rel", "eps_infeas",
     "alpha", "time_limit_secs", "verbose", "acceleration_lookback", "acceleration_interval",
@@ -259,7 +257,8 @@ def solve_sdp(vg: ViewGraph, variant: str | None = None, solver: str | None = No
 
 def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any], start: np.ndarray | None = None
            ) -> AveragingResult:
-    """One SDP on ``vg``; with ``start`` (N, 3, 3) and ``certify_start``, first :func:`_verified_start`."""
+    """One SDP on ``vg``; with ``start`` (N, 3, 3) and ``certify_start``, first
+    :func:`~pipeline.averaging.sdp.refine.verified_start`."""
     # SCS converges in fewer iterations on the primal form (as JuMP states it for
     # paper 2); Clarabel on the dual form, whose slack carries the graph's sparsity
     # that its chordal decomposition exploits.
@@ -275,7 +274,7 @@ def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any], start: np.nd
     lmi_edges = np.argwhere(np.triu(np.ones((vg.n_cameras,) * 2, bool), 1)) if cfg.lmi_pairs == "all" else None
     common = dict(vg=vg, C=C, scale=scale, offset=offset, cso3=cso3, lmi_edges=lmi_edges, kappa=cfg.cert_kappa,
                   polish=cfg.polish)
-    first = att = _verified_start(start, **common) if start is not None and cfg.certify_start else None
+    first = att = verified_start(start, **common) if start is not None and cfg.certify_start else None
     if first is None:
         small = cfg.fallback and vg.n_cameras <= cfg.fallback_max_cameras
         max_iters = cfg.max_iterations
@@ -424,73 +423,3 @@ def _attempt(vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bo
         "n_variables": int(prob.A.shape[1]), "n_constraints": int(prob.A.shape[0]),
         "eps_abs": eps_abs, "eps_rel": eps_rel, "polish_move_deg": polish_move,
     }
-
-
-def _verified_start(start: np.ndarray, vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bool,
-                    lmi_edges: np.ndarray | None, kappa: float, polish: bool) -> dict[str, Any] | None:
-    """``start`` polished on the SDP's cost and proven its global optimum by its dual certificate, or None.
-
-    This is how SE-Sync solves its SDP: a local solution of the rank-3 problem, then the dual
-    certificate of :mod:`pipeline.averaging.certificate` (with the conv(SO(3)) multipliers only
-    where the relaxation has them, ``cso3``). If it proves a gap within the same resolution test a
-    conic solve must pass, ``X = YYᵀ`` of these rotations solves the SDP to that gap, and the conic
-    program (minutes by SCS at 50 cameras) need not run; otherwise the caller solves it. The
-    robust stage's rotations on the calibrated cost are already its stationary point (the polish
-    moves them by ~1e-3°). Returns an attempt record as :func:`_attempt`'s (no solver: ``solver``
-    "none", 0 iterations).
-    """
-    if not polish:  # the caller asked for the solver's answer alone
-        return None
-    t0 = time.perf_counter()
-    R, move = start, 0.0
-    polished = polish_rounding(vg, C, start)
-    if polished is not None:
-        R, move = polished
-    primal_cost = edge_cost(vg.edges, C, R) * scale
-    need = resolution_check(0.0, primal_cost, offset, vg.n_cameras, vg.n_edges, 3, kappa)
-    gap_abs = dual_certificate_gap(vg, C, scale, R, kappa * need["resolution"] + need["cost_rounding"],
-                                   use_lmi=None if cso3 else False)
-    if gap_abs is None:
-        return None
-    check = resolution_check(gap_abs, primal_cost, offset, vg.n_cameras, vg.n_edges, 3, kappa)
-    if not check["certified"]:
-        return None
-    n = vg.n_cameras
-    return {
-        "solver": "none", "form": None, "R": R, "rank": 3, "eigenvalues": [float(n)] * 3 + [0.0] * 3,  # X = YYᵀ
-        "lower_bound": primal_cost - gap_abs, "sdp_value": primal_cost, "primal_cost": primal_cost,
-        "gap": relative_gap(primal_cost, primal_cost - gap_abs), "gap_abs": gap_abs, **check,
-        "certified_by": "the dual certificate of the robust stage's rotations polished on this cost, with no "
-                        "conic solve",
-        "status": "verified at the start", "iterations": 0, "dual_lambda_min": None, "build_s": 0.0,
-        "solve_s": 0.0, "certificate_s": time.perf_counter() - t0, "n_variables": None, "n_constraints": None,
-        "eps_abs": None, "eps_rel": None, "polish_move_deg": move,
-    }
-
-
-def resolution_check(gap_abs: float, primal_cost: float, offset: float, n_cameras: int, n_edges: int, rank: int,
-                     kappa: float = CERT_KAPPA) -> dict[str, Any]:
-    """Is the gap small against the accuracy the cost can resolve? (``certified`` of every SDP solve).
-
-    ``f_res = f(R̂) + Σ tr M_e ≥ 0`` is the part of the cost the rotations change; with the
-    redundancy ``ρ = (N − 1)/(M − N + 1)``, moving the rotations by one standard error costs
-    about ``ρ · f_res`` (a χ² with 3(N − 1) degrees of freedom against 3(M − N + 1) for the
-    residual), the cost's *resolution*. A rank-3 solution is certified when its gap is at
-    most ``kappa`` (1%) of that, i.e. within ~10% of a standard error (the cost is
-    quadratic there): ``gap_residual ≤ kappa · ρ``. The relative gap ``gap/|d*|`` cannot
-    tell: ``|d*| ≈ Σ tr M_e``, which one edge with a huge H makes as large as it likes (a
-    noise-free 5-camera graph with one H 1e5× the others: SCS 6.13° off at a relative gap
-    of 5e-7). Below the rounding of the cost itself (:data:`COST_ROUNDING` of ``|offset|``)
-    nothing can be told apart, so that much gap is always allowed; exact data, whose
-    resolution is 0, are certified only when solved to that rounding.
-
-    Returns:
-        ``{"certified", "resolution", "gap_vs_resolution", "gap_residual", "cost_rounding"}``.
-    """
-    f_res = max(float(primal_cost + offset), 0.0)
-    resolution = (n_cameras - 1) / max(n_edges - n_cameras + 1, 1) * f_res
-    ratio = gap_abs / resolution if resolution > 0 else float("inf")
-    floor = COST_ROUNDING * abs(offset)
-    return {"certified": bool(rank == 3 and gap_abs <= kappa * resolution + floor), "resolution": resolution,
-            "gap_vs_resolution": float(ratio), "gap_residual": float(gap_abs / max(f_res, 1e-300)),
-            "cost_rounding": floor}
