@@ -378,9 +378,11 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             again.stats["principal_point_rejected"] = stats["principal_point"]
             again.stats["times"]["total"] = time.perf_counter() - t_all
             return again
+    covs = None  # pycolmap's covariance of every refined camera, estimated once for the checks below
     if radial:  # k1 kept only where the model determines it
         try:
-            corner = radial_corner_sd(rec, camera_covariances(pc, rec, ba, const))
+            covs = camera_covariances(pc, rec, ba, const)
+            corner = radial_corner_sd(rec, covs)
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
             logger.warning("refine: the radial terms' covariance failed (%s)", " ".join(str(exc).split())[:100])
             corner = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not const[i - 1]}
@@ -404,7 +406,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     # trades against it: where one is refined and determined, so is the focal with it)
     if not const.all() and not refine_pp:
         try:
-            corner = focal_corner_sd(rec, camera_covariances(pc, rec, ba, const))
+            corner = focal_corner_sd(rec, camera_covariances(pc, rec, ba, const) if covs is None else covs)
         except (RuntimeError, ValueError, np.linalg.LinAlgError):  # no covariance: the focal lengths stand as refined
             corner = {}
         side = {cid: max(rec.camera(cid).width, rec.camera(cid).height) for cid in corner}
