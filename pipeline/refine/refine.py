@@ -276,6 +276,17 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         return RefineResult(status, R_out, R_init.copy(), R_ref, refined,
                             np.full(n, np.nan) if change is None else change, cov, list(why), rec, warnings, stats)
 
+    def again(msg: str, key: str, rejected: Any, cfg_again: RefineConfig, hold_again: np.ndarray = hold
+              ) -> RefineResult:
+        """The refinement run again without what the model did not determine (``msg`` says what; ``stats[key]``)."""
+        res = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t, R_init,
+                               known, cfg_again, scratch, k1, hold_again)
+        logger.warning("refine: %s", msg)
+        res.warnings.insert(0, msg)
+        res.stats[key] = rejected
+        res.stats["times"]["total"] = time.perf_counter() - t_all
+        return res
+
     # 1. edge filter from our averaged rotations; 2. tracks
     t0 = time.perf_counter()
     keep, residual = tk.filter_edges(edges, cam2_from_cam1, R_init, cfg.edge_filter_deg)
@@ -366,18 +377,12 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         loose = [cid for cid in sd if not sd[cid] <= limit[cid]]
         if loose and cfg.principal_point == "auto":  # not determined: again, without what trades against it
             # first without the radial term, which trades against the principal point; then with it fixed
-            again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                     R_init, known, replace(cfg, radial="off") if radial else
-                                     replace(cfg, principal_point="fixed"), scratch, k1, hold)
             msg = (f"the principal point of {len(loose)} camera(s) is not determined by the model (standard deviation "
                    f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px)" +
                    (" with a radial term: refined again without one (SIMPLE_PINHOLE)" if radial else
                     ": every principal point kept at the image centre"))
-            logger.warning("refine: %s", msg)
-            again.warnings.insert(0, msg)
-            again.stats["principal_point_rejected"] = stats["principal_point"]
-            again.stats["times"]["total"] = time.perf_counter() - t_all
-            return again
+            return again(msg, "principal_point_rejected", stats["principal_point"],
+                         replace(cfg, radial="off") if radial else replace(cfg, principal_point="fixed"))
     covs = None  # pycolmap's covariance of every refined camera, estimated once for the checks below
     if radial:  # k1 kept only where the model determines it
         try:
@@ -392,16 +397,10 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                                       "max_sd_px": limit[cid]} for cid, c in cams.items()}  # the stage's lens
         loose = [cid for cid in corner if not corner[cid] <= limit[cid]]
         if loose:
-            again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                     R_init, known, replace(cfg, radial="off"), scratch, k1, hold)
             msg = (f"the radial term of {len(loose)} camera(s) is not determined by the model (its displacement at "
                    f"the image corner has a standard deviation of {max(corner[c] for c in loose):.1f} px > "
                    f"{min(limit[c] for c in loose):.1f} px): every camera refined without one")
-            logger.warning("refine: %s", msg)
-            again.warnings.insert(0, msg)
-            again.stats["radial_rejected"] = stats["radial"]
-            again.stats["times"]["total"] = time.perf_counter() - t_all
-            return again
+            return again(msg, "radial_rejected", stats["radial"], replace(cfg, radial="off"))
     # a focal length the model does not determine is held at the cameras stage's estimate (a refined principal point
     # trades against it: where one is refined and determined, so is the focal with it)
     if not const.all() and not refine_pp:
@@ -418,14 +417,9 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                    f"deviation moves the image corner by {max(loose.values()):.3g} px > {cfg.max_focal_sd:g} of the "
                    f"image side; refined to {refined_f} px): refined again with it held at the cameras stage's "
                    f"estimate ({', '.join(names[k] for k in np.flatnonzero(held)[:5])})")
-            logger.warning("refine: %s", msg)
-            again = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                     R_init, known, cfg, scratch, k1, hold | held)
-            again.warnings.insert(0, msg)
-            again.stats["focal_held"] = {str(cid): {"refined_px": float(rec.camera(cid).mean_focal_length()),
-                                                    "corner_sd_px": v} for cid, v in loose.items()}
-            again.stats["times"]["total"] = time.perf_counter() - t_all
-            return again
+            return again(msg, "focal_held", {str(cid): {"refined_px": float(rec.camera(cid).mean_focal_length()),
+                                                        "corner_sd_px": v} for cid, v in loose.items()},
+                         cfg, hold | held)
     rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))

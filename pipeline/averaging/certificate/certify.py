@@ -168,25 +168,30 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         R, pinfo = polish(n, e, C, D, R, max_iterations=polish_iterations, fills=fills)
         times["polish_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    V = lmi_multipliers(e, C, R) if use_lmi else None
-    L = connection_laplacian(n, e, C if V is None else lmi_apply(e, C, R, V), D)
-    Lam, G = lagrange_multipliers(L, R)
-    S = certificate_matrix(L, Lam)
     Y = R.reshape(3 * n, 3)
-    L_cost = L if V is None else connection_laplacian(n, e, C, D)
+    L_cost = connection_laplacian(n, e, C, D)
     cost = float(np.einsum("ab,ab->", Y, (L_cost @ Y)))
-    times["build_s"] = time.perf_counter() - t
-    stat = float(np.sqrt(np.square(G).sum()))
-    stat_bound = stat / np.sqrt(n)
     eps = np.finfo(float).eps
     # f(Y) is a difference of terms of size Σ_i tr D_i; below this it is rounding noise.
     cost_floor = 1e3 * eps * float(np.abs(np.trace(D, axis1=1, axis2=2)).sum())
     target = gap_tol * max(cost, 0.0) + cost_floor
-    eta_num = 1e3 * eps * float(abs(S).sum(axis=0).max())
-    eta = max(target / (3 * n), eta_num)
     n_witness = LMI_WITNESSES if use_lmi and not isotropic else 1
-    eig = min_eigenvalue(S, Y, eta, k_margin=k_margin, fills=fills, n_witness=n_witness)
+
+    def test(V: np.ndarray | None) -> tuple[Any, ...]:
+        """With the multipliers V (None: none): SY's blocks, S's rounding floor, η, and S ⪰ −ηI decided."""
+        L = L_cost if V is None else connection_laplacian(n, e, lmi_apply(e, C, R, V), D)
+        Lam, G_v = lagrange_multipliers(L, R)
+        S_v = certificate_matrix(L, Lam)
+        floor = 1e3 * eps * float(abs(S_v).sum(axis=0).max())
+        eta_v = max(target / (3 * n), floor)
+        return G_v, floor, eta_v, min_eigenvalue(S_v, Y, eta_v, k_margin=k_margin, fills=fills, n_witness=n_witness)
+
+    V = lmi_multipliers(e, C, R) if use_lmi else None
+    G, eta_num, eta, eig = test(V)
+    times["build_s"] = time.perf_counter() - t - sum(eig.times.values())
     times.update(eig.times)
+    stat = float(np.sqrt(np.square(G).sum()))
+    stat_bound = stat / np.sqrt(n)
     steps = evals = 0
     # The conv(SO(3)) multipliers are the certificate's choice: where the smallest ones leave a negative direction,
     # better ones are searched for (λ_min is concave in them), as SDP-cSO(3)'s solver would: supergradient steps,
@@ -198,21 +203,17 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         for factor in 2.0 * 4.0 ** np.arange(LMI_ASCENT_EVALS - evals):
             evals += 1
             V_try = lmi_ascent(e, R, V, eig.witnesses, eig.lambda_min, factor)
-            L_try = connection_laplacian(n, e, lmi_apply(e, C, R, V_try), D)
-            S_try = certificate_matrix(L_try, lagrange_multipliers(L_try, R)[0])
-            eta_try = max(target / (3 * n), 1e3 * eps * float(abs(S_try).sum(axis=0).max()))
-            eig_try = min_eigenvalue(S_try, Y, eta_try, k_margin=k_margin, fills=fills, n_witness=n_witness)
-            times["lmi_ascent_s"] = times.get("lmi_ascent_s", 0.0) + sum(eig_try.times.values())
-            last = eig.lambda_min if best is None else best[2].lambda_min
+            trial = (V_try, *test(V_try))
+            times["lmi_ascent_s"] = times.get("lmi_ascent_s", 0.0) + sum(trial[-1].times.values())
+            eig_try, last = trial[-1], (eig if best is None else best[-1]).lambda_min
             if not eig_try.ok or (eig_try.n_below > 0 and not eig_try.lambda_min > last):
                 break  # longer steps raise λ_min no further
-            best = (V_try, S_try, eig_try, eta_try)
+            best = trial
             if eig_try.n_below == 0:
                 break
         if best is None:
             break  # no step raises λ_min: the last multipliers stand
-        V, S, eig, eta = best
-        eta_num = 1e3 * eps * float(abs(S).sum(axis=0).max())
+        V, _, eta_num, eta, eig = best
     lmi_edges = 0 if V is None else int(np.sum(np.trace(V, axis1=1, axis2=2) > 0))
     lmi_trace = 0.0 if V is None else float(np.trace(V, axis1=1, axis2=2).sum())
     msg = eig.message
@@ -233,7 +234,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         gap = min(max(cost, 0.0), 3 * n * max(0.0, -eig.lambda_min))
         if eig.lambda_min < -max(eta, stat_bound) and not isotropic:
             # The Lagrange multipliers of R_iR_iᵀ = I are fixed by stationarity, but those of the
-            # conv(SO(3)) LMIs are this certificate's own choice (lmi_adjusted_C): a negative
+            # conv(SO(3)) LMIs are this certificate's own choice (lmi_multipliers): a negative
             # direction refutes that choice, not the point. SDP-cSO(3) optimizes them.
             verdict = UNDECIDED
             msg = (f"λ_min(S) = {eig.lambda_min:.3g} < 0 with this certificate's choice of the conv(SO(3)) "

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from pipeline.core import so3
 
 __all__ = ["metric_from_H", "chordal_weights", "edge_costs", "connection_laplacian", "diag_blocks",
-           "lagrange_multipliers", "certificate_matrix", "lmi_adjusted_C", "lmi_multipliers", "lmi_apply",
+           "lagrange_multipliers", "certificate_matrix", "lmi_multipliers", "lmi_apply",
            "lmi_ascent", "block_matrix", "sym", "vee_skew"]
 
 
@@ -137,22 +137,13 @@ def certificate_matrix(L: sp.spmatrix, Lam: np.ndarray) -> sp.csc_matrix:
     return S
 
 
-def lmi_adjusted_C(edges: np.ndarray, C: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Edge weights modified by the conv(SO(3)) LMI multipliers (module docstring).
-
-    For each edge, with ``P = sym(C_e Q_eᵀ)`` and its effective ``H = tr(P)·I − P`` with
-    eigenvalues η₁ ≥ η₂ ≥ η₃ (eigenvectors u), ``V_e = ½ max(0, η₁ − η₂ − η₃) u₁u₁ᵀ`` and
-    ``C'_e = C_e − 2𝓜(V_e) Q_e``, which makes ``sym(C'_e Q_eᵀ)`` PSD whenever H ⪰ 0.
-
-    Returns:
-        C': (M, 3, 3) adjusted weights; trV: (M,) ``tr V_e = tr W_e`` (0 where unchanged).
-    """
-    V = lmi_multipliers(edges, C, R)
-    return lmi_apply(edges, C, R, V), np.trace(V, axis1=1, axis2=2)
-
-
 def lmi_multipliers(edges: np.ndarray, C: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """The smallest multipliers ``V_e`` (M, 3, 3) of :func:`lmi_adjusted_C`: ``½ max(0, η₁ − η₂ − η₃) u₁u₁ᵀ``."""
+    """The smallest conv(SO(3)) multipliers ``V_e`` (M, 3, 3) that make each edge's effective weight PSD.
+
+    For each edge, with ``P = sym(C_e Q_eᵀ)`` and its effective ``H = tr(P)·I − P`` with eigenvalues
+    η₁ ≥ η₂ ≥ η₃ (eigenvectors u), ``V_e = ½ max(0, η₁ − η₂ − η₃) u₁u₁ᵀ``: then ``sym(C'_e Q_eᵀ)`` of
+    :func:`lmi_apply` is PSD whenever H ⪰ 0.
+    """
     Q = so3.relative(R, edges)
     P = sym(C @ np.swapaxes(Q, 1, 2))
     eta, U = np.linalg.eigh(_H_from_metric(P))  # ascending: η₃ ≤ η₂ ≤ η₁

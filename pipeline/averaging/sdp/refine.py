@@ -90,8 +90,8 @@ def verified_start(start: np.ndarray, vg: ViewGraph, C: np.ndarray, scale: float
     conic solve must pass, ``X = YYᵀ`` of these rotations solves the SDP to that gap, and the conic
     program (minutes by SCS at 50 cameras) need not run; otherwise the caller solves it. The
     robust stage's rotations on the calibrated cost are already its stationary point (the polish
-    moves them by ~1e-3°). Returns an attempt record as :func:`pipeline.averaging.sdp.solve._attempt`'s (no solver: ``solver``
-    "none", 0 iterations).
+    moves them by ~1e-3°). Returns an attempt record as :func:`pipeline.averaging.sdp.solve._attempt`'s (no
+    solver: ``solver`` "none", 0 iterations).
     """
     if not polish:  # the caller asked for the solver's answer alone
         return None
