@@ -15,10 +15,15 @@ from pipeline.refine.model import model_rotations
 __all__ = ["checked_rotations"]
 
 
-def checked_rotations(pc: Any, rec: Any, ba: Any, known: np.ndarray, K: np.ndarray, cfg: Any, names: Sequence[str],
-                      R_init: np.ndarray, has_R: np.ndarray, active: np.ndarray, why: list[str], warnings: list[str],
-                      stats: dict[str, Any], times: dict[str, float], result: Any) -> Any:
-    """Step 5 and 6: which images keep a refined rotation (lost, moved too far), and their covariance."""
+def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.ndarray, K: np.ndarray, cfg: Any,
+                      names: Sequence[str], R_init: np.ndarray, has_R: np.ndarray, active: np.ndarray, why: list[str],
+                      warnings: list[str], stats: dict[str, Any], times: dict[str, float], result: Any) -> Any:
+    """Step 5 and 6: which images keep a refined rotation (lost, moved too far), and their covariance.
+
+    ``const``: images whose intrinsics the bundle adjustments held (a K file, or held by the refinement's checks);
+    ``known``: those with a K file. ``max_change_deg`` guards only the latter (``max_change_known_only``): a held
+    camera's averaged rotation rests on estimated intrinsics, its own and its pairs', as a refined camera's does.
+    """
     n = len(names)
     R_model = model_rotations(rec, n)
     in_model = np.all(np.isfinite(R_model), axis=(1, 2))
@@ -58,7 +63,7 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, known: np.ndarray, K: np.ndarr
     if cfg.covariance:
         t0 = time.perf_counter()
         try:
-            cov, info = rotation_covariance(pc, rec, ba, known, n)
+            cov, info = rotation_covariance(pc, rec, ba, const, n)
             stats.update(info)
             if cov is None:
                 warnings.append("pycolmap's estimate_ba_covariance failed: no rotation uncertainty")

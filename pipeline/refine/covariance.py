@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.refine.mapper import ba_config
 
 __all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance",
-           "camera_covariances", "param_sd", "principal_point_sd", "radial_corner_sd", "focal_corner_sd"]
+           "camera_covariances", "camera_covariances_and_sigma", "residual_sigma_px", "param_sd", "principal_point_sd", "radial_corner_sd", "focal_corner_sd"]
 
 
 def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
@@ -66,6 +66,13 @@ def camera_covariances(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> dict[in
     From pycolmap's BA covariance of every variable block (points eliminated); ``None`` where pycolmap cannot
     estimate it (a singular problem: the parameters are not determined).
     """
+    return camera_covariances_and_sigma(pc, rec, ba, known)[0]
+
+
+def camera_covariances_and_sigma(pc: Any, rec: Any, ba: Any, known: np.ndarray
+                                 ) -> tuple[dict[int, np.ndarray | None], float]:
+    """:func:`camera_covariances` and the residual standard deviation σ (px) of the final problem they are scaled by
+    (``√(2·cost / (residuals − parameters))``)."""
     adjuster, sigma2 = _final_problem(pc, rec, ba, known)
     opts = pc.BACovarianceOptions()
     opts.params = pc.BACovarianceOptionsParams.ALL
@@ -87,7 +94,13 @@ def camera_covariances(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> dict[in
         at = free if len(C) == len(free) else list(range(len(cam.params)))
         full[np.ix_(at, at)] = sigma2 * np.asarray(C)
         out[cid] = full
-    return out
+    return out, float(np.sqrt(sigma2))
+
+
+def residual_sigma_px(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> float:
+    """The residual standard deviation σ (px) of the final problem, ``√(2·cost / (residuals − parameters))``, from a
+    copy of ``rec`` (the solve at the optimum moves it by a few iterations; ``rec`` stays as it is)."""
+    return float(np.sqrt(_final_problem(pc, pc.Reconstruction(rec), ba, known)[1]))
 
 
 def param_sd(C: np.ndarray | None, idx: list[int]) -> float:

@@ -103,3 +103,57 @@ def points_removed_after_positioning(monkeypatch):
         return ok
 
     monkeypatch.setattr(mapper, "global_positioning", drop_all_points)
+
+
+def deep_problem(seed: int, n_images: int = 8, n_points: int = 800, sigma_px: float = 0.5,
+                 pp_shift: float = 0.03, centred: tuple[int, ...] = ()) -> tuple[dict, np.ndarray, np.ndarray]:
+    """A wide-angle view of a deep scene, each image its own camera, as internet photos cropped off their centre.
+
+    Cameras on a 60° arc of radius 6 look at a 6 × 4 × 6 box of points (depths 3–9: strong perspective, which a
+    single image's principal point can be told from); focal lengths 600–614 px on 1024 × 768 images; each true
+    principal point up to ``pp_shift`` of the width off the image centre in x and y (at it for the images
+    ``centred``). The keyword inputs of
+    ``refine_rotations`` start from the image centres and focal lengths 3% long (as a cameras stage would).
+
+    Returns:
+        the inputs (without ``R_init``), the (N, 3, 3) true rotations and the (N, 3, 3) true intrinsics.
+    """
+    rng = np.random.default_rng(seed)
+    w, h = 1024, 768
+    X = rng.uniform([-3, -2, -3], [3, 2, 3], size=(n_points, 3))
+    R, C, K_true, kps, idx = [], [], [], [], []
+    for k, a in enumerate(np.radians(np.linspace(-30, 30, n_images))):
+        c = 6.0 * np.array([np.sin(a), 0.0, -np.cos(a)]) + rng.normal(scale=0.2, size=3)
+        z = -c / np.linalg.norm(c)  # the optical axis, towards the box's centre
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        Rk = so3.exp(np.radians(rng.normal(scale=2.0, size=3))) @ np.stack([x, np.cross(z, x), z])
+        f = 600.0 + 2.0 * k
+        shift = pp_shift * w * rng.uniform(-1, 1, size=2) * (k not in centred)
+        Kk = np.array([[f, 0, (w - 1) / 2 + shift[0]], [0, f, (h - 1) / 2 + shift[1]], [0, 0, 1]])
+        p = (X - c) @ Rk.T @ Kk.T
+        uv = p[:, :2] / p[:, 2:]
+        seen = (p[:, 2] > 0.5) & np.all((uv >= 0) & (uv <= [w - 1, h - 1]), axis=1)
+        kps.append(uv[seen] + rng.normal(scale=sigma_px, size=(int(seen.sum()), 2)))
+        at = np.full(n_points, -1)
+        at[seen] = np.arange(int(seen.sum()))
+        idx.append(at)
+        R.append(Rk)
+        C.append(c)
+        K_true.append(Kk)
+    R, C, K_true = np.array(R), np.array(C), np.array(K_true)
+    pairs = [(i, j) for i in range(n_images) for j in range(i + 1, n_images)]
+    m = [np.stack([idx[i][(idx[i] >= 0) & (idx[j] >= 0)], idx[j][(idx[i] >= 0) & (idx[j] >= 0)]], axis=1)
+         for i, j in pairs]
+    edges = np.array(pairs)
+    i, j = edges.T
+    t = np.einsum("nij,nj->ni", R[j], C[i] - C[j])
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    K0 = K_true.copy()
+    K0[:, 0, 2], K0[:, 1, 2] = (w - 1) / 2, (h - 1) / 2
+    K0[:, 0, 0] *= 1.03
+    K0[:, 1, 1] *= 1.03
+    return dict(names=[f"img{k:03d}.jpg" for k in range(n_images)], K=K0, sizes=np.tile([w, h], (n_images, 1)),
+                keypoints=kps, edges=edges, match_offsets=np.concatenate([[0], np.cumsum([len(x) for x in m])]),
+                matches=np.concatenate(m).astype(np.int64), cam2_from_cam1=so3.relative(R, edges),
+                t_cam2_from_cam1=t), R, K_true

@@ -8,6 +8,8 @@ Exception tests: bad inputs and options, each with its message.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
 from pipeline.refine.refine import RefineConfig, refine_rotations
 
-from .conftest import aligned_residuals, perturbed, synthetic_problem
+from .conftest import aligned_residuals, deep_problem, perturbed, synthetic_problem
 
 ONE_THREAD = RefineConfig(num_threads=1, min_image_observations=10)
 
@@ -206,8 +208,9 @@ def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
 
 
 def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
-    """Every image its own camera (a K each, as internet photos without EXIF): one image cannot separate its
-    principal point from its pose, so 'auto' keeps every principal point; 'refined' still refines them."""
+    """Every image its own camera (a K each, as internet photos without EXIF): on this scene one image does not
+    separate its principal point from its pose (standard deviations near 100 px), and refining them barely lowers
+    the residuals, so 'auto' keeps every principal point after its probe; 'refined' still refines them."""
     inp, R_true = problem0
     K = _shifted_intrinsics(inp)
     K[:, 0, 0] += np.arange(len(K))  # a different focal per image: one camera each
@@ -215,6 +218,9 @@ def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
     auto = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
     assert auto.status == "ok" and "principal_point" not in auto.stats
     assert "1 image(s)" in auto.stats["principal_point_fixed_why"]
+    probe = auto.stats["principal_point_probe"]
+    assert probe["ratio"] < 1.5 and probe["decision"].startswith("held at the image centres")
+    assert not any(c["determined"] or c["refined"] for c in probe["cameras"].values())
     for cid, cam in auto.reconstruction.cameras.items():
         assert cam.model.name == "SIMPLE_RADIAL"  # one focal length and k1 per image, as COLMAP's mappers
         np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
@@ -285,3 +291,57 @@ def test_focal_corner_sd_is_the_corner_displacement_of_one_standard_deviation():
     C = np.diag([4.0, np.nan, np.nan, 1e-6])  # sd(f) = 2 px; the constant principal point is NaN
     out = focal_corner_sd(rec, {1: C, 2: None})
     assert out[1] == pytest.approx(2.0 * 500.0 / 1000.0) and out[2] == float("inf")
+
+
+def _errors(res, R_true):
+    return np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1))
+
+
+def test_principal_points_off_the_centre_are_refined_where_the_centre_is_a_misfit():
+    """One camera per image, principal points up to 3% of the width off the centre, a deep scene that determines
+    them: held at the centres, the residuals are well above the pixel noise's; the probe sees it, the principal
+    points are refined back to the truth, and the rotations are far better than with them held (no probe)."""
+    inp, R_true, K_true = deep_problem(0)
+    auto = refine_rotations(**inp, R_init=R_true, known_K=False, config=ONE_THREAD)
+    held = refine_rotations(**inp, R_init=R_true, known_K=False,
+                            config=dataclasses.replace(ONE_THREAD, principal_point_misfit=None))
+    assert auto.status == held.status == "ok" and "principal_point_probe" not in held.stats
+    probe = auto.stats["principal_point_probe"]
+    assert probe["ratio"] >= 1.5 and probe["sigma_refined_px"] == pytest.approx(0.5, rel=0.2)
+    assert all(c["refined"] for c in probe["cameras"].values()) and len(probe["cameras"]) == len(R_true)
+    assert auto.warnings[0].startswith(f"principal points refined for {len(R_true)} of {len(R_true)} image(s)")
+    for iid, im in auto.reconstruction.images.items():
+        cam = auto.reconstruction.cameras[im.camera_id]
+        pp = np.array([cam.principal_point_x, cam.principal_point_y]) - 0.5
+        assert np.abs(pp - K_true[iid - 1, :2, 2]).max() < 3.0  # up to 31 px off at the start
+    assert np.median(_errors(auto, R_true)) < 0.1 * np.median(_errors(held, R_true))
+
+
+def test_a_principal_point_at_the_centre_is_held_while_the_others_are_refined():
+    """One image's principal point is at the centre: not significantly off it, so that camera is held at the held
+    run's intrinsics (its refined focal length, the centre) while the others' principal points are refined."""
+    inp, R_true, K_true = deep_problem(1, centred=(3,))
+    res = refine_rotations(**inp, R_init=R_true, known_K=False, config=ONE_THREAD)
+    probe = res.stats["principal_point_probe"]
+    assert [nm for nm, c in probe["cameras"].items() if not c["refined"]] == [inp["names"][3]]
+    assert probe["cameras"][inp["names"][3]]["determined"]  # determined, and at the centre
+    assert "1 held at the refinement's intrinsics" in res.warnings[0] and inp["names"][3] in res.warnings[0]
+    for iid, im in res.reconstruction.images.items():
+        cam = res.reconstruction.cameras[im.camera_id]
+        pp = np.array([cam.principal_point_x, cam.principal_point_y]) - 0.5
+        assert np.abs(pp - K_true[iid - 1, :2, 2]).max() < (1e-9 if iid == 4 else 3.0), iid
+    assert np.median(_errors(res, R_true)) < 0.1
+
+
+def test_principal_points_at_the_centre_stay_held_and_the_result_is_the_held_run():
+    """Principal points at the centres: refining them lowers the residuals by nothing the noise does not explain;
+    the held run stands as it was (to ceres' own run-to-run rounding, 1e-15), and the probe's figures are recorded."""
+    inp, R_true, _ = deep_problem(0, pp_shift=0.0)
+    auto = refine_rotations(**inp, R_init=R_true, known_K=False, config=ONE_THREAD)
+    held = refine_rotations(**inp, R_init=R_true, known_K=False,
+                            config=dataclasses.replace(ONE_THREAD, principal_point_misfit=None))
+    probe = auto.stats["principal_point_probe"]
+    assert probe["ratio"] < 1.1 and "principal_point_misfit = 1.5" in probe["decision"]
+    assert not any(c["refined"] for c in probe["cameras"].values())
+    np.testing.assert_allclose(auto.R, held.R, rtol=0, atol=1e-12)
+    assert auto.warnings == held.warnings

@@ -1,0 +1,128 @@
+"""The principal points of cameras with too few images to refine them by default: a probe, and a refinement where the
+image centre is a misfit (part of :func:`pipeline.refine.refine.refine_rotations`).
+
+With ``principal_point: auto`` a camera needs ``min_principal_point_images`` images before its principal point is
+refined (one image cannot always tell its principal point from its pose). Internet photos are one image per camera,
+and are often cropped off their centre: held at the image centre, a principal point 3% off makes the bundle
+adjustment trade it against the focal length and the rotation (an imitation on castle-P30: focal lengths 90% off and
+rotations 4.2° off, where the true principal points give 0.075°).
+
+After such a run (principal points held), the probe runs the refinement once more with every principal point refined,
+and compares:
+
+1. **The misfit.** The residual standard deviation σ with the principal points held, over σ with them refined. If
+   the centre were right, the ratio would be 1 within the few parameters added; ``principal_point_misfit`` (1.5)
+   asks for a misfit that keypoint noise does not explain. The ratio is the test, not the covariance: where the
+   centre is right to a few pixels, the refined principal points absorb what the model does not fit (Strecha's
+   non-square pixels, the truth's own error) and their covariance claims 3 px where they are 20 px off.
+2. **Per camera.** A principal point is refined where its standard deviation is within ``max_principal_point_sd``
+   of the image side and it is significantly off the held one (its Mahalanobis distance above χ²₂'s 99.9% point);
+   every other camera is held at the held run's intrinsics (its refined focal length, the held principal point).
+
+If the misfit and at least one such camera are found, the refinement runs again that way (or the probe's own result
+is taken, where every camera qualified); otherwise the held run stands. ``stats["principal_point_probe"]`` records
+the figures either way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+__all__ = ["probe_principal_points", "principal_point_entry", "CHI2_2DOF_999"]
+
+#: χ²₂'s 99.9% point: a principal point this far (squared Mahalanobis distance) from the held one is off it.
+CHI2_2DOF_999 = 13.8155
+
+
+def principal_point_entry(cam: Any, sd: float, limit: float, cov: np.ndarray | None) -> dict[str, Any]:
+    """One camera's entry of ``stats["principal_point"]``: the principal point in our convention (pixel centres at
+    integers), its worst-direction standard deviation and limit, and its 2×2 covariance (px², None if unknown)."""
+    idx = list(cam.principal_point_idxs())
+    C = None if cov is None else cov[np.ix_(idx, idx)]
+    return {"px": [cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], "sd_px": sd, "max_sd_px": limit,
+            "cov_px2": C.tolist() if C is not None and np.all(np.isfinite(C)) else None}
+
+
+def _mahalanobis2(d: np.ndarray, C: Any) -> float:
+    if C is None:
+        return 0.0
+    C = np.asarray(C, float)
+    try:
+        return float(d @ np.linalg.solve(0.5 * (C + C.T), d))
+    except np.linalg.LinAlgError:
+        return 0.0
+
+
+def probe_principal_points(rec: Any, sigma_held: float, K: np.ndarray, known: np.ndarray, hold: np.ndarray,
+                           cfg: Any, names: Sequence[str], run: Callable[[np.ndarray, np.ndarray, Any], Any]
+                           ) -> tuple[Any | None, dict[str, Any]]:
+    """The probe after a run with the principal points held (module docstring).
+
+    Args:
+        rec: that run's final reconstruction (image ``k`` = COLMAP image ``k + 1``).
+        sigma_held: its residual standard deviation (px).
+        K: (N, 3, 3) its starting intrinsics; known: (N,) cameras with a K file; hold: (N,) cameras it held.
+        cfg: its :class:`~pipeline.refine.refine.RefineConfig`.
+        names: the N image names.
+        run: ``run(K, hold, config)`` → the refinement from ``K`` with ``config``, holding ``hold``.
+    Returns:
+        the result to use instead (None: the held run stands) and the probe's figures.
+    """
+    info: dict[str, Any] = {"sigma_held_px": sigma_held, "misfit_limit": cfg.principal_point_misfit}
+    # the probe without a radial term, which trades against the principal point (that would mean a run without it
+    # after the radial check, at twice the cost); a lens the held run fits makes the ratio smaller: conservative
+    probe = run(K, hold, replace(cfg, principal_point="refined", radial="off"))
+    if probe.reconstruction is None or "principal_point" not in probe.stats:
+        info["decision"] = f"held at the image centres: the probe failed ({(probe.warnings or ['?'])[-1][:100]})"
+        return None, info
+    sigma_free = float(probe.stats["residual_sigma_px"])
+    ratio = sigma_held / sigma_free if sigma_free > 0 else float("inf")
+    info.update(sigma_refined_px=sigma_free, ratio=ratio)
+    prec = probe.reconstruction
+    free = np.zeros(len(names), bool)
+    cams: dict[str, dict[str, Any]] = {}
+    for iid in prec.reg_image_ids():
+        k = iid - 1
+        entry = probe.stats["principal_point"].get(str(prec.image(iid).camera_id))
+        if entry is None or not rec.exists_image(iid) or not rec.image(iid).has_pose:
+            continue
+        held_cam = rec.camera(rec.image(iid).camera_id)
+        d = np.asarray(entry["px"]) - [held_cam.principal_point_x - 0.5, held_cam.principal_point_y - 0.5]
+        z2 = _mahalanobis2(d, entry["cov_px2"])
+        determined = bool(entry["sd_px"] <= entry["max_sd_px"])
+        free[k] = determined and z2 > CHI2_2DOF_999
+        cams[names[k]] = {"offset_px": d.tolist(), "sd_px": entry["sd_px"], "chi2": z2, "determined": determined,
+                          "refined": bool(free[k])}
+    info["cameras"] = cams
+    if not ratio >= cfg.principal_point_misfit or not free.any():
+        why = (f"the residuals with them held are {ratio:.2f}× those with them refined (< principal_point_misfit = "
+               f"{cfg.principal_point_misfit:g})" if not ratio >= cfg.principal_point_misfit else
+               "no camera's principal point is both determined and significantly off the image centre")
+        info["decision"] = f"held at the image centres: {why}"
+        return None, info
+    held = np.zeros(len(names), bool)
+    for iid in rec.reg_image_ids():  # the others: held at the held run's intrinsics
+        held[iid - 1] = not free[iid - 1] and not known[iid - 1]
+    n_free, n_cams = int(free.sum()), len(cams)
+    msg = (f"principal points refined for {n_free} of {n_cams} image(s) (with them held at the image centres the "
+           f"residuals were {ratio:.2f}× those with them refined, σ {sigma_held:.3f} → {sigma_free:.3f} px, above "
+           f"principal_point_misfit = {cfg.principal_point_misfit:g})")
+    if held.any():
+        K2 = K.copy()
+        for k in np.flatnonzero(held):
+            f = float(rec.camera(rec.image(int(k) + 1).camera_id).mean_focal_length())
+            K2[k, 0, 0] = K2[k, 1, 1] = f
+        msg += (f"; {int(held.sum())} held at the refinement's intrinsics with their principal point at the centre, "
+                f"where it is not determined or not significantly off it "
+                f"({', '.join(names[k] for k in np.flatnonzero(held)[:5])})")
+        result = run(K2, hold | held, replace(cfg, principal_point="refined"))
+    elif cfg.radial == "off":  # the probe is that run
+        result = probe
+    else:  # with the held run's radial term, which its check keeps where the model determines it
+        result = run(K, hold, replace(cfg, principal_point="refined"))
+    info["decision"] = msg
+    result.warnings.insert(0, msg)
+    return result, info
