@@ -24,7 +24,8 @@ import numpy as np
 from pipeline.refine.mapper import ba_config
 
 __all__ = ["rotation_gauge_projection", "gauge_fixed_rotation_covariance", "rotation_covariance",
-           "camera_covariances", "camera_covariances_and_sigma", "residual_sigma_px", "param_sd", "principal_point_sd", "radial_corner_sd", "focal_corner_sd"]
+           "camera_covariances", "camera_covariances_and_sigma", "residual_sigma_px", "param_sd", "principal_point_sd",
+           "radial_corner_sd", "focal_corner_sd"]
 
 
 def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
@@ -98,8 +99,8 @@ def camera_covariances_and_sigma(pc: Any, rec: Any, ba: Any, known: np.ndarray
 
 
 def residual_sigma_px(pc: Any, rec: Any, ba: Any, known: np.ndarray) -> float:
-    """The residual standard deviation σ (px) of the final problem, ``√(2·cost / (residuals − parameters))``, from a
-    copy of ``rec`` (the solve at the optimum moves it by a few iterations; ``rec`` stays as it is)."""
+    """The residual standard deviation σ (px) of the final problem, ``√(2·cost / (residuals − parameters))``, on
+    a copy of ``rec`` (the solve at the optimum moves it by a few iterations; ``rec`` stays as it is)."""
     return float(np.sqrt(_final_problem(pc, pc.Reconstruction(rec), ba, known)[1]))
 
 

@@ -30,8 +30,8 @@ from pipeline.core.atomic import TMP_TAG
 from pipeline.reference.database import COLMAP_PIXEL_OFFSET, pinhole_params
 from pipeline.refine.tracks import Tracks
 
-__all__ = ["camera_groups", "radial_terms", "correspondence_cache", "write_binary_model", "starting_reconstruction",
-           "model_rotations", "INVALID_POINT3D_ID"]
+__all__ = ["camera_groups", "check_inputs", "radial_terms", "correspondence_cache", "write_binary_model",
+           "starting_reconstruction", "model_rotations", "INVALID_POINT3D_ID"]
 
 INVALID_POINT3D_ID = np.iinfo(np.uint64).max  # COLMAP's kInvalidPoint3DId
 _SIMPLE_PINHOLE, _PINHOLE, _SIMPLE_RADIAL = 0, 1, 2  # COLMAP's model ids
@@ -250,3 +250,20 @@ def model_rotations(rec: Any, n: int) -> np.ndarray:
     for iid in rec.reg_image_ids():  # per image: pycolmap returns poses one by one
         R[iid - 1] = rec.image(iid).cam_from_world().rotation.matrix()
     return R
+
+
+def check_inputs(n: int, K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray], edges: np.ndarray,
+                 match_offsets: np.ndarray, cam2_from_cam1: np.ndarray, t: np.ndarray, R_init: np.ndarray) -> None:
+    """:func:`~pipeline.refine.refine.refine_rotations`'s arrays against each other: ValueError naming each mismatch."""
+    m = len(edges)
+    got = {"K": K.shape, "sizes": sizes.shape, "R_init": R_init.shape, "cam2_from_cam1": cam2_from_cam1.shape,
+           "t_cam2_from_cam1": t.shape, "match_offsets": match_offsets.shape}
+    want = {"K": (n, 3, 3), "sizes": (n, 2), "R_init": (n, 3, 3), "cam2_from_cam1": (m, 3, 3),
+            "t_cam2_from_cam1": (m, 3), "match_offsets": (m + 1,)}
+    bad = [f"{k}.shape={got[k]} but expected {want[k]}" for k in want if got[k] != want[k]]
+    if len(keypoints) != n:
+        bad.append(f"{len(keypoints)} keypoint arrays but expected {n}")
+    if m and (np.any(edges[:, 0] >= edges[:, 1]) or edges.min() < 0 or edges.max() >= n):
+        bad.append(f"edges must be pairs (i, j) with 0 <= i < j < {n}")
+    if bad:
+        raise ValueError(f"refine_rotations: {'; '.join(bad)} (for {n} images and {m} pairs)")

@@ -31,6 +31,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from pipeline.refine.covariance import residual_sigma_px
+
 __all__ = ["probe_principal_points", "principal_point_entry", "CHI2_2DOF_999"]
 
 #: χ²₂'s 99.9% point: a principal point this far (squared Mahalanobis distance) from the held one is off it.
@@ -56,14 +58,15 @@ def _mahalanobis2(d: np.ndarray, C: Any) -> float:
         return 0.0
 
 
-def probe_principal_points(rec: Any, sigma_held: float, K: np.ndarray, known: np.ndarray, hold: np.ndarray,
-                           cfg: Any, names: Sequence[str], run: Callable[[np.ndarray, np.ndarray, Any], Any]
-                           ) -> tuple[Any | None, dict[str, Any]]:
+def probe_principal_points(pc: Any, rec: Any, ba: Any, const: np.ndarray, K: np.ndarray, known: np.ndarray,
+                           hold: np.ndarray, cfg: Any, names: Sequence[str],
+                           run: Callable[[np.ndarray, np.ndarray, Any], Any]) -> tuple[Any | None, dict[str, Any]]:
     """The probe after a run with the principal points held (module docstring).
 
     Args:
-        rec: that run's final reconstruction (image ``k`` = COLMAP image ``k + 1``).
-        sigma_held: its residual standard deviation (px).
+        pc: pycolmap.
+        rec, ba, const: that run's final reconstruction (image ``k`` = COLMAP image ``k + 1``), its bundle-adjustment
+            options and its constant cameras.
         K: (N, 3, 3) its starting intrinsics; known: (N,) cameras with a K file; hold: (N,) cameras it held.
         cfg: its :class:`~pipeline.refine.refine.RefineConfig`.
         names: the N image names.
@@ -71,6 +74,10 @@ def probe_principal_points(rec: Any, sigma_held: float, K: np.ndarray, known: np
     Returns:
         the result to use instead (None: the held run stands) and the probe's figures.
     """
+    try:
+        sigma_held = residual_sigma_px(pc, rec, ba, const)
+    except (RuntimeError, ValueError) as exc:  # no residuals to compare: the held run stands
+        return None, {"decision": f"held at the image centres: no residual σ ({' '.join(str(exc).split())[:80]})"}
     info: dict[str, Any] = {"sigma_held_px": sigma_held, "misfit_limit": cfg.principal_point_misfit}
     # the probe without a radial term, which trades against the principal point (that would mean a run without it
     # after the radial check, at twice the cost); a lens the held run fits makes the ratio smaller: conservative

@@ -31,7 +31,9 @@ With ``principal_point: auto``, its principal point is refined too when every su
 has ``min_principal_point_images`` images (one image cannot tell its principal point from
 its pose), and kept only where the final model determines it (its standard deviation, from
 pycolmap's BA covariance, at most ``max_principal_point_sd`` of the image's longest side);
-otherwise the refinement runs again with it fixed at the image centre, and says so. With the principal points
+otherwise the refinement runs again with it fixed at the image centre, and says so. Cameras with fewer images (one
+each, as internet photos) are probed (:mod:`pipeline.refine.principal`): their principal points are refined where
+held at the centres they leave residuals ``principal_point_misfit`` × those refined. With the principal points
 held, a focal length the model does not determine (one standard deviation moving the image corner by more than
 ``max_focal_sd`` of the image side: a camera that sees too little depth, whose focal trades against its distance)
 is held at the cameras stage's estimate in a second run, as the radial term is dropped (an internet imitation with
@@ -61,9 +63,9 @@ from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
 from pipeline.refine.checks import checked_rotations
 from pipeline.refine.covariance import (camera_covariances, camera_covariances_and_sigma, focal_corner_sd,
-                                       principal_point_sd, radial_corner_sd, residual_sigma_px)
+                                       principal_point_sd, radial_corner_sd)
 from pipeline.refine.principal import principal_point_entry, probe_principal_points
-from pipeline.refine.model import (camera_groups, correspondence_cache, radial_terms,
+from pipeline.refine.model import (camera_groups, check_inputs, correspondence_cache, radial_terms,
                                    starting_reconstruction)
 from pipeline.refine import tracks as tk
 
@@ -203,22 +205,6 @@ def _pycolmap() -> Any:
     return pycolmap
 
 
-def _check_inputs(n: int, K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray], edges: np.ndarray,
-                  match_offsets: np.ndarray, cam2_from_cam1: np.ndarray, t: np.ndarray, R_init: np.ndarray) -> None:
-    m = len(edges)
-    got = {"K": K.shape, "sizes": sizes.shape, "R_init": R_init.shape, "cam2_from_cam1": cam2_from_cam1.shape,
-           "t_cam2_from_cam1": t.shape, "match_offsets": match_offsets.shape}
-    want = {"K": (n, 3, 3), "sizes": (n, 2), "R_init": (n, 3, 3), "cam2_from_cam1": (m, 3, 3),
-            "t_cam2_from_cam1": (m, 3), "match_offsets": (m + 1,)}
-    bad = [f"{k}.shape={got[k]} but expected {want[k]}" for k in want if got[k] != want[k]]
-    if len(keypoints) != n:
-        bad.append(f"{len(keypoints)} keypoint arrays but expected {n}")
-    if m and (np.any(edges[:, 0] >= edges[:, 1]) or edges.min() < 0 or edges.max() >= n):
-        bad.append(f"edges must be pairs (i, j) with 0 <= i < j < {n}")
-    if bad:
-        raise ValueError(f"refine_rotations: {'; '.join(bad)} (for {n} images and {m} pairs)")
-
-
 def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, keypoints: Sequence[np.ndarray],
                      edges: np.ndarray, match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
                      t_cam2_from_cam1: np.ndarray, R_init: np.ndarray, known_K: np.ndarray | bool = True,
@@ -255,7 +241,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     edges = np.asarray(edges, np.int64).reshape(-1, 2)
     match_offsets = np.asarray(match_offsets, np.int64)
     cam2_from_cam1, t = np.asarray(cam2_from_cam1, float), np.asarray(t_cam2_from_cam1, float)
-    _check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
+    check_inputs(n, K, sizes, keypoints, edges, match_offsets, cam2_from_cam1, t, R_init)
     known = np.broadcast_to(np.asarray(known_K, bool), (n,)).copy()
     hold = np.zeros(n, bool) if hold is None else np.asarray(hold, bool) & ~known
     const = known | hold  # intrinsics constant in the bundle adjustments
@@ -381,7 +367,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             sd = principal_point_sd(pc, rec, ba, const, covs)
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
             logger.warning("refine: the principal points' covariance failed (%s)", " ".join(str(exc).split())[:100])
-            covs, sd = None, {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not const[i - 1]}
+            covs = None
+            sd = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not const[i - 1]}
         cams = {cid: rec.camera(cid) for cid in sd}
         limit = {cid: cfg.max_principal_point_sd * max(c.width, c.height) for cid, c in cams.items()}
         stats["principal_point"] = {str(cid): principal_point_entry(c, sd[cid], limit[cid], (covs or {}).get(cid))
@@ -431,22 +418,17 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             return again(msg, "focal_held", {str(cid): {"refined_px": float(rec.camera(cid).mean_focal_length()),
                                                         "corner_sd_px": v} for cid, v in loose.items()},
                          cfg, hold | held)
-    if probe_pp:  # a refinement with every principal point refined, taken where the image centre is a misfit
-        try:
-            sigma_held = residual_sigma_px(pc, rec, ba, const)
-        except (RuntimeError, ValueError) as exc:  # no residuals to compare: the held run stands
-            sigma_held, stats["principal_point_probe"] = None, {"decision": f"not probed ({exc})"[:120]}
-        if sigma_held is not None:
-            probed, stats["principal_point_probe"] = probe_principal_points(
-                rec, sigma_held, K, known, hold, cfg, names,
-                lambda K2, hold2, cfg2: refine_rotations(names, K2, sizes, keypoints, edges, match_offsets, matches,
-                                                         cam2_from_cam1, t, R_init, known, cfg2, scratch, k1, hold2))
-            if probed is not None:
-                probed.stats["principal_point_probe"] = stats["principal_point_probe"]
-                probed.stats["times"]["total"] = time.perf_counter() - t_all
-                return probed
+    if probe_pp:  # a run with every principal point refined, taken where the image centre is a misfit
+        probed, stats["principal_point_probe"] = probe_principal_points(
+            pc, rec, ba, const, K, known, hold, cfg, names,
+            lambda K2, hold2, cfg2: refine_rotations(names, K2, sizes, keypoints, edges, match_offsets, matches,
+                                                     cam2_from_cam1, t, R_init, known, cfg2, scratch, k1, hold2))
+        if probed is not None:
+            probed.stats["principal_point_probe"] = stats["principal_point_probe"]
+            probed.stats["times"]["total"] = time.perf_counter() - t_all
+            return probed
     rec.update_point_3d_errors()  # GLOMAP's filters leave the errors in normalized units
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))
-    return checked_rotations(pc, rec, ba, const, known, K, cfg, names, R_init, has_R, active, why, warnings, stats, times,
-                             result)
+    return checked_rotations(pc, rec, ba, const, known, K, cfg, names, R_init, has_R, active, why, warnings, stats,
+                             times, result)
