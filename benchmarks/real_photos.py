@@ -155,6 +155,11 @@ def run_one(images: Path, out: Path, gt: Path) -> dict:
     for label, q in peers.items():
         row["peers"][label] = {k: q.get(k) for k in ("median_deg", "n_registered", "n_images", "time_s")}
     row["flags"] = flag_check(out, gt, m)
+    for f in sorted((out / "rotations").glob("*+refine.json")):  # the principal-point probe of one-image cameras
+        d = json.loads(f.read_text())
+        probe = d.get("stats", {}).get("principal_point_probe") or {}
+        row["refine"] = {"time_s": d.get("time_s"), "principal_point_probe": {
+            k: probe.get(k) for k in ("ratio", "sigma_held_px", "sigma_refined_px", "decision")} if probe else None}
     row["per_image"] = {nm: {"focal_px": float(np.mean(v["focal_px"])),
                              "principal_point_px": v.get("principal_point_px"), "source": v.get("source")}
                         for nm, v in (intr.get("per_image") or {}).items()}
