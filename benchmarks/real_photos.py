@@ -106,9 +106,14 @@ def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool =
             "size": [w, h], "n_images": len(names)}
 
 
-def internet_copy(src: Path, dst: Path, K: np.ndarray, n: int, seed: int = 0, max_shift: float = MAX_SHIFT) -> dict:
-    """``n`` of ``src``'s images as different cameras give them (module docstring), without EXIF; their true K."""
+def internet_copy(src: Path, dst: Path, K: np.ndarray, n: int, seed: int = 0, max_shift: float = MAX_SHIFT,
+                  k1_range: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """``n`` of ``src``'s images as different cameras give them (module docstring), without EXIF; their true K.
+
+    ``k1_range``: each copy then goes through its own SIMPLE_RADIAL lens about its principal point, k1 uniform in the
+    range (drawn from a second generator, so that the crops are those of the same seed without a lens)."""
     rng = np.random.default_rng(seed)
+    rng_lens = np.random.default_rng(seed + 1000)
     dst.mkdir(parents=True, exist_ok=True)
     names = sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     pick = np.sort(rng.choice(len(names), size=min(n, len(names)), replace=False))
@@ -127,15 +132,23 @@ def internet_copy(src: Path, dst: Path, K: np.ndarray, n: int, seed: int = 0, ma
         sx, sy = out_w / cw, out_h / ch  # the scale each axis gets after rounding to whole pixels
         crop = img[y0:y0 + ch, x0:x0 + cw]
         small = cv2.resize(cv2.GaussianBlur(crop, (0, 0), 0.5 / s), (out_w, out_h), interpolation=cv2.INTER_AREA)
+        # pixel centres: x' = (x − x0 + 0.5)·sx − 0.5
+        f, pp = float(K[0, 0] * sx), [float((K[0, 2] - x0 + 0.5) * sx - 0.5), float((K[1, 2] - y0 + 0.5) * sy - 0.5)]
+        k1 = float(rng_lens.uniform(*k1_range)) if k1_range != (0.0, 0.0) else 0.0
+        if k1 != 0.0:  # every pixel of the copy samples the pinhole image where the lens took it from
+            yy, xx = np.mgrid[0:out_h, 0:out_w].astype(np.float64)
+            xu = undistort_points(simple_radial(f, np.array(pp), k1, out_w, out_h), np.column_stack([xx.ravel(),
+                                                                                                   yy.ravel()]))
+            small = cv2.remap(small, xu[:, 0].reshape(out_h, out_w).astype(np.float32),
+                              xu[:, 1].reshape(out_h, out_w).astype(np.float32), cv2.INTER_CUBIC,
+                              borderMode=cv2.BORDER_CONSTANT)
         out = dst / (p.stem + ".jpg")
         if not out.exists():
             ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 90])
             tmp = out.with_suffix(".part.jpg")
             buf.tofile(str(tmp))
             tmp.replace(out)
-        # pixel centres: x' = (x − x0 + 0.5)·sx − 0.5
-        truth[out.name] = {"focal_px": float(K[0, 0] * sx), "principal_point_px": [
-            float((K[0, 2] - x0 + 0.5) * sx - 0.5), float((K[1, 2] - y0 + 0.5) * sy - 0.5)], "size": [out_w, out_h]}
+        truth[out.name] = {"focal_px": f, "principal_point_px": pp, "size": [out_w, out_h], "k1": k1}
     return {"n_images": len(pick), "images": truth}
 
 
@@ -214,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--n-internet", type=int, default=10, help="internet: images per scene")
     ap.add_argument("--seed", type=int, default=0, help="internet: the cameras' draw")
     ap.add_argument("--max-shift", type=float, default=MAX_SHIFT, help="internet: largest crop shift (share of side)")
+    ap.add_argument("--internet-k1", type=float, nargs=2, default=(0.0, 0.0), metavar=("LOW", "HIGH"),
+                    help="internet: each copy's own SIMPLE_RADIAL lens, k1 uniform in [LOW, HIGH] (default: none)")
     ap.add_argument("--keep", type=Path, help="work folder to keep (default: a temporary one, removed)")
     ap.add_argument("--json", type=Path, default=RESULTS)
     a = ap.parse_args(argv)
@@ -234,8 +249,11 @@ def main(argv: list[str] | None = None) -> int:
                     _print(scene, tag, r, f"EXIF f {info['exif_focal_px']:.0f} px (true {info['true_focal_px']:.0f}); ")
                 result.setdefault("handheld" if a.square else "handheld-source-pixels", {})[scene] = rows
             if "internet" in a.kind:
-                folder = root / scene / f"internet-{a.seed}-{a.max_shift:g}"
-                info = internet_copy(d / "images", folder / "images", K, a.n_internet, a.seed, a.max_shift)
+                lens = tuple(a.internet_k1) != (0.0, 0.0)
+                tag = f" k1 {a.internet_k1[0]:g}..{a.internet_k1[1]:g}" if lens else ""
+                folder = root / scene / (f"internet-{a.seed}-{a.max_shift:g}" + tag.replace(" ", "-"))
+                info = internet_copy(d / "images", folder / "images", K, a.n_internet, a.seed, a.max_shift,
+                                     tuple(a.internet_k1))
                 r = {**info, **run_one(folder / "images", folder / "out", gt)}
                 err = [100 * (r["per_image"][nm]["focal_px"] / t["focal_px"] - 1) for nm, t in info["images"].items()
                        if nm in r["per_image"]]
@@ -243,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
                                         "max_abs": float(np.max(np.abs(err)))}
                 _print(scene, "internet", r, f"focal error |median| {r['focal_error_pct']['median_abs']:.2f}% "
                                              f"(max {r['focal_error_pct']['max_abs']:.2f}%); ")
-                result.setdefault("internet", {})[f"{scene} seed {a.seed} shift {a.max_shift:g}"] = r
+                result.setdefault("internet", {})[f"{scene} seed {a.seed} shift {a.max_shift:g}{tag}"] = r
         write_json(a.json, result)
         print(f"wrote {a.json}")
     finally:
