@@ -134,8 +134,8 @@ class RefineConfig(Config):
              "the principal points held, a probe refines them all; they are refined (where determined and "
              "significantly off the centre) when the residual σ with them held is at least this many times σ with "
              "them refined (a misfit keypoint noise does not explain; null: no probe). Internet imitations cropped 3% "
-             "off the centre: 2.8 and 1.8 (castle 4.17 → 0.40°, fountain 0.83 → 0.48°); 1% off: 1.02 and 1.21, "
-             "where refining would cost 0.23 → 0.41° and 0.30 → 0.39°", ge=1)
+             "off the centre: 2.7 and 1.8 (castle 4.17 → 0.43°, fountain 0.83 → 0.48°); 1% off: 1.02 and 1.21, "
+             "where refining would cost 0.23 → 0.41° and 0.30 → 0.39° (notes/issue-13.md)", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
     max_focal_sd: float = option(0.01, "cameras without a K file, principal points not refined: largest "
