@@ -306,6 +306,8 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "focal_refined": not bool(np.all(stage.known_K)) if stage.known_K is not None else None,
             "principal_point": s.get("principal_point"), "principal_point_rejected": s.get("principal_point_rejected"),
             "principal_point_fixed_why": s.get("principal_point_fixed_why"),
+            "principal_point_probe": {k: v for k, v in (s.get("principal_point_probe") or {}).items() if k != "cameras"}
+            or None,
             "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
             "time_s": float(s["times"]["total"]), "times": s["times"], "options": stage.config.as_dict(),
             "stats": {k: v for k, v in s.items() if k != "times"}, "cameras": cameras}
@@ -342,8 +344,12 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
         if s.get("focal_refined") and s.get("focal_px_median") is not None:
             notes.append(f"{label}: focal lengths not given by a file were refined by pycolmap's bundle adjustment "
                          f"(from the cameras stage's); median {s['focal_px_median']:.1f} px")
+        probe = (s.get("principal_point_probe") or {}).get("decision")
         if s.get("principal_point_fixed_why"):
-            notes.append(f"{label}: principal points kept at the image centres: {s['principal_point_fixed_why']}")
+            notes.append(f"{label}: principal points kept at the image centres: {s['principal_point_fixed_why']}"
+                         + (f"; probed: {probe}" if probe else ""))
+        elif probe:
+            notes.append(f"{label}: {probe}")
         for cid, pp in (s.get("principal_point") or {}).items():
             notes.append(f"{label}: principal point of camera {cid} refined to ({pp['px'][0]:.1f}, {pp['px'][1]:.1f}) "
                          f"px, standard deviation {pp['sd_px']:.2f} px")

@@ -194,3 +194,18 @@ def test_a_pair_rejected_only_as_weak_makes_tracks_and_no_other_rejected_pair_do
     assert inputs(True) == base | extra | {tuple(pair)}
     assert inputs(False) == base | extra
     assert inputs(True, weak_pairs=False) == base
+
+
+def test_the_report_says_what_the_principal_point_probe_decided():
+    base = {"start_why": "the recommended method", "status": "ok", "n_refined": 9, "n_cameras": 9, "model": "sparse",
+            "focal_refined": False, "kept_averaged": {}}
+    held = dict(base, principal_point_fixed_why="a camera without a K file has 1 image(s) (< 3)",
+                principal_point_probe={"decision": "held at the image centres: the residuals with them held are 1.02× "
+                                                   "those with them refined (< principal_point_misfit = 1.5)"})
+    refined = dict(base, principal_point_probe={"decision": "principal points refined for 7 of 8 image(s)"},
+                   principal_point={"3": {"px": [560.0, 390.0], "sd_px": 2.1}})
+    (n_held,) = [n for n in refine_notes({"a+refine": {"stats": held}}) if "principal point" in n]
+    assert "kept at the image centres: a camera without a K file" in n_held and "probed: held" in n_held
+    notes = refine_notes({"a+refine": {"stats": refined}})
+    assert "a+refine: principal points refined for 7 of 8 image(s)" in notes
+    assert any("principal point of camera 3 refined to (560.0, 390.0) px" in n for n in notes)
