@@ -11,7 +11,7 @@ After such a run (principal points held), the probe runs the refinement once mor
 (and the radial term that run kept, which its own check drops where the model does not determine it), and compares:
 
 1. **The misfit.** The residual standard deviation σ with the principal points held, over σ with them refined. If
-   the centre were right, the ratio would be 1 within the few parameters added; ``principal_point_misfit`` (1.5)
+   the centre were right, the ratio would be 1 within the few parameters added; ``principal_point_misfit`` (1.3)
    asks for a misfit that keypoint noise does not explain. The ratio is the test, not the covariance: where the
    centre is right to a few pixels, the refined principal points absorb what the model does not fit (Strecha's
    non-square pixels, the truth's own error) and their covariance claims 3 px where they are 20 px off.

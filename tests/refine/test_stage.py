@@ -201,7 +201,7 @@ def test_the_report_says_what_the_principal_point_probe_decided():
             "focal_refined": False, "kept_averaged": {}}
     held = dict(base, principal_point_fixed_why="a camera without a K file has 1 image(s) (< 3)",
                 principal_point_probe={"decision": "held at the image centres: the residuals with them held are 1.02× "
-                                                   "those with them refined (< principal_point_misfit = 1.5)"})
+                                                   "those with them refined (< principal_point_misfit = 1.3)"})
     refined = dict(base, principal_point_probe={"decision": "principal points refined for 7 of 8 image(s)"},
                    principal_point={"3": {"px": [560.0, 390.0], "sd_px": 2.1}})
     (n_held,) = [n for n in refine_notes({"a+refine": {"stats": held}}) if "principal point" in n]
