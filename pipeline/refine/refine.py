@@ -134,7 +134,7 @@ class RefineConfig(Config):
              "the principal points held, a probe refines them all; they are refined (where determined and "
              "significantly off the centre) when the residual σ with them held is at least this many times σ with "
              "them refined (a misfit keypoint noise does not explain; null: no probe). On 20 internet imitations, "
-             "refining helped at every ratio from 1.41 up (1.41–2.72) and cost at 4 of the 6 ratios of 1.02–1.21 "
+             "refining helped at every ratio from 1.41 up (1.41–2.72) and cost at 6 of the 8 ratios of 1.02–1.21 "
              "(notes/issue-13.md)", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
