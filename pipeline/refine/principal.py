@@ -126,6 +126,10 @@ def probe_principal_points(pc: Any, rec: Any, ba: Any, const: np.ndarray, K: np.
                 f"where it is not determined or not significantly off it "
                 f"({', '.join(names[k] for k in np.flatnonzero(held)[:5])})")
         result = run(K2, hold | held, replace(cfg, principal_point="refined"))
+        if result.reconstruction is None:  # that run failed: the held run stands
+            info["decision"] = (f"held at the image centres: {msg}, but the refinement that way failed "
+                                f"({(result.warnings or ['?'])[-1][:100]})")
+            return None, info
     else:  # every camera refined: the probe is that run
         result = probe
     info["decision"] = msg

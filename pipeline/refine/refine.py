@@ -271,11 +271,15 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         return RefineResult(status, R_out, R_init.copy(), R_ref, refined,
                             np.full(n, np.nan) if change is None else change, cov, list(why), rec, warnings, stats)
 
+    def rerun(K_again: np.ndarray, hold_again: np.ndarray, cfg_again: RefineConfig) -> RefineResult:
+        """The same refinement from other intrinsics, holding other cameras, with other options."""
+        return refine_rotations(names, K_again, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
+                                R_init, known, cfg_again, scratch, k1, hold_again)
+
     def again(msg: str, key: str, rejected: Any, cfg_again: RefineConfig, hold_again: np.ndarray = hold
               ) -> RefineResult:
         """The refinement run again without what the model did not determine (``msg`` says what; ``stats[key]``)."""
-        res = refine_rotations(names, K, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t, R_init,
-                               known, cfg_again, scratch, k1, hold_again)
+        res = rerun(K, hold_again, cfg_again)
         logger.warning("refine: %s", msg)
         res.warnings.insert(0, msg)
         res.stats[key] = rejected
@@ -419,10 +423,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                                                         "corner_sd_px": v} for cid, v in loose.items()},
                          cfg, hold | held)
     if probe_pp:  # a run with every principal point refined, taken where the image centre is a misfit
-        probed, stats["principal_point_probe"] = probe_principal_points(
-            pc, rec, ba, const, K, known, hold, cfg, names,
-            lambda K2, hold2, cfg2: refine_rotations(names, K2, sizes, keypoints, edges, match_offsets, matches,
-                                                     cam2_from_cam1, t, R_init, known, cfg2, scratch, k1, hold2))
+        probed, stats["principal_point_probe"] = probe_principal_points(pc, rec, ba, const, K, known, hold, cfg,
+                                                                        names, rerun)
         if probed is not None:
             probed.stats["principal_point_probe"] = stats["principal_point_probe"]
             probed.stats["times"]["total"] = time.perf_counter() - t_all

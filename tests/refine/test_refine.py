@@ -345,3 +345,40 @@ def test_principal_points_at_the_centre_stay_held_and_the_result_is_the_held_run
     assert not any(c["refined"] for c in probe["cameras"].values())
     np.testing.assert_allclose(auto.R, held.R, rtol=0, atol=1e-12)
     assert auto.warnings == held.warnings
+
+
+def test_the_probes_decision_and_a_failed_second_run(monkeypatch):
+    """The probe's logic on stand-ins for pycolmap's objects: of two images, the one whose principal point is
+    determined and 30 px off is refined, the other held at the held run's focal length; if that run fails, the held
+    run stands and the decision says why."""
+    from types import SimpleNamespace
+
+    from pipeline.refine import principal
+
+    monkeypatch.setattr(principal, "residual_sigma_px", lambda *a: 0.5)
+    cam = SimpleNamespace(principal_point_x=100.5, principal_point_y=80.5, mean_focal_length=lambda: 480.0)
+    rec = SimpleNamespace(reg_image_ids=lambda: [1, 2], image=lambda iid: SimpleNamespace(camera_id=iid, has_pose=True),
+                          camera=lambda cid: cam, exists_image=lambda iid: True)
+    entry = lambda px: {"px": px, "sd_px": 1.0, "max_sd_px": 5.0, "cov_px2": [[1.0, 0.0], [0.0, 1.0]]}  # noqa: E731
+    probe = SimpleNamespace(reconstruction=rec, warnings=[], stats={
+        "residual_sigma_px": 0.25, "principal_point": {"1": entry([130.0, 80.0]), "2": entry([100.5, 80.0])}})
+    calls = []
+
+    def run(K, hold, cfg, second=None):
+        calls.append((K.copy(), hold.copy(), cfg.principal_point))
+        return probe if len(calls) == 1 else second
+
+    K = np.tile(np.array([[500.0, 0, 100.0], [0, 500.0, 80.0], [0, 0, 1]]), (2, 1, 1))
+    args = (None, rec, None, np.zeros(2, bool), K, np.zeros(2, bool), np.zeros(2, bool), RefineConfig(), ["a", "b"])
+    done = SimpleNamespace(reconstruction=rec, warnings=["w"], stats={})
+    res, info = principal.probe_principal_points(*args, lambda K, h, c: run(K, h, c, done))
+    assert res is done and info["ratio"] == 2.0 and res.warnings[0].startswith("principal points refined for 1 of 2")
+    assert [c["refined"] for c in info["cameras"].values()] == [True, False] and info["cameras"]["a"]["chi2"] == 900.0
+    K2, hold2, pp = calls[1]
+    assert pp == "refined" and hold2.tolist() == [False, True] and K2[1, 0, 0] == K2[1, 1, 1] == 480.0
+    assert K2[0, 0, 0] == 500.0  # the refined camera starts where the probe did
+    calls.clear()
+    failed = SimpleNamespace(reconstruction=None, warnings=["global positioning failed; the averaged rotations are kept"])
+    res, info = principal.probe_principal_points(*args, lambda K, h, c: run(K, h, c, failed))
+    assert res is None and "the refinement that way failed (global positioning failed" in info["decision"]
+    assert info["decision"].startswith("held at the image centres")
