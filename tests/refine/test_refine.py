@@ -357,8 +357,8 @@ def test_the_probes_decision_and_a_failed_second_run(monkeypatch):
 
     monkeypatch.setattr(principal, "residual_sigma_px", lambda *a: 0.5)
     cam = SimpleNamespace(principal_point_x=100.5, principal_point_y=80.5, mean_focal_length=lambda: 480.0)
-    rec = SimpleNamespace(reg_image_ids=lambda: [1, 2], image=lambda iid: SimpleNamespace(camera_id=iid, has_pose=True),
-                          camera=lambda cid: cam, exists_image=lambda iid: True)
+    rec = SimpleNamespace(reg_image_ids=lambda: [1, 2], camera=lambda cid: cam, exists_image=lambda iid: True,
+                          image=lambda iid: SimpleNamespace(camera_id=iid, has_pose=True))
     entry = lambda px: {"px": px, "sd_px": 1.0, "max_sd_px": 5.0, "cov_px2": [[1.0, 0.0], [0.0, 1.0]]}  # noqa: E731
     probe = SimpleNamespace(reconstruction=rec, warnings=[], stats={
         "residual_sigma_px": 0.25, "principal_point": {"1": entry([130.0, 80.0]), "2": entry([100.5, 80.0])}})
