@@ -378,7 +378,8 @@ def test_the_probes_decision_and_a_failed_second_run(monkeypatch):
     assert pp == "refined" and hold2.tolist() == [False, True] and K2[1, 0, 0] == K2[1, 1, 1] == 480.0
     assert K2[0, 0, 0] == 500.0  # the refined camera starts where the probe did
     calls.clear()
-    failed = SimpleNamespace(reconstruction=None, warnings=["global positioning failed; the averaged rotations are kept"])
+    failed = SimpleNamespace(reconstruction=None,
+                             warnings=["global positioning failed; the averaged rotations are kept"])
     res, info = principal.probe_principal_points(*args, lambda K, h, c: run(K, h, c, failed))
     assert res is None and "the refinement that way failed (global positioning failed" in info["decision"]
     assert info["decision"].startswith("held at the image centres")
