@@ -388,7 +388,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                          replace(cfg, radial="off") if radial else replace(cfg, principal_point="fixed"))
     if radial:  # k1 kept only where the model determines it
         try:
-            covs = camera_covariances(pc, rec, ba, const)
+            covs = camera_covariances(pc, rec, ba, const) if covs is None else covs
             corner = radial_corner_sd(rec, covs)
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
             logger.warning("refine: the radial terms' covariance failed (%s)", " ".join(str(exc).split())[:100])

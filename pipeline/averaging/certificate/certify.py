@@ -214,8 +214,8 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         if best is None:
             break  # no step raises λ_min: the last multipliers stand
         V, _, eta_num, eta, eig = best
-    lmi_edges = 0 if V is None else int(np.sum(np.trace(V, axis1=1, axis2=2) > 0))
-    lmi_trace = 0.0 if V is None else float(np.trace(V, axis1=1, axis2=2).sum())
+    trV = np.zeros(0) if V is None else np.trace(V, axis1=1, axis2=2)
+    lmi_edges, lmi_trace = int(np.sum(trV > 0)), float(trV.sum())
     msg = eig.message
     witness: list[int] = []
     if not eig.ok:

@@ -68,9 +68,7 @@ class EigenResult:
             Rayleigh quotient otherwise), NaN if not computed.
         lambda_nontrivial: first eigenvalue of S on span(Y)⊥ near 0 (the margin), NaN if
             not computed.
-        witness: (3N,) unit eigenvector of ``lambda_min`` when n_below > 0, else None.
-        witnesses: (3N, k) unit eigenvectors of the k ≤ ``n_witness`` smallest eigenvalues below −η (the
-            first is ``witness``), or None.
+        witnesses: (3N, k) unit eigenvectors of the k ≤ ``n_witness`` smallest eigenvalues below −η, or None.
         residual: ‖S v − λ v‖ of the reported eigenpair.
         message: what failed, if anything.
         times: seconds per step.
@@ -80,11 +78,15 @@ class EigenResult:
     n_below: int
     lambda_min: float
     lambda_nontrivial: float
-    witness: np.ndarray | None
+    witnesses: np.ndarray | None
     residual: float
     message: str = ""
     times: dict[str, float] = field(default_factory=dict)
-    witnesses: np.ndarray | None = None
+
+    @property
+    def witness(self) -> np.ndarray | None:
+        """(3N,) unit eigenvector of ``lambda_min`` when n_below > 0 (the first of ``witnesses``), else None."""
+        return None if self.witnesses is None else self.witnesses[:, 0]
 
 
 class DenseLDL:
@@ -235,6 +237,6 @@ def min_eigenvalue(S: sp.csc_matrix, Y: np.ndarray, eta: float, k_margin: int = 
         ok = rq < -eta
         message = "" if ok else f"Lanczos found no eigenvalue below −η (Rayleigh quotient {rq:.3g})"
     except sla.ArpackNoConvergence as exc:
-        v, W, rq, res, ok, message = None, None, np.nan, np.nan, False, f"Lanczos did not converge ({exc})"
+        W, rq, res, ok, message = None, np.nan, np.nan, False, f"Lanczos did not converge ({exc})"
     times["lanczos_s"] = time.perf_counter() - t1
-    return EigenResult(ok, n_neg, rq, np.nan, v, res, message, times, W)
+    return EigenResult(ok, n_neg, rq, np.nan, W, res, message, times)
