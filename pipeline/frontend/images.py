@@ -29,8 +29,19 @@ MIN_SIDE = 16
 __all__ = ["IMAGE_EXTENSIONS", "MAX_PIXELS", "list_images", "read_gray", "image_size", "check_headers"]
 
 
+def _is_run_output(files: list[str]) -> bool:
+    """Whether a folder with these files holds this pipeline's outputs (a stage record): its plots are not photos."""
+    return any(f.endswith(".record.json") for f in files)
+
+
 def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
-    """Image file names (sorted) in ``folder`` and the other files that were ignored.
+    """Image names (sorted) under ``folder`` and the other files that were ignored.
+
+    Subfolders are read too, as COLMAP's image reader does: an image in one is named by its path relative to
+    ``folder`` with ``/`` (``cam0/0001.jpg``, the name COLMAP and hloc give it). Hidden files and folders are
+    skipped, and so is a folder of this pipeline's own outputs (one holding a stage record, ``*.record.json``),
+    whose plots are PNG files, should ``--out`` lie inside the image folder. Symbolic links to folders are followed
+    once each.
 
     Raises:
         InputFileError: the folder does not exist.
@@ -39,11 +50,25 @@ def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
     if not folder.is_dir():
         raise InputFileError(f"image folder {folder} does not exist or is not a folder; pass --images DIR with your images")
     names, other = [], []
-    for p in sorted(folder.iterdir()):
-        if not p.is_file() or p.name.startswith("."):
+    seen = {os.path.realpath(folder)}
+    for root, dirs, files in os.walk(folder, followlinks=True):
+        rel = Path(root).relative_to(folder)
+        if rel != Path(".") and _is_run_output(files):
+            dirs[:] = []
             continue
-        (names if p.suffix.lower() in IMAGE_EXTENSIONS else other).append(p.name)
-    return names, other
+        keep = []
+        for d in sorted(dirs):
+            real = os.path.realpath(os.path.join(root, d))
+            if not d.startswith(".") and real not in seen:  # a link back up (or twice to one folder) is read once
+                seen.add(real)
+                keep.append(d)
+        dirs[:] = keep
+        for f in files:
+            if f.startswith(".") or not os.path.isfile(os.path.join(root, f)):
+                continue
+            name = (rel / f).as_posix()
+            (names if Path(f).suffix.lower() in IMAGE_EXTENSIONS else other).append(name)
+    return sorted(names), sorted(other)
 
 
 def _jpeg_truncated(data: np.ndarray) -> bool:

@@ -92,6 +92,45 @@ def test_only_unreadable_images(tmp_path):
     _one_line_error(_run("pipeline.features", "--images", img, "--work", tmp_path / "w"), "only 0 of 2 images", "a.jpg")
 
 
+def test_images_in_subfolders_are_listed_by_their_relative_paths(tmp_path):
+    """As COLMAP's image reader: subfolders are read and an image is named by its path from the folder; hidden
+    folders, a folder of our own outputs (a stage record beside its plots) and a second link to one folder are not."""
+    from pipeline.frontend.images import list_images
+
+    img = tmp_path / "img"
+    for d in ("cam0", "cam1/deep", ".cache", "out/run", "out/run/work"):
+        (img / d).mkdir(parents=True)
+    for f in ("top.jpg", "cam0/b.png", "cam0/a.png", "cam1/deep/c.JPG", ".cache/x.png", "out/run/errors_truth.png",
+              "out/run/work/features.record.json", "cam0/notes.txt"):
+        (img / f).write_bytes(b"x")
+    (img / "out/run/viewgraph.record.json").write_text("{}")
+    (img / "cam1/up").symlink_to(img, target_is_directory=True)  # a loop: read once
+    (img / "cam0_again").symlink_to(img / "cam0", target_is_directory=True)
+    names, other = list_images(img)
+    assert names == ["cam0/a.png", "cam0/b.png", "cam1/deep/c.JPG", "top.jpg"]
+    assert other == ["cam0/notes.txt"]
+
+
+@pytest.mark.slow
+def test_images_in_subfolders_go_through_the_front_end(scene, tmp_path):
+    """Two subfolders of one scene: the stages name the images by their relative paths, a cameras file naming them
+    by their file names gives their K, and the pairs' rotations are right."""
+    img = tmp_path / "img"
+    _copy_images(scene, img / "left", scene.names[:2])
+    _copy_images(scene, img / "right", scene.names[2:])
+    w = tmp_path / "w"
+    for args in (("pipeline.features", "--images", img, "--work", w, "--K", scene.out / "cameras.txt", "-q"),
+                 ("pipeline.matching", "--work", w, "-q"), ("pipeline.two_view", "--work", w, "-q")):
+        r = _run(*args)
+        assert r.returncode == 0, r.stderr
+    d = load_two_view(w)
+    assert d.vg.names == [f"left/{n}" for n in scene.names[:2]] + [f"right/{n}" for n in scene.names[2:]]
+    assert d.vg.n_edges == 3
+    R_true = np.einsum("mij,mkj->mik", scene.R[d.vg.edges[:, 1]], scene.R[d.vg.edges[:, 0]])
+    err = np.degrees(so3.angle_between(d.vg.R_rel, R_true))
+    assert err.max() < 1.0, err
+
+
 @pytest.mark.slow
 def test_images_of_different_sizes(scene, tmp_path):
     """A half-size copy of one view: its own size and K, and the right rotations."""
