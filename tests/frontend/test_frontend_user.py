@@ -111,6 +111,30 @@ def test_images_in_subfolders_are_listed_by_their_relative_paths(tmp_path):
     assert other == ["cam0/notes.txt"]
 
 
+def test_a_subfolder_that_cannot_be_read_is_said(tmp_path, monkeypatch, caplog):
+    """A subfolder the walk cannot list (permissions) leaves its images out with a warning that names it."""
+    import os
+
+    from pipeline.frontend.images import list_images
+
+    img = tmp_path / "img"
+    (img / "locked").mkdir(parents=True)
+    (img / "locked" / "a.png").write_bytes(b"x")
+    (img / "top.png").write_bytes(b"x")
+    real = os.scandir
+
+    def scandir(path="."):
+        if Path(path).name == "locked":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+
+    monkeypatch.setattr(os, "scandir", scandir)
+    with caplog.at_level("WARNING"):
+        names, _ = list_images(img)
+    assert names == ["top.png"]
+    assert "locked" in caplog.text and "left out" in caplog.text
+
+
 @pytest.mark.slow
 def test_images_in_subfolders_go_through_the_front_end(scene, tmp_path):
     """Two subfolders of one scene: the stages name the images by their relative paths, a cameras file naming them
