@@ -51,6 +51,7 @@ def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
         raise InputFileError(f"image folder {folder} does not exist or is not a folder; pass --images DIR with your images")
     names, other = [], []
     seen = {os.path.realpath(folder)}
+
     def unreadable(exc: OSError) -> None:  # a subfolder os.walk cannot list: said, not passed over in silence
         logger.warning("cannot read the folder %s (%s): its images are left out", exc.filename, exc.strerror or exc)
 
