@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from pipeline.core.errors import InputFileError
+from pipeline.stage import RECORD_SUFFIX
 
 logger = logging.getLogger(__name__)
 
@@ -27,11 +28,6 @@ MAX_PIXELS = 250_000_000  # 250 Mpx: more is a damaged or hostile header, not a 
 MIN_SIDE = 16
 
 __all__ = ["IMAGE_EXTENSIONS", "MAX_PIXELS", "list_images", "read_gray", "image_size", "check_headers"]
-
-
-def _is_run_output(files: list[str]) -> bool:
-    """Whether a folder with these files holds this pipeline's outputs (a stage record): its plots are not photos."""
-    return any(f.endswith(".record.json") for f in files)
 
 
 def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
@@ -57,7 +53,7 @@ def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
 
     for root, dirs, files in os.walk(folder, onerror=unreadable, followlinks=True):
         rel = Path(root).relative_to(folder)
-        if rel != Path(".") and _is_run_output(files):
+        if rel != Path(".") and any(f.endswith(RECORD_SUFFIX) for f in files):  # our outputs: plots, not photos
             dirs[:] = []
             continue
         keep = []

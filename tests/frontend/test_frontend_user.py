@@ -45,6 +45,12 @@ def _copy_images(scene, dst: Path, names=None) -> Path:
     return dst
 
 
+def _pair_errors_deg(scene, d) -> np.ndarray:
+    """Each pair's relative rotation of the two-view result ``d`` against the scene's truth (degrees)."""
+    R_true = np.einsum("mij,mkj->mik", scene.R[d.vg.edges[:, 1]], scene.R[d.vg.edges[:, 0]])
+    return np.degrees(so3.angle_between(d.vg.R_rel, R_true))
+
+
 def test_empty_folder(tmp_path):
     (tmp_path / "img").mkdir()
     _one_line_error(_run("pipeline.features", "--images", tmp_path / "img", "--work", tmp_path / "w"), "0 image file(s)", "at least 2")
@@ -150,8 +156,7 @@ def test_images_in_subfolders_go_through_the_front_end(scene, tmp_path):
     d = load_two_view(w)
     assert d.vg.names == [f"left/{n}" for n in scene.names[:2]] + [f"right/{n}" for n in scene.names[2:]]
     assert d.vg.n_edges == 3
-    R_true = np.einsum("mij,mkj->mik", scene.R[d.vg.edges[:, 1]], scene.R[d.vg.edges[:, 0]])
-    err = np.degrees(so3.angle_between(d.vg.R_rel, R_true))
+    err = _pair_errors_deg(scene, d)
     assert err.max() < 1.0, err
 
 
@@ -177,8 +182,7 @@ def test_images_of_different_sizes(scene, tmp_path):
     d = load_two_view(w)
     np.testing.assert_array_equal(d.sizes, [[320, 240], [320, 240], [240, 180]])
     assert d.vg.n_edges == 3
-    R_true = np.einsum("mij,mkj->mik", scene.R[d.vg.edges[:, 1]], scene.R[d.vg.edges[:, 0]])
-    err = np.degrees(so3.angle_between(d.vg.R_rel, R_true))
+    err = _pair_errors_deg(scene, d)
     assert err.max() < 1.0, err
 
 
