@@ -61,13 +61,20 @@ RESULTS = Path(__file__).resolve().parent / "results" / "scale.json"
 FEATURE_FILES = ("features", "features.json", "features.record.json")
 
 
+#: The renderer's seed (``--seed``); a work folder holds the scenes of one seed.
+SEED = 0
+
+
 def scene_dir(work: Path, layout: str, n: int) -> Path:
-    """The rendered scene (rendered now unless already there)."""
+    """The rendered scene (rendered now unless already there, with :data:`SEED`)."""
     d = work / "scenes" / f"{layout}-{n}"
     if not (d / "scene.json").is_file():
         t0 = time.perf_counter()
-        large.main(d, layout, n)
+        large.main(d, layout, n, SEED)
         print(f"rendered {d} in {time.perf_counter() - t0:.0f} s", flush=True)
+    seed = json.loads((d / "scene.json").read_text()).get("seed", 0)
+    if seed != SEED:
+        raise SystemExit(f"error: {d} was rendered with seed {seed}, not {SEED}; give each seed its own --work")
     return d
 
 
@@ -147,7 +154,7 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, 
                                                                   ["config"]["overlap_threshold"]))
     sel = load_matches(out / "work").pairs
     label, err = first_method(m)
-    row = {"layout": layout, "n": n, "pairs": m.get("pairs", {}), "recall": pair_recall(sel, truth, n),
+    row = {"layout": layout, "n": n, "seed": SEED, "pairs": m.get("pairs", {}), "recall": pair_recall(sel, truth, n),
            "method": label, "median_deg": err, "methods_median_deg": {k: v.get("median_deg") for k, v in
                                                                       m["methods"].items()},
            "our_path_s": m["our_path_s"], "per_image_s": m["our_path_s"] / n, "stages_s": m["stages"],
@@ -252,8 +259,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only-pycolmap-own", action="store_true", help="keep the rows already in --json; add pycolmap's own path")
     p.add_argument("--rescore", action="store_true", help="run nothing: add the same-images comparison with "
                    "pycolmap to the rows of --json from their finished runs in --work")
+    p.add_argument("--seed", type=int, default=0, help="the renderer's seed (one seed per --work folder)")
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
+    global SEED  # noqa: PLW0603 - the scenes of this invocation
+    SEED = a.seed
     old = json.loads(a.json.read_text()).get("rows", []) if a.json.is_file() else []
     rows = {(r["layout"], r["n"]): r for r in old}
     if a.rescore:

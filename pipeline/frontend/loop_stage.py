@@ -45,7 +45,7 @@ from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
-from pipeline.frontend.loop_closure import loop_candidates
+from pipeline.frontend.loop_closure import loop_candidates, saturated_candidates
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.pairs import parse_selector, resolve_auto, selection_summary
 from pipeline.geometry.ba_solver import BAConfig
@@ -76,6 +76,10 @@ class LoopClosureConfig(Config):
                                   le=180)
     max_fraction: float = option(0.1, "the second round matches at most this fraction of the first round's pairs",
                                  ge=0)
+    saturated_share: float = option(0.95, "with retrieval whose k was chosen automatically, an image whose "
+                                    "candidates ranked k/2 to k verified at least at this share gets its next k "
+                                    "ranked neighbours matched too (above 1: never)", ge=0)
+    saturated_max_fraction: float = option(1.0, "those pairs are at most this fraction of the first round's", ge=0)
 
 
 @dataclass(frozen=True)
@@ -177,26 +181,56 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         nb, sim = matching_stage.load_ranked(work, len(names))
         vg = load_ba_viewgraph(work)
         budget = int(math.floor(cfg.max_fraction * len(first)))
-        c = loop_candidates(len(names), first, vg.edges, nb, sim, first_round_rotations(vg), min_hops=cfg.min_hops,
+        R = first_round_rotations(vg)
+        c = loop_candidates(len(names), first, vg.edges, nb, sim, R, min_hops=cfg.min_hops,
                             max_angle_deg=cfg.max_angle_deg, budget=budget)
         added = c["pairs"]
-        pairs = np.unique(np.concatenate([first, added]), axis=0)
+        sat = self._saturated(len(names), first, vg.edges, nb, sim, R, mm.get("selection") or {})
+        n = len(names)
+        new = ~np.isin(sat["pairs"] @ [n, 1], added @ [n, 1])  # not a loop-closure pair already
+        sat.update({k: sat[k][new] for k in ("pairs", "similarity", "angle_deg")})
+        extended = sat["pairs"]
+        pairs = np.unique(np.concatenate([first, added, extended]), axis=0)
         counts = {k: v for k, v in c.items() if k.startswith("n_")}
         summary = {"base": base, "n_first": len(first), "n_added": len(added), "budget": budget,
-                   "min_hops": cfg.min_hops, **counts}
+                   "min_hops": cfg.min_hops, **counts, "n_saturated": sat["n_saturated"],
+                   "n_extended": len(extended), "saturated_budget": sat["budget"]}
         sel = dict(mm.get("selection") or {})
-        selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added)}},
+        selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added),
+                                                               "n_saturated": sat["n_saturated"],
+                                                               "n_extended": len(extended)}},
                                       len(names), len(pairs))
         path = write_json(work / OUTPUT, {
             "format": "rotavg-loop-closure", "names": names, "pairs": pairs.tolist(), "selection": selection,
             "added": [{"pair": [names[a], names[b]], "hops": None if math.isinf(h) else int(h),
                        "angle_deg": None if math.isnan(g) else round(float(g), 3), "similarity": round(float(s), 4)}
                       for (a, b), h, g, s in zip(added.tolist(), c["hops"], c["angle_deg"], c["similarity"])],
+            "extended": [{"pair": [names[a], names[b]], "angle_deg": None if math.isnan(g) else round(float(g), 3),
+                          "similarity": round(float(s), 4)}
+                         for (a, b), g, s in zip(extended.tolist(), sat["angle_deg"], sat["similarity"])],
             **summary})
         logger.info("loop closure: %d pairs added to the first round's %d (budget %d; of %d unmatched ranked pairs, "
                     "%d at least %d hops apart, %d of those looking apart)", len(added), len(first), budget,
                     c["n_candidates"], c["n_far"], cfg.min_hops, c["n_apart"])
+        if sat["n_saturated"]:
+            logger.info("retrieval's k was short of %d image(s) whose lower-ranked candidates verified too: %d of "
+                        "their next-ranked pairs added (budget %d)", sat["n_saturated"], len(extended), sat["budget"])
         return [path], summary
+
+    def _saturated(self, n: int, first: np.ndarray, verified: np.ndarray, nb: np.ndarray, sim: np.ndarray,
+                   R: np.ndarray, selection: dict[str, Any]) -> dict[str, Any]:
+        """:func:`saturated_candidates` where retrieval chose k itself (auto, or ``retrieval`` without K: a k the
+        user gave is kept as given, as sequential's K is); no pairs otherwise."""
+        cfg = self.config
+        kind, arg = parse_selector(self.front.matching.pairs)
+        k = selection.get("k")
+        budget = int(math.floor(cfg.saturated_max_fraction * len(first)))
+        if selection.get("selector") != "retrieval" or kind not in ("auto", "retrieval") or arg is not None or not k:
+            return {"pairs": np.zeros((0, 2), np.int64), "similarity": np.zeros(0), "angle_deg": np.zeros(0),
+                    "n_saturated": 0, "budget": 0}
+        out = saturated_candidates(n, int(k), first, verified, nb, sim, R, share=cfg.saturated_share,
+                                   max_angle_deg=cfg.max_angle_deg, budget=budget)
+        return {**out, "budget": budget}
 
     def verify(self, record: StageRecord) -> None:
         self.load_pairs(list(feature_stage.load_manifest(self.folder)["names"]))
@@ -225,11 +259,20 @@ def loop_note(work: Path) -> str | None:
     d = read_json(Path(work) / OUTPUT, "the loop-closure result", CacheError)
     idx = {nm: k for k, nm in enumerate(d["names"])}
     n = len(idx)
-    added = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]])) for a in d["added"]], np.int64).reshape(-1, 2)
     edges = load_ba_viewgraph(work).edges
-    n_ok = int(np.isin(added @ [n, 1], edges @ [n, 1]).sum())
-    return (f"loop closure: {len(added)} pairs added to the first round's {d['n_first']} (their images at least "
+
+    def verified(rows: list[dict[str, Any]]) -> tuple[int, int]:
+        P = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]])) for a in rows], np.int64).reshape(-1, 2)
+        return len(P), int(np.isin(P @ [n, 1], edges @ [n, 1]).sum())
+
+    n_added, n_ok = verified(d["added"])
+    note = (f"loop closure: {n_added} pairs added to the first round's {d['n_first']} (their images at least "
             f"{d['min_hops']} verified pairs apart), {n_ok} of them verified")
+    if d.get("n_saturated"):
+        n_ext, n_ext_ok = verified(d.get("extended", []))
+        note += (f"; {n_ext} next-ranked pairs of the {d['n_saturated']} images whose lower-ranked retrieval "
+                 f"candidates verified too (k was short for them), {n_ext_ok} of them verified")
+    return note
 
 
 RunStage = Callable[[Stage, bool, bool], Any]

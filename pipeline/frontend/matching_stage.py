@@ -160,7 +160,8 @@ class MatchingStage(Stage[MatchingConfig]):
         if self.loop is None or not self.loop.applies():
             return None
         rec = self.loop.cached()
-        return rec if rec is not None and rec.summary.get("n_added", 0) > 0 else None
+        adds = rec is not None and (rec.summary.get("n_added", 0) > 0 or rec.summary.get("n_extended", 0) > 0)
+        return rec if adds else None
 
     def base_fingerprint(self) -> str:
         """The fingerprint of the first round: this selection without loop-closure pairs."""

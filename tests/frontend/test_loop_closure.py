@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +16,7 @@ from scipy.sparse.csgraph import shortest_path
 from pipeline import features
 from pipeline.core import so3
 from pipeline.frontend.camera_estimate import CamerasConfig
-from pipeline.frontend.loop_closure import _adjacency, hop_distances, loop_candidates
+from pipeline.frontend.loop_closure import _adjacency, hop_distances, loop_candidates, saturated_candidates
 from pipeline.frontend.loop_stage import FrontEnd, LoopClosureConfig, LoopClosureStage, loop_note, run_front_end
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.matching_stage import load_matches
@@ -119,6 +120,46 @@ def test_pairs_across_components_come_first():
     assert (c["pairs"][:, 1] - c["pairs"][:, 0] == 20).all()
 
 
+def test_images_whose_lower_ranked_candidates_verified_get_their_next_ranked_ones():
+    n, k = 48, 8
+    overlap, R = ring(n, span=7)  # each view overlaps 14 others (a turntable ring), k = 8 finds 8
+    nb, sim = ranked(n, 4 * k)
+    top = np.unique(np.sort(np.stack([np.repeat(np.arange(n), k), nb[:, :k].ravel()], 1), axis=1), axis=0)
+    verified = top[np.isin(top @ [n, 1], overlap @ [n, 1])]
+    c = saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=65.0, budget=10_000)
+    assert c["saturated"].all() and c["n_saturated"] == n  # ranks 4-7 are 3-4 steps away: all verified
+    d = np.abs(c["pairs"][:, 1] - c["pairs"][:, 0])
+    d = np.minimum(d, n - d)
+    # the next k ranked of each view are 5-8 steps away, none matched before; 8 steps (60°) is within 65°
+    assert set(d.tolist()) == {5, 6, 7, 8} and len(c["pairs"]) == 4 * n
+    assert not np.isin(c["pairs"] @ [n, 1], top @ [n, 1]).any()
+    assert (np.diff(c["similarity"]) <= 0).all()  # most similar first
+    # rotations rule out pairs looking apart (7 and 8 steps: 52.5° and 60°)
+    c50 = saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=50.0, budget=10_000)
+    assert set(np.minimum(np.abs(np.diff(c50["pairs"], axis=1)), n - np.abs(np.diff(c50["pairs"], axis=1)))
+               .ravel().tolist()) == {5, 6} and c50["n_apart"] == 2 * n
+    # the budget keeps the most similar
+    c5 = saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=65.0, budget=5)
+    assert len(c5["pairs"]) == 5 and np.all(c5["similarity"] == c["similarity"][:5])
+    # a view whose lower-ranked candidates failed is not saturated (nor those for which it is one of them)
+    d0 = np.minimum(top[:, 1] - top[:, 0], n - (top[:, 1] - top[:, 0]))
+    fail0 = (top == 0).any(axis=1) & (d0 >= 3)
+    c0 = saturated_candidates(n, k, top, verified[~np.isin(verified @ [n, 1], top[fail0] @ [n, 1])], nb, sim, R,
+                              budget=10_000)
+    assert not c0["saturated"][[0, 3, 4, n - 3, n - 4]].any() and c0["n_saturated"] == n - 5
+    assert c0["saturated"][c0["pairs"]].any(axis=1).all()  # every pair is a saturated view's
+    # where many matched pairs failed, the collection's overlap does not exceed k: nothing is added, even for the
+    # views whose own candidates all verified
+    far = np.stack([np.arange(n // 2), np.arange(n // 2) + n // 2], 1)  # opposite views: matched, not verified
+    cf = saturated_candidates(n, k, np.r_[top, far], verified, nb, sim, R, budget=10_000)
+    assert cf["verified_share"] < 0.95 and cf["n_saturated"] == 0 and len(cf["pairs"]) == 0
+    assert c["verified_share"] == 1.0
+    # a view that overlaps fewer than k others is not saturated: nothing is added
+    verified3 = top[np.isin(top @ [n, 1], ring(n, span=3)[0] @ [n, 1])]  # ranks 6-7 (4 steps) fail
+    c3 = saturated_candidates(n, k, top, verified3, nb, sim, R, budget=10_000)
+    assert c3["n_saturated"] == 0 and len(c3["pairs"]) == 0
+
+
 # ---------------------------------------------------------------------- the rounds in a WORK folder
 SCENE = LargeSceneConfig(layout="ring", n_views=24, width=320, height=240, focal=280.0, points_per_view=800,
                          supersample=1)
@@ -166,13 +207,40 @@ def test_two_rounds_then_a_rerun_reuses_both(work: Path):
     assert summary(work, "matching")["n_computed"] == n_added
     assert summary(work, "two_view")["n_computed"] == n_added
     assert calls[6][2]  # cameras reused in the second round
-    assert summary(work, "matching")["pairs"]["loop_closure"] == {"n_first": n_first, "n_added": n_added}
+    assert summary(work, "matching")["pairs"]["loop_closure"] == {"n_first": n_first, "n_added": n_added,
+                                                                   "n_saturated": 0, "n_extended": 0}  # k given
     assert summary(work, "matching")["base"] == lc["base"]
 
     calls.clear()
     run_front_end(work, front(), run)  # a re-run: the loop closure is current, the first round is not run again
     assert [c[0] for c in calls] == ["loop_closure", "matching", "cameras", "two_view", "two_view_ba"]
     assert all(c[2] for c in calls) and not any(c[1] for c in calls)
+
+
+def test_the_next_ranked_pairs_of_saturated_images_are_matched_in_the_second_round(work: Path, tmp_path: Path):
+    w = tmp_path / "work"
+    shutil.copytree(work, w)
+    fe = dataclasses.replace(front(saturated_share=0.0), matching=MatchingConfig(pairs="retrieval"))  # k chosen
+    run_front_end(w, fe)
+    lc = json.loads((w / "loop_closure.json").read_text())
+    idx = {nm: i for i, nm in enumerate(lc["names"])}
+    n = len(idx)
+    k = summary(w, "matching")["pairs"]["k"]
+    ext = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]])) for a in lc["extended"]]).reshape(-1, 2)
+    # every image is saturated at share 0: each one's next k ranked neighbours not matched yet, within 60°
+    assert lc["n_saturated"] == n and len(ext) == lc["n_extended"] > 0
+    assert all(a["angle_deg"] is None or a["angle_deg"] <= 60.0 for a in lc["extended"])
+    pairs = load_matches(w).pairs
+    assert np.isin(ext @ [n, 1], pairs @ [n, 1]).all()  # matched in the second round
+    assert len(pairs) == len(np.unique(np.r_[np.asarray(lc["pairs"])], axis=0)) == lc["n_first"] + lc["n_added"] + \
+        lc["n_extended"]
+    assert summary(w, "two_view")["n_computed"] == lc["n_added"] + lc["n_extended"]
+    assert summary(w, "matching")["pairs"]["loop_closure"]["n_extended"] == len(ext)
+    assert f"{len(ext)} next-ranked pairs of the {n} images" in loop_note(w)
+    # a k the user gave is kept as given
+    fe_k = dataclasses.replace(front(saturated_share=0.0), matching=MatchingConfig(pairs=f"retrieval:{k}"))
+    run_front_end(w, fe_k)
+    assert json.loads((w / "loop_closure.json").read_text())["n_extended"] == 0
 
 
 def test_a_damaged_loop_result_is_recomputed_with_the_same_pairs(work: Path):
@@ -229,7 +297,8 @@ def test_run_py_reports_the_loop_round(work: Path, tmp_path: Path):
     metrics = json.loads(run.main(scene, tmp_path / "out", cfg, ["irls"], gt=scene / "cameras.txt",
                                   K=scene / "K.txt", quiet=True).read_text())
     lc = json.loads((tmp_path / "out" / "work" / "loop_closure.json").read_text())
-    assert metrics["pairs"]["loop_closure"] == {"n_first": lc["n_first"], "n_added": lc["n_added"]}
+    assert metrics["pairs"]["loop_closure"] == {"n_first": lc["n_first"], "n_added": lc["n_added"],
+                                                "n_saturated": 0, "n_extended": 0}
     assert metrics["pairs"]["n_pairs"] == lc["n_first"] + lc["n_added"]
     assert "loop_closure" in metrics["stages"]
     report = (tmp_path / "out" / "report.md").read_text()
