@@ -7,6 +7,9 @@ With retrieval or sequential pairs, the front end runs in two rounds (:func:`run
    largest component), and the pairs that would close its longest loops are chosen among
    each image's next-ranked retrieval neighbours (:func:`pipeline.frontend.loop_closure.loop_candidates`;
    with sequential pairs the first round ranks them too, as COLMAP's sequential matcher's loop detection does);
+   where retrieval chose k itself and the first round verified almost every pair, also the next k ranked
+   neighbours of the images whose lower-ranked candidates all verified (k was short of their overlap:
+   :func:`pipeline.frontend.loop_closure.saturated_candidates`);
 3. matching, two-view geometry and two-view BA again, on the first round's pairs and those
    (the second round). Every pair is cached by its own key, so only the added pairs are computed.
 
