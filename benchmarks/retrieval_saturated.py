@@ -5,9 +5,9 @@ have 47 and 48) is above the exhaustive limit of 40 images, so ``matching.pairs:
 takes retrieval with k = 8; each view overlaps about 15 others. Per seed, three runs of
 ``python -m pipeline.run`` with the true K and cameras (no pycolmap reference):
 
-- ``saturated``: the default (the loop-closure round also matches the next k ranked
-  images of each image whose lower-ranked candidates all verified, where ≥ 95% of the
-  matched pairs verified: ``loop_closure.saturated_share``);
+- ``saturated``: the default (the loop-closure round also matches the further ranked
+  images, not looking more than 60° apart, of each image whose lower-ranked candidates all
+  verified, where ≥ 95% of the matched pairs verified: ``loop_closure.saturated_share``);
 - ``k only``: the same with ``loop_closure.saturated_share: 2`` (never);
 - ``exhaustive`` (with ``--exhaustive``): every pair.
 
@@ -15,6 +15,7 @@ Reported per run: the truly overlapping pairs found (the renderer's), the share 
 pairs matched, the view graph's edges and every method's median error against the truth.
 
     OMP_WAIT_POLICY=PASSIVE python benchmarks/retrieval_saturated.py [--seeds 0 1 2] [--exhaustive] [--work DIR]
+        [--labels saturated]
 
 Writes ``benchmarks/results/retrieval_saturated.json``.
 """
@@ -77,17 +78,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--views", type=int, default=48)
     p.add_argument("--exhaustive", action="store_true", help="also match every pair")
+    p.add_argument("--labels", nargs="+", choices=list(CONFIGS), default=None,
+                   help="run only these (their rows replace those of --json; the others are kept)")
     p.add_argument("--work", type=Path, default=Path("/tmp/retrieval_saturated"))
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
     a.work.mkdir(parents=True, exist_ok=True)
-    labels = ["saturated", "k only"] + (["exhaustive"] if a.exhaustive else [])
+    labels = a.labels or ["saturated", "k only"] + (["exhaustive"] if a.exhaustive else [])
     rows = []
+    if a.labels and a.json.is_file():  # the rows of the other runs stand
+        rows = [r for r in json.loads(a.json.read_text())["rows"] if r["label"] not in labels or r["seed"] not in a.seeds]
     for seed in a.seeds:
         sc = scene(a.work, seed, a.views)
         for label in labels:
             r = {"seed": seed, **one(a.work, sc, label)}
             rows.append(r)
+            rows.sort(key=lambda r: (r["seed"], list(CONFIGS).index(r["label"])))
             md = r["median_deg"]
             print(f"seed {seed} {label:10s}: recall {r['recall']:.3f} at {r['fraction_matched']:.3f} of all pairs, "
                   f"{r['n_edges']} edges, saturated {r['n_saturated']} (+{r['n_extended']}); "

@@ -27,7 +27,8 @@ the view graph's checks): a wrong candidate costs time, not accuracy.
 **Saturated images** (:func:`saturated_candidates`). Retrieval's k is a guess of how many images
 each image overlaps. Where almost every pair the first round matched verified, and the lower-ranked
 half of an image's own k candidates verified too, its overlap reaches further down its ranking than k.
-Such an image's next k ranked neighbours are candidates as well (the angle test above applies). On a
+Such an image's further ranked neighbours that do not look more than ``max_angle_deg`` apart are
+candidates as well (where the angle is not known, the next k ranked only). On a
 rendered low-texture turntable ring of 48 views each image overlaps about 15 others, k is 8, 98% of the
 matched pairs verified, and retrieval alone found 55% of the truly overlapping pairs. Where the views
 overlap fewer others than k, many candidates fail: the rendered street, ring and grid of 100 views
@@ -180,6 +181,8 @@ def saturated_candidates(n: int, k: int, matched: np.ndarray, verified: np.ndarr
         k: the retrieval neighbours per image of the first round.
         share: an image is saturated when at least this share of its candidates ranked ``⌈k/2⌉ … k − 1`` verified,
             and at least this share of all the pairs ``matched`` verified (the collection's overlap exceeds k).
+            A saturated image's candidates are its ranked neighbours after the k-th that do not look more than
+            ``max_angle_deg`` apart by ``R``; where the angle is not known, its next k only.
         budget: the most pairs taken.
     Returns:
         ``pairs`` (P, 2) ``a < b``, ``similarity`` and ``angle_deg`` (P,); ``saturated`` (N,) bool;
@@ -201,18 +204,21 @@ def saturated_candidates(n: int, k: int, matched: np.ndarray, verified: np.ndarr
     collection = float(np.isin(key(m[:, 0], m[:, 1]), vkeys).mean()) if len(m) else 0.0
     saturated = (np.isin(key(rows, tail), vkeys).mean(axis=1) >= share if tail.shape[1] and collection >= share
                  else np.zeros(n, bool))
-    nxt, s = nb[saturated, k:2 * k], sim[saturated, k:2 * k]
+    nxt, s = nb[saturated, k:], sim[saturated, k:]
     a = np.broadcast_to(np.flatnonzero(saturated)[:, None], nxt.shape).ravel()
     b, s = nxt.ravel(), s.ravel()
+    near = np.broadcast_to(np.arange(nxt.shape[1]) < k, nxt.shape).ravel()  # the next k ranks
     keys = key(a, b)
     fresh = (a != b) & ~np.isin(keys, key(m[:, 0], m[:, 1]))
-    keys, s = keys[fresh], s[fresh]
+    keys, s, near_keys = keys[fresh], s[fresh], keys[fresh & near]
     best = _best_per_pair(keys, s)
     keys, s = keys[best], s[best]
+    near = np.isin(keys, near_keys)  # within the next k ranks of either image
     P = np.stack([keys // n, keys % n], axis=1)
     ang = np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
-    apart = ang > max_angle_deg  # NaN compares False: an unknown angle rules nothing out
-    take = np.flatnonzero(~apart)
+    apart = ang > max_angle_deg
+    # a known angle decides at any rank; without one (no rotations, an unsolved image) only the next k ranks
+    take = np.flatnonzero(np.where(np.isnan(ang), near, ~apart))
     take = take[np.argsort(-s[take], kind="stable")][:max(int(budget), 0)]
     return {"pairs": P[take], "similarity": s[take], "angle_deg": ang[take], "saturated": saturated,
             "verified_share": collection,

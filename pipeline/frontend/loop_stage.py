@@ -7,9 +7,9 @@ With retrieval or sequential pairs, the front end runs in two rounds (:func:`run
    largest component), and the pairs that would close its longest loops are chosen among
    each image's next-ranked retrieval neighbours (:func:`pipeline.frontend.loop_closure.loop_candidates`;
    with sequential pairs the first round ranks them too, as COLMAP's sequential matcher's loop detection does);
-   where retrieval chose k itself and the first round verified almost every pair, also the next k ranked
-   neighbours of the images whose lower-ranked candidates all verified (k was short of their overlap:
-   :func:`pipeline.frontend.loop_closure.saturated_candidates`);
+   where retrieval chose k itself and the first round verified almost every pair, also the further ranked
+   neighbours (not looking apart) of the images whose lower-ranked candidates all verified (k was short of
+   their overlap: :func:`pipeline.frontend.loop_closure.saturated_candidates`);
 3. matching, two-view geometry and two-view BA again, on the first round's pairs and those
    (the second round). Every pair is cached by its own key, so only the added pairs are computed.
 
@@ -80,8 +80,9 @@ class LoopClosureConfig(Config):
     max_fraction: float = option(0.1, "the second round matches at most this fraction of the first round's pairs",
                                  ge=0)
     saturated_share: float = option(0.95, "with retrieval whose k was chosen automatically, an image whose "
-                                    "candidates ranked k/2 to k verified at least at this share gets its next k "
-                                    "ranked neighbours matched too (above 1: never)", ge=0)
+                                    "candidates ranked k/2 to k verified at least at this share gets its further ranked "
+                                    "neighbours matched too, those not looking more than max_angle_deg apart "
+                                    "(above 1: never)", ge=0)
     saturated_max_fraction: float = option(1.0, "those pairs are at most this fraction of the first round's", ge=0)
 
 

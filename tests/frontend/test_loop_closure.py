@@ -137,7 +137,21 @@ def test_images_whose_lower_ranked_candidates_verified_get_their_next_ranked_one
     # rotations rule out pairs looking apart (7 and 8 steps: 52.5° and 60°)
     c50 = saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=50.0, budget=10_000)
     assert set(np.minimum(np.abs(np.diff(c50["pairs"], axis=1)), n - np.abs(np.diff(c50["pairs"], axis=1)))
-               .ravel().tolist()) == {5, 6} and c50["n_apart"] == 2 * n
+               .ravel().tolist()) == {5, 6} and c50["n_apart"] == 10 * n  # 7 to 16 steps
+    # beyond the next k ranks where the rotations say the views can overlap; without rotations the next k only
+    def steps(P: np.ndarray) -> set:
+        d = np.abs(P[:, 1] - P[:, 0])
+        return set(np.minimum(d, n - d).tolist())
+
+    assert steps(saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=80.0,
+                                      budget=10_000)["pairs"]) == set(range(5, 11))  # up to 75°
+    no_r = saturated_candidates(n, k, top, verified, nb, sim, None, budget=10_000)
+    assert steps(no_r["pairs"]) == {5, 6, 7, 8} and np.isnan(no_r["angle_deg"]).all()
+    R_unsolved = R.copy()
+    R_unsolved[0] = np.nan  # view 0 unsolved: its pairs have no angle, so its next k ranks only
+    cu = saturated_candidates(n, k, top, verified, nb, sim, R_unsolved, max_angle_deg=80.0, budget=10_000)
+    assert steps(cu["pairs"][(cu["pairs"] == 0).any(axis=1)]) == {5, 6, 7, 8}
+    assert steps(cu["pairs"][~(cu["pairs"] == 0).any(axis=1)]) == set(range(5, 11))
     # the budget keeps the most similar
     c5 = saturated_candidates(n, k, top, verified, nb, sim, R, max_angle_deg=65.0, budget=5)
     assert len(c5["pairs"]) == 5 and np.all(c5["similarity"] == c["similarity"][:5])
