@@ -87,6 +87,11 @@ def _best_per_pair(keys: np.ndarray, s: np.ndarray) -> np.ndarray:
     return order[np.r_[True, k[1:] != k[:-1]]] if len(k) else order
 
 
+def _pair_angles(R: np.ndarray | None, P: np.ndarray) -> np.ndarray:
+    """:func:`_angles_deg` of the pairs P (K, 2); all NaN (not known) when there are no rotations."""
+    return np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
+
+
 def _angles_deg(R: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle (P,) in degrees of ``R_b R_aᵀ`` for rotations R (N, 3, 3); NaN where either is NaN."""
     tr = np.einsum("pij,pij->p", R[b], R[a])  # tr(R_b R_aᵀ)
@@ -158,7 +163,7 @@ def loop_candidates(n: int, matched: np.ndarray, verified: np.ndarray, neighbour
     A = _adjacency(verified, n)
     hops = _hops(A, P)
     far = hops >= min_hops
-    ang = np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
+    ang = _pair_angles(R, P)
     apart = far & (ang > max_angle_deg)  # NaN compares False: unknown angles never rule a pair out
     take = np.flatnonzero(far & ~apart)
     take = take[np.lexsort((-s[take], -hops[take]))]  # longest loop first, then most similar
@@ -198,24 +203,23 @@ def saturated_candidates(n: int, k: int, matched: np.ndarray, verified: np.ndarr
     def key(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.minimum(a, b) * n + np.maximum(a, b)
 
-    rows = np.arange(n)[:, None]
     tail = nb[:, (k + 1) // 2:k]
-    vkeys = key(v[:, 0], v[:, 1])
-    collection = float(np.isin(key(m[:, 0], m[:, 1]), vkeys).mean()) if len(m) else 0.0
-    saturated = (np.isin(key(rows, tail), vkeys).mean(axis=1) >= share if tail.shape[1] and collection >= share
-                 else np.zeros(n, bool))
+    vkeys, mkeys = key(v[:, 0], v[:, 1]), key(m[:, 0], m[:, 1])
+    collection = float(np.isin(mkeys, vkeys).mean()) if len(m) else 0.0
+    saturated = (np.isin(key(np.arange(n)[:, None], tail), vkeys).mean(axis=1) >= share
+                 if tail.shape[1] and collection >= share else np.zeros(n, bool))
     nxt, s = nb[saturated, k:], sim[saturated, k:]
     a = np.broadcast_to(np.flatnonzero(saturated)[:, None], nxt.shape).ravel()
     b, s = nxt.ravel(), s.ravel()
     near = np.broadcast_to(np.arange(nxt.shape[1]) < k, nxt.shape).ravel()  # the next k ranks
     keys = key(a, b)
-    fresh = (a != b) & ~np.isin(keys, key(m[:, 0], m[:, 1]))
+    fresh = (a != b) & ~np.isin(keys, mkeys)
     keys, s, near_keys = keys[fresh], s[fresh], keys[fresh & near]
     best = _best_per_pair(keys, s)
     keys, s = keys[best], s[best]
     near = np.isin(keys, near_keys)  # within the next k ranks of either image
     P = np.stack([keys // n, keys % n], axis=1)
-    ang = np.full(len(P), np.nan) if R is None else _angles_deg(np.asarray(R, float), P[:, 0], P[:, 1])
+    ang = _pair_angles(R, P)
     apart = ang > max_angle_deg
     # a known angle decides at any rank; without one (no rotations, an unsolved image) only the next k ranks
     take = np.flatnonzero(np.where(np.isnan(ang), near, ~apart))

@@ -182,15 +182,15 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         self._check_first_round(base)
         mm = matching_stage.load_manifest(work)
         names, first = list(mm["names"]), np.asarray(mm["pairs"], np.int64).reshape(-1, 2)
-        nb, sim = matching_stage.load_ranked(work, len(names))
+        n = len(names)
+        nb, sim = matching_stage.load_ranked(work, n)
         vg = load_ba_viewgraph(work)
         budget = int(math.floor(cfg.max_fraction * len(first)))
         R = first_round_rotations(vg)
-        c = loop_candidates(len(names), first, vg.edges, nb, sim, R, min_hops=cfg.min_hops,
+        c = loop_candidates(n, first, vg.edges, nb, sim, R, min_hops=cfg.min_hops,
                             max_angle_deg=cfg.max_angle_deg, budget=budget)
         added = c["pairs"]
-        sat = self._saturated(len(names), first, vg.edges, nb, sim, R, mm.get("selection") or {})
-        n = len(names)
+        sat = self._saturated(n, first, vg.edges, nb, sim, R, mm.get("selection") or {})
         new = ~np.isin(sat["pairs"] @ [n, 1], added @ [n, 1])  # not a loop-closure pair already
         sat.update({k: sat[k][new] for k in ("pairs", "similarity", "angle_deg")})
         extended = sat["pairs"]
@@ -203,7 +203,7 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added),
                                                                "n_saturated": sat["n_saturated"],
                                                                "n_extended": len(extended)}},
-                                      len(names), len(pairs))
+                                      n, len(pairs))
         path = write_json(work / OUTPUT, {
             "format": "rotavg-loop-closure", "names": names, "pairs": pairs.tolist(), "selection": selection,
             "added": [{"pair": [names[a], names[b]], "hops": None if math.isinf(h) else int(h),
@@ -235,6 +235,11 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         out = saturated_candidates(n, int(k), first, verified, nb, sim, R, share=cfg.saturated_share,
                                    max_angle_deg=cfg.max_angle_deg, budget=budget)
         return {**out, "budget": budget}
+
+    @staticmethod
+    def adds_pairs(record: StageRecord | None) -> bool:
+        """Whether a loop-closure result adds pairs to the first round's (loop-closure or saturated images' pairs)."""
+        return record is not None and (record.summary.get("n_added", 0) > 0 or record.summary.get("n_extended", 0) > 0)
 
     def verify(self, record: StageRecord) -> None:
         self.load_pairs(list(feature_stage.load_manifest(self.folder)["names"]))

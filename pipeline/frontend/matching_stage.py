@@ -160,8 +160,7 @@ class MatchingStage(Stage[MatchingConfig]):
         if self.loop is None or not self.loop.applies():
             return None
         rec = self.loop.cached()
-        adds = rec is not None and (rec.summary.get("n_added", 0) > 0 or rec.summary.get("n_extended", 0) > 0)
-        return rec if adds else None
+        return rec if self.loop.adds_pairs(rec) else None
 
     def base_fingerprint(self) -> str:
         """The fingerprint of the first round: this selection without loop-closure pairs."""
