@@ -8,11 +8,13 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.averaging.certificate.bound import perturbation_bound
 from pipeline.averaging.certificate.eigen import min_eigenvalue
 from pipeline.averaging.certificate.newton import polish
 from pipeline.averaging.certificate.problem import (certificate_matrix, chordal_weights, connection_laplacian,
                                                     diag_blocks, lagrange_multipliers, lmi_apply, lmi_ascent,
                                                     lmi_multipliers, sym)
+from pipeline.averaging.kernel import DENSE_PATTERN
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -184,6 +186,12 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         S_v = certificate_matrix(L, Lam)
         floor = 1e3 * eps * float(abs(S_v).sum(axis=0).max())
         eta_v = max(target / (3 * n), floor)
+        if V is None and isotropic and k_margin == 0 and (S_v.nnz > DENSE_PATTERN * (3 * n) ** 2 if fills is None
+                                                          else fills):
+            # S's own factor would be dense: a bound from the consistent problem decides with an N×N factor
+            bound = perturbation_bound(n, e, ww, Rt, R, Lam, G_v, S_v, eta_v)
+            if bound is not None:
+                return G_v, floor, eta_v, bound
         return G_v, floor, eta_v, min_eigenvalue(S_v, Y, eta_v, k_margin=k_margin, fills=fills, n_witness=n_witness)
 
     V = lmi_multipliers(e, C, R) if use_lmi else None

@@ -1,0 +1,103 @@
+"""Deciding ``S ⪰ −ηI`` for an isotropic cost without factoring S: a perturbation bound from the consistent problem.
+
+For the isotropic cost (1) of :mod:`~pipeline.averaging.certificate` with weights ``w_e`` (``M_e = I``), write
+``S = P + E`` where P is the connection Laplacian of the same weights with every measurement ``R̃_e`` replaced by
+the relative rotation of the point itself, ``Q_e = R_j R_iᵀ``:
+
+- ``P = B (L_w ⊗ I₃) Bᵀ`` with ``B = blkdiag(R_i)`` orthogonal and ``L_w`` the scalar weighted Laplacian, so P ⪰ 0,
+  its null space is ``span(Y)`` (a connected weighted graph) and its eigenvalues on ``span(Y)⊥`` are ≥ ``λ₂(L_w)``;
+- ``E = S − P`` has the off-diagonal blocks ``−w_e (R̃_e − Q_e)`` (and their transposes) and the diagonal blocks
+  ``−Λ_i``, so by the block Gershgorin bound ``‖E‖₂ ≤ ε_E = max_i (‖Λ_i‖ + Σ_{e∋i} w_e ‖R̃_e − Q_e‖)`` (Frobenius
+  norms, which bound the spectral ones). The residuals are small on the edges with weight, so ε_E is small.
+
+For a unit ``x = a ŷ + b ẑ`` (``ŷ ∈ span(Y)``, ``ẑ ⊥ span(Y)``, unit): ``ŷᵀSŷ ≥ −δ`` with
+``δ = ‖sym(YᵀSY)‖/N`` (0 up to rounding: ``YᵀSY`` is skew), ``|ŷᵀSẑ| ≤ γ = ‖SY‖_F/√N`` (``YᵀY = N·I``) and
+``ẑᵀSẑ ≥ μ' = λ₂(L_w) − ε_E``. So ``λ_min(S) ≥ λ_min([[−δ, γ], [γ, μ']])``, which is ≥ −η once
+``μ' ≥ μ_req = (δ² + 4γ² − (2η − δ)²) / (4(η − δ))`` (and δ < η). The proof that ``λ₂(L_w) ≥ μ₀ = ε_E + μ_req``
+is one dense Cholesky of the N×N matrix ``L_w + c·11ᵀ/N − μ₀I`` (c > μ₀ lifts the constant vector): a third of
+the rows of S, so about 1/27 of the flops of S's dense factor. The graphs where S's factor is dense (a 1DSfM
+graph, an unordered collection matched at random) are the well-connected ones, whose λ₂ is a large share of the
+weighted degree, far above ε_E: there the bound decides, and where it does not (a Cholesky that fails, δ ≥ η)
+the exact inertia of S decides as before (:func:`~pipeline.averaging.certificate.eigen.min_eigenvalue`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipeline.averaging.certificate.eigen import EigenResult
+from pipeline.averaging.kernel import DenseCholesky
+from pipeline.core import so3
+
+__all__ = ["perturbation_bound"]
+
+#: Safety factor on the computed bounds (their own rounding).
+SAFETY = 1.0 + 1e-6
+#: The dense Cholesky's accuracy on the normalized Laplacian (entries of size ≤ 1): added to the μ₀ it must prove.
+FLOOR = 1e-10
+
+
+def _normalized_laplacian(n: int, edges: np.ndarray, w: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``I − D^{-1/2} W D^{-1/2}`` of the weighted graph as a dense (N, N) Fortran-ordered array."""
+    A = np.zeros((n, n), order="F")
+    i, j = edges[:, 0], edges[:, 1]
+    flat = A.reshape(-1, order="F")  # a view: A is Fortran-ordered
+    off = -w / np.sqrt(d[i] * d[j])
+    np.add.at(flat, i + n * j, off)
+    np.add.at(flat, j + n * i, off)
+    flat[np.arange(n) * (n + 1)] += 1.0
+    return A
+
+
+def perturbation_bound(n: int, edges: np.ndarray, w: np.ndarray, R_rel: np.ndarray, R: np.ndarray,
+                       Lam: np.ndarray, G: np.ndarray, S: object, eta: float) -> EigenResult | None:
+    """Prove ``S ⪰ −ηI`` for the isotropic cost (module docstring), or return None where the bound cannot.
+
+    Args:
+        n: number of cameras N.
+        edges: (K, 2) the edges with weight.
+        w: (K,) their weights (> 0).
+        R_rel: (K, 3, 3) their measurements.
+        R: (N, 3, 3) the rotations certified (Y stacks them).
+        Lam: (N, 3, 3) the Lagrange multipliers Λ_i.
+        G: (N, 3, 3) the blocks of S Y.
+        S: the (3N, 3N) sparse certificate matrix ``L − blkdiag(Λ)``.
+        eta: the tolerance η.
+
+    Returns:
+        An :class:`EigenResult` with ``n_below = 0`` where the bound proves ``S ⪰ −ηI`` (its ``times`` hold
+        ``bound_s``), else None (also for an η below S's rounding level, ``1e3·ε·‖S‖₁``, which nothing proves).
+    """
+    t0 = time.perf_counter()
+    if not eta >= 1e3 * np.finfo(float).eps * float(abs(S).sum(axis=0).max()):  # below S's rounding level
+        return None
+    edges = np.asarray(edges, dtype=np.int64)
+    w = np.asarray(w, dtype=np.float64)
+    i, j = edges[:, 0], edges[:, 1]
+    d = np.bincount(i, w, n) + np.bincount(j, w, n)
+    if not np.all(d > 0):
+        return None
+    Y = R.reshape(3 * n, 3)
+    YSY = Y.T @ np.asarray(S @ Y)
+    alpha = (eta * n - float(np.linalg.norm(0.5 * (YSY + YSY.T), 2))) / d.sum()
+    gamma = (np.sqrt(np.sum(np.square(G).reshape(n, 9).sum(axis=1) / d)) + eta * np.sqrt(np.sum(1.0 / d))) / np.sqrt(
+        d.sum())
+    if not (np.isfinite(alpha) and np.isfinite(gamma)) or alpha <= 0:
+        return None
+    Q = so3.relative(R, edges)
+    dev = w * np.linalg.norm((R_rel - Q).reshape(-1, 9), axis=1) / np.sqrt(d[i] * d[j])
+    rows = np.linalg.norm(Lam.reshape(n, 9), axis=1) / d + np.bincount(i, dev, n) + np.bincount(j, dev, n)
+    mu0 = (float(rows.max()) + gamma**2 / alpha) * SAFETY + FLOOR
+    if not mu0 < 1.0:
+        return None
+    A = _normalized_laplacian(n, edges, w, d)
+    v = np.sqrt(d) / np.linalg.norm(np.sqrt(d))
+    A += np.outer(v, v)  # lifts the null vector of the normalized Laplacian to 1 (its eigenvalues lie in [0, 2])
+    A[np.diag_indices(n)] -= mu0
+    try:
+        DenseCholesky(A)
+    except np.linalg.LinAlgError:
+        return None
+    return EigenResult(True, 0, np.nan, np.nan, None, np.nan, "", {"bound_s": time.perf_counter() - t0})
