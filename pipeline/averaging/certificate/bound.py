@@ -4,21 +4,29 @@ For the isotropic cost (1) of :mod:`~pipeline.averaging.certificate` with weight
 ``S = P + E`` where P is the connection Laplacian of the same weights with every measurement ``R̃_e`` replaced by
 the relative rotation of the point itself, ``Q_e = R_j R_iᵀ``:
 
-- ``P = B (L_w ⊗ I₃) Bᵀ`` with ``B = blkdiag(R_i)`` orthogonal and ``L_w`` the scalar weighted Laplacian, so P ⪰ 0,
-  its null space is ``span(Y)`` (a connected weighted graph) and its eigenvalues on ``span(Y)⊥`` are ≥ ``λ₂(L_w)``;
+- ``P = B (L_w ⊗ I₃) Bᵀ`` with ``B = blkdiag(R_i)`` orthogonal and ``L_w`` the scalar weighted Laplacian: P ⪰ 0,
+  and its null space is ``span(Y)`` on a connected weighted graph;
 - ``E = S − P`` has the off-diagonal blocks ``−w_e (R̃_e − Q_e)`` (and their transposes) and the diagonal blocks
-  ``−Λ_i``, so by the block Gershgorin bound ``‖E‖₂ ≤ ε_E = max_i (‖Λ_i‖ + Σ_{e∋i} w_e ‖R̃_e − Q_e‖)`` (Frobenius
-  norms, which bound the spectral ones). The residuals are small on the edges with weight, so ε_E is small.
+  ``−Λ_i``: as small as the weighted residuals.
 
-For a unit ``x = a ŷ + b ẑ`` (``ŷ ∈ span(Y)``, ``ẑ ⊥ span(Y)``, unit): ``ŷᵀSŷ ≥ −δ`` with
-``δ = ‖sym(YᵀSY)‖/N`` (0 up to rounding: ``YᵀSY`` is skew), ``|ŷᵀSẑ| ≤ γ = ‖SY‖_F/√N`` (``YᵀY = N·I``) and
-``ẑᵀSẑ ≥ μ' = λ₂(L_w) − ε_E``. So ``λ_min(S) ≥ λ_min([[−δ, γ], [γ, μ']])``, which is ≥ −η once
-``μ' ≥ μ_req = (δ² + 4γ² − (2η − δ)²) / (4(η − δ))`` (and δ < η). The proof that ``λ₂(L_w) ≥ μ₀ = ε_E + μ_req``
-is one dense Cholesky of the N×N matrix ``L_w + c·11ᵀ/N − μ₀I`` (c > μ₀ lifts the constant vector): a third of
-the rows of S, so about 1/27 of the flops of S's dense factor. The graphs where S's factor is dense (a 1DSfM
-graph, an unordered collection matched at random) are the well-connected ones, whose λ₂ is a large share of the
-weighted degree, far above ε_E: there the bound decides, and where it does not (a Cholesky that fails, δ ≥ η)
-the exact inertia of S decides as before (:func:`~pipeline.averaging.certificate.eigen.min_eigenvalue`).
+The weights of a robust solution differ by decades from camera to camera, so everything is scaled by the
+weighted degrees ``d_i = Σ_{e∋i} w_e`` (``D = blkdiag(d_i I₃)``); ``T = D^{-1/2}(S + ηI)D^{-1/2}`` has the inertia
+of ``S + ηI`` (Sylvester). Then ``D^{-1/2}PD^{-1/2} = B (L̃ ⊗ I₃) Bᵀ`` with ``L̃ = I − D^{-1/2}WD^{-1/2}`` the
+normalized Laplacian, whose null space is ``U = span(D^{1/2}Y)`` (orthogonal columns of norm ``√Σd``), and the
+block Gershgorin bound gives ``‖D^{-1/2}ED^{-1/2}‖₂ ≤ ε = max_i (‖Λ_i‖/d_i + Σ_{e∋i} w_e ‖R̃_e − Q_e‖/√(d_i d_j))``
+(Frobenius norms, which bound the spectral ones). For a unit ``x = a û + b ẑ`` (``û ∈ U``, ``ẑ ⊥ U``, unit):
+
+- ``ûᵀTû = (cᵀYᵀSYc + ηN)/Σd ≥ α = (ηN − ‖sym(YᵀSY)‖)/Σd`` (``YᵀSY`` is skew, so that norm is rounding);
+- ``|ẑᵀTû| ≤ ‖Tû‖ ≤ γ = (‖D^{-1/2}SY‖_F + η‖D^{-1/2}Y‖)/√Σd``, with ``‖D^{-1/2}Y‖ = (Σ 1/d_i)^{1/2}``;
+- ``ẑᵀTẑ ≥ λ₂(L̃) − ε``.
+
+So ``T ≻ 0``, i.e. ``λ_min(S) > −η``, once ``α > 0`` and ``λ₂(L̃) > μ₀ = ε + γ²/α``. That is proven by one dense
+Cholesky of the N×N matrix ``L̃ + vvᵀ − μ₀I`` (``v`` the unit null vector of L̃; L̃'s eigenvalues lie in [0, 2],
+so μ₀ < 1 is needed): a third of the rows of S, about 1/27 of the flops of S's dense factor. The graphs where S's
+factor is dense (a 1DSfM graph, an unordered collection's random pairs) are the well-connected ones, whose
+normalized λ₂ is a large share of 1, far above ε: there the bound decides. Where it does not (a Cholesky that fails,
+α ≤ 0, μ₀ ≥ 1, or an η below S's rounding level) the exact inertia of S decides as before
+(:func:`~pipeline.averaging.certificate.eigen.min_eigenvalue`).
 """
 
 from __future__ import annotations
