@@ -107,3 +107,18 @@ def test_a_local_minimum_is_not_proved_by_the_bound():
     assert cert.verdict == "not verified" and "factor_s" in cert.times
     ok, _ = certify(n, vg.edges, vg.R_rel, R, w, do_polish=False, k_margin=0)  # the untwisted ring: by the bound
     assert ok.verdict == VERIFIED and "bound_s" in ok.times
+
+
+def test_a_given_metric_keeps_the_inertia_test():
+    """The bound is written for M = I with the weights as given; a metric M_e = c_e·I (isotropic, but weighing the
+    edges by c_e) is decided by the inertia, with the verdict the same weights c_e·w_e give through the bound."""
+    sg = paper1_graph(20, 0.6, 1.0, 0.0, seed=4)
+    vg = sg.vg
+    c = np.random.default_rng(4).uniform(0.5, 4.0, vg.n_edges)
+    M = c[:, None, None] * np.eye(3)
+    cert_m, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, sg.R_true, np.ones(vg.n_edges), M, k_margin=0)
+    cert_w, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, sg.R_true, c, k_margin=0)
+    assert "factor_s" in cert_m.times and "bound_s" not in cert_m.times
+    assert "bound_s" in cert_w.times
+    assert cert_m.verdict == cert_w.verdict == VERIFIED
+    assert cert_m.cost == pytest.approx(cert_w.cost, rel=1e-9)

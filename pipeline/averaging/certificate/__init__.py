@@ -51,13 +51,13 @@ complement of ``span(Y)`` for the first non-trivial eigenvalue (the margin). Whe
 pivots appear, Lanczos on S (smallest algebraic) returns the negative eigenpair, whose
 Rayleigh quotient is an explicit witness.
 
-Where S's own factor would be dense (a 1DSfM graph, an unordered collection's random pairs) and the cost is
-isotropic, a perturbation bound is tried first (:mod:`~.bound`): S is the consistent problem's connection
-Laplacian at Y (positive semidefinite, null space ``span(Y)``, spectrum that of the weighted graph's Laplacian)
-plus a perturbation as small as the weighted residuals; after a diagonal scaling by the weighted degrees, one
-dense Cholesky of an N×N matrix (instead of S's 3N×3N) proves the normalized Laplacian's λ₂ above the
-perturbation's norm, and with it ``S ≻ −ηI``. Where it cannot (a ring's small λ₂, residuals as large as the
-graph's connectivity, a point far from stationary), the inertia decides as above.
+Where S's own factor would be dense (a 1DSfM graph, an unordered collection's random pairs) and the cost is IRLS's
+isotropic one (no M given), a perturbation bound is tried first (:mod:`~.bound`): S is the consistent problem's
+connection Laplacian at Y (positive semidefinite, null space ``span(Y)``, spectrum that of the weighted graph's
+Laplacian) plus a perturbation as small as the weighted residuals; after a diagonal scaling by the weighted degrees,
+one dense Cholesky of an N×N matrix (instead of S's 3N×3N) proves the normalized Laplacian's λ₂ above the
+perturbation's norm, and with it ``S ≻ −ηI``. Where it cannot (a ring's small λ₂, residuals as large as the graph's
+connectivity, a point far from stationary), the inertia decides as above.
 
 Tolerances (``certify``): ``η = (gap_tol · f(Y) + f_floor) / (3N)`` so that "verified"
 means a relative suboptimality ≤ ``gap_tol`` by (2), where ``f_floor = 1e3·ε·Σ_i tr L_ii``

@@ -186,9 +186,10 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         S_v = certificate_matrix(L, Lam)
         floor = 1e3 * eps * float(abs(S_v).sum(axis=0).max())
         eta_v = max(target / (3 * n), floor)
-        if V is None and isotropic and k_margin == 0 and (S_v.nnz > DENSE_PATTERN * (3 * n) ** 2 if fills is None
+        if V is None and M is None and k_margin == 0 and (S_v.nnz > DENSE_PATTERN * (3 * n) ** 2 if fills is None
                                                           else fills):
-            # S's own factor would be dense: a bound from the consistent problem decides with an N×N factor
+            # S's own factor would be dense: a bound from the consistent problem decides with an N×N factor (its
+            # weights are ww: M = I; an M given, even ∝ I, keeps the inertia)
             bound = perturbation_bound(n, e, ww, Rt, R, Lam, G_v, S_v, eta_v)
             if bound is not None:
                 return G_v, floor, eta_v, bound
