@@ -73,7 +73,7 @@ def test_the_bound_proves_only_what_the_spectrum_says(seed):
 
 
 def test_a_well_connected_graph_is_certified_by_the_bound_as_by_the_inertia(monkeypatch):
-    """A 1DSfM-like graph (300 cameras, 12,000 pairs, a third of them outliers): IRLS's certificate decides by the
+    """A 1DSfM-like graph (300 cameras, 12,000 pairs, about 30% of them outliers): IRLS's certificate decides by the
     bound (an N×N factor, ``bound_s``) and reaches the verdict, η and gap bound of the dense inertia test of S
     (``factor_s``), which decides where the bound is switched off."""
     from pipeline.averaging.solve import average
