@@ -12,7 +12,7 @@ from pipeline.averaging.certificate import VERIFIED, certify
 from pipeline.averaging.certificate.bound import perturbation_bound
 from pipeline.averaging.certificate.newton import polish
 from pipeline.averaging.certificate.problem import (certificate_matrix, connection_laplacian, diag_blocks,
-                                                    lagrange_multipliers)
+                                                    lagrange_multipliers, rounding_floor)
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.synthetic.graphs import paper1_graph
@@ -59,7 +59,7 @@ def test_the_bound_proves_only_what_the_spectrum_says(seed):
         lam_min = float(np.linalg.eigvalsh(S.toarray())[0])
         scale = float(np.abs(S).sum(axis=0).max())
         for eta in (1e-6 * scale, 1e-3 * scale, 0.5 * max(-lam_min, 0.0), 0.99 * max(-lam_min, 0.0)):
-            if eta < 1e3 * np.finfo(float).eps * scale:  # below S's rounding level nothing is proved
+            if eta < rounding_floor(S):  # below S's rounding level nothing is proved
                 assert perturbation_bound(n, vg.edges, w, vg.R_rel, R, Lam, G, S, eta) is None
                 continue
             res = perturbation_bound(n, vg.edges, w, vg.R_rel, R, Lam, G, S, eta)

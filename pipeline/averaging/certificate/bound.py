@@ -36,6 +36,7 @@ import time
 import numpy as np
 
 from pipeline.averaging.certificate.eigen import EigenResult
+from pipeline.averaging.certificate.problem import rounding_floor
 from pipeline.averaging.kernel import DenseCholesky
 from pipeline.core import so3
 
@@ -79,7 +80,7 @@ def perturbation_bound(n: int, edges: np.ndarray, w: np.ndarray, R_rel: np.ndarr
         ``bound_s``), else None (also for an η below S's rounding level, ``1e3·ε·‖S‖₁``, which nothing proves).
     """
     t0 = time.perf_counter()
-    if not eta >= 1e3 * np.finfo(float).eps * float(abs(S).sum(axis=0).max()):  # below S's rounding level
+    if not eta >= rounding_floor(S):  # below S's rounding level nothing is decided
         return None
     edges = np.asarray(edges, dtype=np.int64)
     w = np.asarray(w, dtype=np.float64)

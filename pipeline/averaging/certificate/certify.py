@@ -13,7 +13,7 @@ from pipeline.averaging.certificate.eigen import min_eigenvalue
 from pipeline.averaging.certificate.newton import polish
 from pipeline.averaging.certificate.problem import (certificate_matrix, chordal_weights, connection_laplacian,
                                                     diag_blocks, lagrange_multipliers, lmi_apply, lmi_ascent,
-                                                    lmi_multipliers, sym)
+                                                    lmi_multipliers, rounding_floor, sym)
 from pipeline.averaging.kernel import DENSE_PATTERN
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
@@ -184,7 +184,7 @@ def _certify_once(n: int, edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, w
         L = L_cost if V is None else connection_laplacian(n, e, lmi_apply(e, C, R, V), D)
         Lam, G_v = lagrange_multipliers(L, R)
         S_v = certificate_matrix(L, Lam)
-        floor = 1e3 * eps * float(abs(S_v).sum(axis=0).max())
+        floor = rounding_floor(S_v)
         eta_v = max(target / (3 * n), floor)
         if V is None and M is None and k_margin == 0 and (S_v.nnz > DENSE_PATTERN * (3 * n) ** 2 if fills is None
                                                           else fills):

@@ -20,7 +20,7 @@ import scipy.sparse as sp
 from pipeline.core import so3
 
 __all__ = ["metric_from_H", "chordal_weights", "edge_costs", "connection_laplacian", "diag_blocks",
-           "lagrange_multipliers", "certificate_matrix", "lmi_multipliers", "lmi_apply",
+           "lagrange_multipliers", "certificate_matrix", "rounding_floor", "lmi_multipliers", "lmi_apply",
            "lmi_ascent", "block_matrix", "sym", "vee_skew"]
 
 
@@ -126,6 +126,11 @@ def lagrange_multipliers(L: sp.spmatrix, R: np.ndarray) -> tuple[np.ndarray, np.
     Lam = sym(P)
     G = (P - Lam) @ R
     return Lam, G
+
+
+def rounding_floor(S: sp.spmatrix) -> float:
+    """``1e3·ε·‖S‖₁``: the rounding level of S, below which no test of ``S ⪰ −ηI`` decides anything."""
+    return 1e3 * float(np.finfo(float).eps) * float(abs(S).sum(axis=0).max())
 
 
 def certificate_matrix(L: sp.spmatrix, Lam: np.ndarray) -> sp.csc_matrix:
