@@ -122,3 +122,19 @@ def test_a_given_metric_keeps_the_inertia_test():
     assert "bound_s" in cert_w.times
     assert cert_m.verdict == cert_w.verdict == VERIFIED
     assert cert_m.cost == pytest.approx(cert_w.cost, rel=1e-9)
+
+
+def test_the_bound_steps_aside_where_its_dense_copies_would_not_fit(monkeypatch):
+    """The bound holds two N×N copies; where they would not fit (``dense_inertia_fits``) it proves nothing and the
+    inertia decides, with the same verdict."""
+    import pipeline.averaging.certificate.bound as bound_mod
+
+    sg = paper1_graph(20, 0.6, 0.0, 0.0, seed=5)  # noise-free: the truth is the minimum
+    vg = sg.vg
+    w = np.ones(vg.n_edges)
+    Lam, G, S = _parts(vg, w, sg.R_true)
+    assert perturbation_bound(vg.n_cameras, vg.edges, w, vg.R_rel, sg.R_true, Lam, G, S, 1e-3) is not None
+    monkeypatch.setattr(bound_mod, "dense_inertia_fits", lambda n: False)
+    assert perturbation_bound(vg.n_cameras, vg.edges, w, vg.R_rel, sg.R_true, Lam, G, S, 1e-3) is None
+    cert, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, sg.R_true, w, k_margin=0)
+    assert cert.verdict == VERIFIED and "factor_s" in cert.times

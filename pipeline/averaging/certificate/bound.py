@@ -35,7 +35,7 @@ import time
 
 import numpy as np
 
-from pipeline.averaging.certificate.eigen import EigenResult
+from pipeline.averaging.certificate.eigen import EigenResult, dense_inertia_fits
 from pipeline.averaging.certificate.problem import rounding_floor
 from pipeline.averaging.kernel import DenseCholesky
 from pipeline.core import so3
@@ -77,10 +77,13 @@ def perturbation_bound(n: int, edges: np.ndarray, w: np.ndarray, R_rel: np.ndarr
 
     Returns:
         An :class:`EigenResult` with ``n_below = 0`` where the bound proves ``S ⪰ −ηI`` (its ``times`` hold
-        ``bound_s``), else None (also for an η below S's rounding level, ``1e3·ε·‖S‖₁``, which nothing proves).
+        ``bound_s``), else None (also for an η below S's rounding level, ``1e3·ε·‖S‖₁``, which nothing proves, and
+        where two N×N copies would not fit in memory: :func:`~.eigen.dense_inertia_fits`).
     """
     t0 = time.perf_counter()
     if not eta >= rounding_floor(S):  # below S's rounding level nothing is decided
+        return None
+    if not dense_inertia_fits(n):  # its two N×N copies (the matrix and its factor) must fit, as S's would
         return None
     edges = np.asarray(edges, dtype=np.int64)
     w = np.asarray(w, dtype=np.float64)
