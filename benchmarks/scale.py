@@ -61,20 +61,17 @@ RESULTS = Path(__file__).resolve().parent / "results" / "scale.json"
 FEATURE_FILES = ("features", "features.json", "features.record.json")
 
 
-#: The renderer's seed (``--seed``); a work folder holds the scenes of one seed.
-SEED = 0
-
-
-def scene_dir(work: Path, layout: str, n: int) -> Path:
-    """The rendered scene (rendered now unless already there, with :data:`SEED`)."""
+def scene_dir(work: Path, layout: str, n: int, seed: int = 0) -> Path:
+    """The rendered scene (rendered now unless already there, with the renderer's ``seed``; a work folder holds
+    the scenes of one seed)."""
     d = work / "scenes" / f"{layout}-{n}"
     if not (d / "scene.json").is_file():
         t0 = time.perf_counter()
-        large.main(d, layout, n, SEED)
+        large.main(d, layout, n, seed)
         print(f"rendered {d} in {time.perf_counter() - t0:.0f} s", flush=True)
-    seed = json.loads((d / "scene.json").read_text()).get("seed", 0)
-    if seed != SEED:
-        raise SystemExit(f"error: {d} was rendered with seed {seed}, not {SEED}; give each seed its own --work")
+    rendered = json.loads((d / "scene.json").read_text()).get("seed", 0)
+    if rendered != seed:
+        raise SystemExit(f"error: {d} was rendered with seed {rendered}, not {seed}; give each seed its own --work")
     return d
 
 
@@ -142,8 +139,9 @@ def on_pycolmap_images(out: Path, scene: Path, metrics: dict, label: str) -> dic
     return {"ours_on_its_images_deg": med, "n_its_images": int(same.sum()), "error_ratio_same_images": med / pyc}
 
 
-def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, fresh: bool = False) -> dict:
-    scene = scene_dir(work, layout, n)
+def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, fresh: bool = False,
+            seed: int = 0) -> dict:
+    scene = scene_dir(work, layout, n, seed)
     runs = work / "runs"
     out = runs / f"{layout}-{n}"
     if fresh:  # time every stage again (the scene stays)
@@ -154,7 +152,7 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, 
                                                                   ["config"]["overlap_threshold"]))
     sel = load_matches(out / "work").pairs
     label, err = first_method(m)
-    row = {"layout": layout, "n": n, "seed": SEED, "pairs": m.get("pairs", {}), "recall": pair_recall(sel, truth, n),
+    row = {"layout": layout, "n": n, "seed": seed, "pairs": m.get("pairs", {}), "recall": pair_recall(sel, truth, n),
            "method": label, "median_deg": err, "methods_median_deg": {k: v.get("median_deg") for k, v in
                                                                       m["methods"].items()},
            "our_path_s": m["our_path_s"], "per_image_s": m["our_path_s"] / n, "stages_s": m["stages"],
@@ -262,8 +260,6 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="the renderer's seed (one seed per --work folder)")
     p.add_argument("--json", type=Path, default=RESULTS)
     a = p.parse_args(argv)
-    global SEED  # noqa: PLW0603 - the scenes of this invocation
-    SEED = a.seed
     old = json.loads(a.json.read_text()).get("rows", []) if a.json.is_file() else []
     rows = {(r["layout"], r["n"]): r for r in old}
     if a.rescore:
@@ -282,7 +278,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"--- {lay}-{n}", flush=True)
             prev = rows.get((lay, n))
             if not (prev and a.only_pycolmap_own):
-                rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes, a.fresh)
+                rows[(lay, n)] = measure(a.work, lay, n, n in a.exhaustive_sizes, n in a.reference_sizes, a.fresh,
+                                         a.seed)
             if n in a.pycolmap_own_sizes:
                 rows[(lay, n)]["pycolmap_own"] = pycolmap_own(a.work, lay, n, rows[(lay, n)])
             if n in a.refine_sizes:

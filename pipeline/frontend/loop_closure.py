@@ -46,7 +46,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra, shortest_path
 
-__all__ = ["hop_distances", "loop_candidates", "saturated_candidates"]
+__all__ = ["hop_distances", "loop_candidates", "saturated_candidates", "pair_keys"]
 
 _BFS_BLOCK = 256  # sources per shortest-path call: (256, N) distances at a time
 
@@ -77,6 +77,12 @@ def _hops(A: sp.csr_matrix, pairs: np.ndarray) -> np.ndarray:
         D = shortest_path(A, unweighted=True, directed=False, indices=src[s:s + _BFS_BLOCK])
         out[idx[sel]] = D[row[sel] - s, pairs[idx[sel], 1]]
     return out
+
+
+def pair_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """One integer per unordered image pair (either order): ``min(a, b)·n + max(a, b)`` for N = ``n`` images."""
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    return np.minimum(a, b) * n + np.maximum(a, b)
 
 
 def _best_per_pair(keys: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -154,11 +160,11 @@ def loop_candidates(n: int, matched: np.ndarray, verified: np.ndarray, neighbour
     ok = a != b
     P = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)[ok]
     s = s[ok]
-    key = P[:, 0] * n + P[:, 1]
+    key = pair_keys(P[:, 0], P[:, 1], n)
     best = _best_per_pair(key, s)
     key, P, s = key[best], P[best], s[best]
     m = np.asarray(matched, np.int64).reshape(-1, 2)
-    new = ~np.isin(key, m[:, 0] * n + m[:, 1])
+    new = ~np.isin(key, pair_keys(m[:, 0], m[:, 1], n))
     P, s = P[new], s[new]
     A = _adjacency(verified, n)
     hops = _hops(A, P)
@@ -200,19 +206,16 @@ def saturated_candidates(n: int, k: int, matched: np.ndarray, verified: np.ndarr
     v = np.asarray(verified, np.int64).reshape(-1, 2)
     m = np.asarray(matched, np.int64).reshape(-1, 2)
 
-    def key(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return np.minimum(a, b) * n + np.maximum(a, b)
-
     tail = nb[:, (k + 1) // 2:k]
-    vkeys, mkeys = key(v[:, 0], v[:, 1]), key(m[:, 0], m[:, 1])
+    vkeys, mkeys = pair_keys(v[:, 0], v[:, 1], n), pair_keys(m[:, 0], m[:, 1], n)
     collection = float(np.isin(mkeys, vkeys).mean()) if len(m) else 0.0
-    saturated = (np.isin(key(np.arange(n)[:, None], tail), vkeys).mean(axis=1) >= share
+    saturated = (np.isin(pair_keys(np.arange(n)[:, None], tail, n), vkeys).mean(axis=1) >= share
                  if tail.shape[1] and collection >= share else np.zeros(n, bool))
     nxt, s = nb[saturated, k:], sim[saturated, k:]
     a = np.broadcast_to(np.flatnonzero(saturated)[:, None], nxt.shape).ravel()
     b, s = nxt.ravel(), s.ravel()
     near = np.broadcast_to(np.arange(nxt.shape[1]) < k, nxt.shape).ravel()  # the next k ranks
-    keys = key(a, b)
+    keys = pair_keys(a, b, n)
     fresh = (a != b) & ~np.isin(keys, mkeys)
     keys, s, near_keys = keys[fresh], s[fresh], keys[fresh & near]
     best = _best_per_pair(keys, s)

@@ -48,7 +48,7 @@ from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
-from pipeline.frontend.loop_closure import loop_candidates, saturated_candidates
+from pipeline.frontend.loop_closure import loop_candidates, pair_keys, saturated_candidates
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.pairs import parse_selector, resolve_auto, selection_summary
 from pipeline.geometry.ba_solver import BAConfig
@@ -191,7 +191,7 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
                             max_angle_deg=cfg.max_angle_deg, budget=budget)
         added = c["pairs"]
         sat = self._saturated(n, first, vg.edges, nb, sim, R, mm.get("selection") or {})
-        new = ~np.isin(sat["pairs"] @ [n, 1], added @ [n, 1])  # not a loop-closure pair already
+        new = ~np.isin(pair_keys(*sat["pairs"].T, n), pair_keys(*added.T, n))  # not a loop-closure pair already
         sat.update({k: sat[k][new] for k in ("pairs", "similarity", "angle_deg")})
         extended = sat["pairs"]
         pairs = np.unique(np.concatenate([first, added, extended]), axis=0)
@@ -272,7 +272,7 @@ def loop_note(work: Path) -> str | None:
 
     def verified(rows: list[dict[str, Any]]) -> tuple[int, int]:
         P = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]])) for a in rows], np.int64).reshape(-1, 2)
-        return len(P), int(np.isin(P @ [n, 1], edges @ [n, 1]).sum())
+        return len(P), int(np.isin(pair_keys(*P.T, n), pair_keys(*edges.T, n)).sum())
 
     n_added, n_ok = verified(d["added"])
     note = (f"loop closure: {n_added} pairs added to the first round's {d['n_first']} (their images at least "
