@@ -69,6 +69,7 @@ def one(work: Path, sc: Path, label: str) -> dict:
     lc = m["pairs"].get("loop_closure") or {}
     return {"label": label, "recall": rec["recall"], "fraction_matched": rec["fraction_matched"],
             "n_pairs": rec["n_selected"], "n_saturated": lc.get("n_saturated"), "n_extended": lc.get("n_extended"),
+            "n_transitive": lc.get("n_transitive"),
             "n_edges": next((v["n_edges"] for v in m["methods"].values() if "n_edges" in v), None),
             "median_deg": meds, "wall_s": time.perf_counter() - t0}
 
@@ -96,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.sort(key=lambda r: (r["seed"], list(CONFIGS).index(r["label"])))
             md = r["median_deg"]
             print(f"seed {seed} {label:10s}: recall {r['recall']:.3f} at {r['fraction_matched']:.3f} of all pairs, "
-                  f"{r['n_edges']} edges, saturated {r['n_saturated']} (+{r['n_extended']}); "
+                  f"{r['n_edges']} edges, saturated {r['n_saturated']} (+{r['n_extended']}), transitive "
+                  f"+{r['n_transitive']}; "
                   + ", ".join(f"{k} {v:.4f}°" for k, v in md.items() if v is not None), flush=True)
             write_json(a.json, {"rows": rows, "command": "python benchmarks/retrieval_saturated.py "
                                 + " ".join(sys.argv[1:] if argv is None else argv)})

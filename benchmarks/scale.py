@@ -177,7 +177,11 @@ def measure(work: Path, layout: str, n: int, exhaustive: bool, reference: bool, 
                 (shutil.copytree if src.is_dir() else shutil.copy2)(src, dst)
         me, wall_e, rss_e = run_pipeline(scene, ex, "exhaustive", False, runs / f"{layout}-{n}-exhaustive.log")
         _, err_e = first_method(me)
-        row["exhaustive"] = {"median_deg": err_e, "our_path_s": me["our_path_s"], "wall_s": wall_e, "cpu_s": me["cpu_s"],
+        meds = {k: v.get("median_deg") for k, v in me["methods"].items()}
+        row["exhaustive"] = {"median_deg": err_e, "methods_median_deg": meds,
+                             "error_ratio_methods": {k: row["methods_median_deg"][k] / v for k, v in meds.items()
+                                                     if v and row["methods_median_deg"].get(k) is not None},
+                             "our_path_s": me["our_path_s"], "wall_s": wall_e, "cpu_s": me["cpu_s"],
                              "peak_rss_mb": rss_e, "n_pairs": me.get("pairs", {}).get("n_pairs"),
                              "error_ratio_retrieval": err / err_e if err_e else None,
                              "features_reused": bool(me["stages_reused"].get("features"))}

@@ -48,13 +48,13 @@ from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
-from pipeline.frontend.loop_closure import loop_candidates, pair_keys, saturated_candidates
+from pipeline.frontend.loop_closure import loop_candidates, pair_keys, saturated_candidates, transitive_candidates
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.pairs import parse_selector, resolve_auto, selection_summary
 from pipeline.geometry.ba_solver import BAConfig
 from pipeline.geometry.ba_stage import TwoViewBAStage, load_ba_viewgraph
 from pipeline.geometry.ransac import TwoViewConfig
-from pipeline.geometry.two_view_stage import TwoViewStage
+from pipeline.geometry.two_view_stage import TwoViewStage, load_two_view
 from pipeline.stage import Stage, StageRecord, read_record
 
 logger = logging.getLogger(__name__)
@@ -84,6 +84,11 @@ class LoopClosureConfig(Config):
                                     "neighbours matched too, those not looking more than max_angle_deg apart "
                                     "(above 1: never)", ge=0)
     saturated_max_fraction: float = option(1.0, "those pairs are at most this fraction of the first round's", ge=0)
+    transitive_min_matches: int = option(15, "an unmatched pair whose images the first round's verified pairs' "
+                                         "inliers chain through this many keypoints of other images is matched "
+                                         "(the view graph's own least inliers of a pair; 0: never)", ge=0)
+    transitive_max_fraction: float = option(0.25, "those pairs are at most this fraction of the first round's, the "
+                                            "most chained first", ge=0)
 
 
 @dataclass(frozen=True)
@@ -194,15 +199,20 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         new = ~np.isin(pair_keys(*sat["pairs"].T, n), pair_keys(*added.T, n))  # not a loop-closure pair already
         sat.update({k: sat[k][new] for k in ("pairs", "similarity", "angle_deg")})
         extended = sat["pairs"]
-        pairs = np.unique(np.concatenate([first, added, extended]), axis=0)
+        tr = self._transitive(n, np.concatenate([first, added, extended]), vg, len(first))
+        chained = tr["pairs"]
+        pairs = np.unique(np.concatenate([first, added, extended, chained]), axis=0)
         counts = {k: v for k, v in c.items() if k.startswith("n_")}
         summary = {"base": base, "n_first": len(first), "n_added": len(added), "budget": budget,
                    "min_hops": cfg.min_hops, **counts, "n_saturated": sat["n_saturated"],
-                   "n_extended": len(extended), "saturated_budget": sat["budget"]}
+                   "n_extended": len(extended), "saturated_budget": sat["budget"], "n_transitive": len(chained),
+                   "n_transitive_eligible": tr["n_eligible"], "transitive_budget": tr["budget"],
+                   "transitive_min_matches": cfg.transitive_min_matches}
         sel = dict(mm.get("selection") or {})
         selection = selection_summary({**sel, "loop_closure": {"n_first": len(first), "n_added": len(added),
                                                                "n_saturated": sat["n_saturated"],
-                                                               "n_extended": len(extended)}},
+                                                               "n_extended": len(extended),
+                                                               "n_transitive": len(chained)}},
                                       n, len(pairs))
         path = write_json(work / OUTPUT, {
             "format": "rotavg-loop-closure", "names": names, "pairs": pairs.tolist(), "selection": selection,
@@ -212,6 +222,8 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
             "extended": [{"pair": [names[a], names[b]], "angle_deg": None if math.isnan(g) else round(float(g), 3),
                           "similarity": round(float(s), 4)}
                          for (a, b), g, s in zip(extended.tolist(), sat["angle_deg"], sat["similarity"])],
+            "transitive": [{"pair": [names[a], names[b]], "count": int(t)}
+                           for (a, b), t in zip(chained.tolist(), tr["count"])],
             **summary})
         logger.info("loop closure: %d pairs added to the first round's %d (budget %d; of %d unmatched ranked pairs, "
                     "%d at least %d hops apart, %d of those looking apart)", len(added), len(first), budget,
@@ -219,7 +231,28 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         if sat["n_saturated"]:
             logger.info("retrieval's k was short of %d image(s) whose lower-ranked candidates verified too: %d of "
                         "their next-ranked pairs added (budget %d)", sat["n_saturated"], len(extended), sat["budget"])
+        if len(chained):
+            logger.info("%d pairs whose images the verified pairs' inliers chain through at least %d keypoints of "
+                        "other images added (of %d; budget %d)", len(chained), cfg.transitive_min_matches,
+                        tr["n_eligible"], tr["budget"])
         return [path], summary
+
+    def _transitive(self, n: int, matched: np.ndarray, vg: ViewGraph, n_first: int) -> dict[str, Any]:
+        """:func:`transitive_candidates` through the inliers of the first round's verified pairs (those of the
+        two-view BA graph ``vg``), up to ``transitive_max_fraction`` of the first round's pairs."""
+        cfg = self.config
+        budget = int(math.floor(cfg.transitive_max_fraction * n_first))
+        if cfg.transitive_min_matches <= 0 or budget <= 0 or vg.n_edges == 0:
+            return {"pairs": np.zeros((0, 2), np.int64), "count": np.zeros(0, np.int64), "n_eligible": 0,
+                    "budget": budget}
+        tv = load_two_view(self.folder)
+        keep = np.isin(pair_keys(*tv.vg.edges.T, n), pair_keys(*vg.edges.T, n))
+        per = np.diff(tv.offsets)
+        rows = np.repeat(keep, per)
+        offsets = np.r_[0, np.cumsum(per[keep])]
+        out = transitive_candidates(n, matched, tv.vg.edges[keep], offsets, tv.kp_i[rows], tv.kp_j[rows],
+                                    min_count=cfg.transitive_min_matches, budget=budget)
+        return {**out, "budget": budget}
 
     def _saturated(self, n: int, first: np.ndarray, verified: np.ndarray, nb: np.ndarray, sim: np.ndarray,
                    R: np.ndarray, selection: dict[str, Any]) -> dict[str, Any]:
@@ -239,7 +272,8 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
     @staticmethod
     def adds_pairs(record: StageRecord | None) -> bool:
         """Whether a loop-closure result adds pairs to the first round's (loop-closure or saturated images' pairs)."""
-        return record is not None and (record.summary.get("n_added", 0) > 0 or record.summary.get("n_extended", 0) > 0)
+        return record is not None and any(record.summary.get(k, 0) > 0 for k in ("n_added", "n_extended",
+                                                                                "n_transitive"))
 
     def verify(self, record: StageRecord) -> None:
         self.load_pairs(list(feature_stage.load_manifest(self.folder)["names"]))
@@ -281,6 +315,10 @@ def loop_note(work: Path) -> str | None:
         n_ext, n_ext_ok = verified(d.get("extended", []))
         note += (f"; {n_ext} next-ranked pairs of the {d['n_saturated']} images whose lower-ranked retrieval "
                  f"candidates verified too (k was short for them), {n_ext_ok} of them verified")
+    if d.get("n_transitive"):
+        n_tr, n_tr_ok = verified(d.get("transitive", []))
+        note += (f"; {n_tr} pairs whose images the verified pairs' inliers chain through at least "
+                 f"{d['transitive_min_matches']} keypoints of other images, {n_tr_ok} of them verified")
     return note
 
 

@@ -16,7 +16,8 @@ from scipy.sparse.csgraph import shortest_path
 from pipeline import features
 from pipeline.core import so3
 from pipeline.frontend.camera_estimate import CamerasConfig
-from pipeline.frontend.loop_closure import _adjacency, hop_distances, loop_candidates, saturated_candidates
+from pipeline.frontend.loop_closure import (_adjacency, hop_distances, loop_candidates, saturated_candidates,
+                                            transitive_candidates)
 from pipeline.frontend.loop_stage import FrontEnd, LoopClosureConfig, LoopClosureStage, loop_note, run_front_end
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.matching_stage import load_matches
@@ -174,6 +175,69 @@ def test_images_whose_lower_ranked_candidates_verified_get_their_next_ranked_one
     assert c3["n_saturated"] == 0 and len(c3["pairs"]) == 0
 
 
+def _inliers(rng: np.random.Generator, E: np.ndarray, n_kp: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random inlier keypoint lists of the edges E (one-to-one within a pair): offsets, keypoints in a and in b."""
+    per = rng.integers(0, 40, len(E))
+    ka = np.concatenate([rng.choice(n_kp, k, replace=False) for k in per])
+    kb = np.concatenate([rng.choice(n_kp, k, replace=False) for k in per])
+    return np.r_[0, np.cumsum(per)], ka, kb
+
+
+def test_transitive_correspondences_count_the_keypoints_that_chain_two_images():
+    rng = np.random.default_rng(3)
+    n, n_kp = 14, 60
+    E = np.unique(np.sort(rng.integers(0, n, (40, 2)), axis=1), axis=0)
+    E = E[E[:, 0] != E[:, 1]]
+    off, ka, kb = _inliers(rng, E, n_kp)
+    # brute force: per image b, the keypoints of b matched into each other image; a pair (a, c) counts the
+    # keypoints of any b matched into both
+    into: dict[tuple[int, int], set[int]] = {}
+    for e, (i, j) in enumerate(E):
+        into.setdefault((j, i), set()).update(kb[off[e]:off[e + 1]].tolist())  # keypoints of j matched into i
+        into.setdefault((i, j), set()).update(ka[off[e]:off[e + 1]].tolist())
+    want = {}
+    for a in range(n):
+        for c in range(a + 1, n):
+            t = sum(len(into.get((b, a), set()) & into.get((b, c), set())) for b in range(n))
+            if t:
+                want[(a, c)] = t
+    matched = E[::2]
+    got = transitive_candidates(n, matched, E, off, ka, kb, min_count=1, budget=10_000)
+    mk = set(map(tuple, matched.tolist()))
+    assert {tuple(p): int(c) for p, c in zip(got["pairs"].tolist(), got["count"])} == \
+        {p: t for p, t in want.items() if p not in mk}
+    assert got["n_candidates"] == got["n_eligible"] == len(got["pairs"]) > 10
+    assert np.all(np.diff(got["count"]) <= 0)  # the most chained first
+    # the gate and the budget
+    gated = transitive_candidates(n, matched, E, off, ka, kb, min_count=8, budget=10_000)
+    assert gated["count"].min() >= 8 and gated["n_eligible"] == len(gated["pairs"]) == sum(
+        t >= 8 for p, t in want.items() if p not in mk) > 0
+    top = transitive_candidates(n, matched, E, off, ka, kb, min_count=1, budget=5)
+    np.testing.assert_array_equal(top["pairs"], got["pairs"][:5])
+    # no verified pairs: nothing chains
+    none = transitive_candidates(n, matched, E[:0], np.zeros(1, int), ka[:0], kb[:0], min_count=1, budget=10)
+    assert len(none["pairs"]) == 0 and none["n_candidates"] == 0
+
+
+def test_a_keypoint_matched_along_a_chain_makes_its_ends_a_transitive_pair():
+    # a ring of views each verified with its two next: a keypoint seen by views 0-3 chains (0, 3) through 1 and 2
+    n = 10
+    E, _ = ring(n, span=2)
+    tracks = [np.arange(s, s + 4) % n for s in range(n)]  # track s: one keypoint in views s … s+3
+    kp = {(t, v): 100 * t for t in range(n) for v in tracks[t]}
+    rows = []
+    for e, (i, j) in enumerate(E):
+        for t in range(n):
+            if (t, i) in kp and (t, j) in kp:
+                rows.append((e, kp[(t, i)] + i, kp[(t, j)] + j))
+    rows = np.array(sorted(rows))
+    off = np.searchsorted(rows[:, 0], np.arange(len(E) + 1))
+    got = transitive_candidates(n, E, E, off, rows[:, 1], rows[:, 2], min_count=1, budget=100)
+    d = np.abs(got["pairs"][:, 0] - got["pairs"][:, 1])
+    assert set(np.minimum(d, n - d).tolist()) == {3}  # every pair three views apart, once
+    assert len(got["pairs"]) == n and (got["count"] == 2).all()  # its keypoints in views 1 and 2
+
+
 # ---------------------------------------------------------------------- the rounds in a WORK folder
 SCENE = LargeSceneConfig(layout="ring", n_views=24, width=320, height=240, focal=280.0, points_per_view=800,
                          supersample=1)
@@ -212,17 +276,20 @@ def test_two_rounds_then_a_rerun_reuses_both(work: Path):
                                       ("two_view_ba", False), ("loop_closure", False), ("matching", True),
                                       ("cameras", True), ("two_view", True), ("two_view_ba", True)]
     lc = json.loads((work / "loop_closure.json").read_text())
-    n_first, n_added = lc["n_first"], lc["n_added"]
+    n_first, n_added, n_tr = lc["n_first"], lc["n_added"], lc["n_transitive"]
     assert 0 < n_added <= 0.5 * n_first and len(lc["added"]) == n_added
     assert all(a["hops"] is None or a["hops"] >= 3 for a in lc["added"])
+    assert 0 < n_tr <= 0.25 * n_first and len(lc["transitive"]) == n_tr
+    assert all(a["count"] >= 15 for a in lc["transitive"])
     pairs = load_matches(work).pairs
-    assert len(pairs) == n_first + n_added and len(np.unique(pairs, axis=0)) == len(pairs)
+    assert len(pairs) == n_first + n_added + n_tr and len(np.unique(pairs, axis=0)) == len(pairs)
     # the second round computed only the added pairs; the cameras are the first round's
-    assert summary(work, "matching")["n_computed"] == n_added
-    assert summary(work, "two_view")["n_computed"] == n_added
+    assert summary(work, "matching")["n_computed"] == n_added + n_tr
+    assert summary(work, "two_view")["n_computed"] == n_added + n_tr
     assert calls[6][2]  # cameras reused in the second round
     assert summary(work, "matching")["pairs"]["loop_closure"] == {"n_first": n_first, "n_added": n_added,
-                                                                   "n_saturated": 0, "n_extended": 0}  # k given
+                                                                   "n_saturated": 0, "n_extended": 0,
+                                                                   "n_transitive": n_tr}  # k given
     assert summary(work, "matching")["base"] == lc["base"]
 
     calls.clear()
@@ -234,6 +301,7 @@ def test_two_rounds_then_a_rerun_reuses_both(work: Path):
 def test_the_next_ranked_pairs_of_saturated_images_are_matched_in_the_second_round(work: Path, tmp_path: Path):
     w = tmp_path / "work"
     shutil.copytree(work, w)
+    done = load_matches(w).pairs  # pairs computed already (a round before this test's)
     fe = dataclasses.replace(front(saturated_share=0.0), matching=MatchingConfig(pairs="retrieval"))  # k chosen
     run_front_end(w, fe)
     lc = json.loads((w / "loop_closure.json").read_text())
@@ -247,8 +315,12 @@ def test_the_next_ranked_pairs_of_saturated_images_are_matched_in_the_second_rou
     pairs = load_matches(w).pairs
     assert np.isin(ext @ [n, 1], pairs @ [n, 1]).all()  # matched in the second round
     assert len(pairs) == len(np.unique(np.r_[np.asarray(lc["pairs"])], axis=0)) == lc["n_first"] + lc["n_added"] + \
-        lc["n_extended"]
-    assert summary(w, "two_view")["n_computed"] == lc["n_added"] + lc["n_extended"]
+        lc["n_extended"] + lc["n_transitive"]
+    second = np.array([sorted((idx[a["pair"][0]], idx[a["pair"][1]]))
+                       for key in ("added", "extended", "transitive") for a in lc[key]]).reshape(-1, 2)
+    assert len(second) == lc["n_added"] + lc["n_extended"] + lc["n_transitive"] and lc["n_transitive"] > 0
+    # the second round computed its pairs but those an earlier round of this WORK had computed
+    assert summary(w, "two_view")["n_computed"] == np.isin(second @ [n, 1], done @ [n, 1], invert=True).sum() > 0
     assert summary(w, "matching")["pairs"]["loop_closure"]["n_extended"] == len(ext)
     assert f"{len(ext)} next-ranked pairs of the {n} images" in loop_note(w)
     # a k the user gave is kept as given
@@ -312,8 +384,10 @@ def test_run_py_reports_the_loop_round(work: Path, tmp_path: Path):
                                   K=scene / "K.txt", quiet=True).read_text())
     lc = json.loads((tmp_path / "out" / "work" / "loop_closure.json").read_text())
     assert metrics["pairs"]["loop_closure"] == {"n_first": lc["n_first"], "n_added": lc["n_added"],
-                                                "n_saturated": 0, "n_extended": 0}
-    assert metrics["pairs"]["n_pairs"] == lc["n_first"] + lc["n_added"]
+                                                "n_saturated": 0, "n_extended": 0, "n_transitive": lc["n_transitive"]}
+    assert metrics["pairs"]["n_pairs"] == lc["n_first"] + lc["n_added"] + lc["n_transitive"]
     assert "loop_closure" in metrics["stages"]
     report = (tmp_path / "out" / "report.md").read_text()
     assert f"loop closure: {lc['n_added']} pairs added to the first round's {lc['n_first']}" in report
+    chained = f"{lc['n_transitive']} pairs whose images the verified pairs' inliers chain"
+    assert lc["n_transitive"] > 0 and chained in report
