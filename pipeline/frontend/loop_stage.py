@@ -9,7 +9,9 @@ With retrieval or sequential pairs, the front end runs in two rounds (:func:`run
    with sequential pairs the first round ranks them too, as COLMAP's sequential matcher's loop detection does);
    where retrieval chose k itself and the first round verified almost every pair, also the further ranked
    neighbours (not looking apart) of the images whose lower-ranked candidates all verified (k was short of
-   their overlap: :func:`pipeline.frontend.loop_closure.saturated_candidates`);
+   their overlap: :func:`pipeline.frontend.loop_closure.saturated_candidates`); and the unmatched pairs whose
+   images the first round's verified inliers chain through enough keypoints of other images
+   (:func:`pipeline.frontend.loop_closure.transitive_candidates`);
 3. matching, two-view geometry and two-view BA again, on the first round's pairs and those
    (the second round). Every pair is cached by its own key, so only the added pairs are computed.
 
@@ -271,7 +273,8 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
 
     @staticmethod
     def adds_pairs(record: StageRecord | None) -> bool:
-        """Whether a loop-closure result adds pairs to the first round's (loop-closure or saturated images' pairs)."""
+        """Whether a loop-closure result adds pairs to the first round's (loop-closure, saturated images' or
+        transitive pairs)."""
         return record is not None and any(record.summary.get(k, 0) > 0 for k in ("n_added", "n_extended",
                                                                                 "n_transitive"))
 
