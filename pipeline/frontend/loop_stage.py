@@ -247,12 +247,12 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
         if cfg.transitive_min_matches <= 0 or budget <= 0 or vg.n_edges == 0:
             return {"pairs": np.zeros((0, 2), np.int64), "count": np.zeros(0, np.int64), "n_eligible": 0,
                     "budget": budget}
-        tv = load_two_view(self.folder)
-        keep = np.isin(pair_keys(*tv.vg.edges.T, n), pair_keys(*vg.edges.T, n))
-        per = np.diff(tv.offsets)
-        rows = np.repeat(keep, per)
-        offsets = np.r_[0, np.cumsum(per[keep])]
-        out = transitive_candidates(n, matched, tv.vg.edges[keep], offsets, tv.kp_i[rows], tv.kp_j[rows],
+        try:
+            offsets, kp = load_two_view(self.folder).inliers_of(vg.edges)
+        except ValueError:
+            raise CacheError(f"the two-view BA graph in {self.folder} has pairs the two-view result lacks; re-run "
+                             f"`python -m pipeline.loop_closure --work {self.folder} --overwrite`") from None
+        out = transitive_candidates(n, matched, vg.edges, offsets, kp[:, 0], kp[:, 1],
                                     min_count=cfg.transitive_min_matches, budget=budget)
         return {**out, "budget": budget}
 

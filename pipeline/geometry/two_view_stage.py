@@ -134,6 +134,22 @@ class TwoViewData:
         s, e = int(self.offsets[k]), int(self.offsets[k + 1])
         return self.x_i[s:e], self.x_j[s:e]
 
+    def inliers_of(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The inliers of the pairs ``edges`` (E, 2), ``i < j``, in their order: offsets (E+1,) and the keypoint
+        index pairs (total, 2). Raises ValueError when a pair is not one of this result's edges."""
+        n = self.vg.n_cameras
+        e = np.asarray(edges, np.int64).reshape(-1, 2)
+        key_tv, key = self.vg.edges[:, 0] * n + self.vg.edges[:, 1], e[:, 0] * n + e[:, 1]
+        order = np.argsort(key_tv)
+        pos = np.minimum(np.searchsorted(key_tv[order], key), max(len(order) - 1, 0))
+        if len(key) and (not len(order) or np.any(key_tv[order][pos] != key)):
+            raise ValueError("a pair is not among the two-view result's edges")
+        e_tv = order[pos] if len(key) else np.zeros(0, np.int64)
+        counts = np.diff(self.offsets)[e_tv]
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        rows = np.arange(offsets[-1]) + np.repeat(self.offsets[e_tv] - offsets[:-1], counts)
+        return offsets, np.stack([self.kp_i[rows], self.kp_j[rows]], axis=1)
+
 
 def write_two_view(work: Path, vg: ViewGraph, K: np.ndarray, sizes: np.ndarray, offsets: np.ndarray,
                    x_i: np.ndarray, x_j: np.ndarray, kp_i: np.ndarray, kp_j: np.ndarray) -> list[Path]:

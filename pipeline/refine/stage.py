@@ -154,17 +154,11 @@ def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: st
         raise CacheError(f"the two-view results in {work} are of {tv.vg.n_cameras} images, the features of {n}; "
                          "re-run the front end")
     # the pairs that passed two-view BA, with their two-view inliers and refined poses
-    key_tv = tv.vg.edges[:, 0] * n + tv.vg.edges[:, 1]
-    key_ba = vg.edges[:, 0] * n + vg.edges[:, 1]
-    order = np.argsort(key_tv)
-    pos = np.searchsorted(key_tv[order], key_ba)
-    found = (pos < len(order)) & (key_tv[order][np.minimum(pos, len(order) - 1)] == key_ba)
-    if not found.all():
-        raise CacheError(f"the two-view BA view graph in {work} has pairs the two-view result lacks; re-run the front end")
-    e_tv = order[pos]
-    counts = np.diff(tv.offsets)[e_tv]
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    rows = np.arange(offsets[-1]) + np.repeat(tv.offsets[e_tv] - offsets[:-1], counts)  # inliers of the kept pairs
+    try:
+        offsets, matches = tv.inliers_of(vg.edges)
+    except ValueError:
+        raise CacheError(f"the two-view BA view graph in {work} has pairs the two-view result lacks; re-run the front "
+                         "end") from None
     names, R = read_rotations(rotations)
     cams = match_names(names, list(fs.names), what=f"the images of {work}")
     if np.any(cams < 0) or len(set(cams.tolist())) != len(cams):
@@ -175,7 +169,7 @@ def load_inputs(work: Path, rotations: Path, graph: Path | None = None, lens: st
     K, keypoints, sources, k1 = _intrinsics(work, fs, lens)
     return {"names": list(fs.names), "K": K, "sizes": fs.sizes, "keypoints": keypoints, "edges": vg.edges,
             "match_offsets": offsets,
-            "matches": np.stack([tv.kp_i[rows], tv.kp_j[rows]], axis=1), "cam2_from_cam1": vg.R_rel,
+            "matches": matches, "cam2_from_cam1": vg.R_rel,
             "t_cam2_from_cam1": np.asarray(vg.stats["t"], float), "R_init": R_init,
             "known_K": _known_K(sources, n), "k1": k1}, list(names), cams
 

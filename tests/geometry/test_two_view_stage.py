@@ -105,6 +105,21 @@ def test_viewgraph_convention_and_contents(work):
         d.correspondences(6)
 
 
+def test_the_inliers_of_given_pairs_in_their_order(work):
+    d = load_two_view(work[1])
+    pick = d.vg.edges[[4, 1, 5]]
+    offsets, kp = d.inliers_of(pick)
+    for q, k in enumerate([4, 1, 5]):
+        s, e = d.offsets[k], d.offsets[k + 1]
+        np.testing.assert_array_equal(kp[offsets[q]:offsets[q + 1]], np.stack([d.kp_i[s:e], d.kp_j[s:e]], 1))
+    assert offsets[-1] == len(kp) == sum(d.offsets[k + 1] - d.offsets[k] for k in (4, 1, 5)) > 0
+    o0, kp0 = d.inliers_of(np.zeros((0, 2), int))
+    assert o0.tolist() == [0] and kp0.shape == (0, 2)
+    missing = np.array([[0, 1], [2, 9]])  # image 9 is not in the scene
+    with pytest.raises(ValueError, match="not among"):
+        d.inliers_of(missing)
+
+
 def test_resume_skips_finished_work(work):
     _, w = work
     rec1 = TwoViewStage(w, Q).run()
