@@ -137,16 +137,14 @@ class TwoViewData:
     def inliers_of(self, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The inliers of the pairs ``edges`` (E, 2), ``i < j``, in their order: offsets (E+1,) and the keypoint
         index pairs (total, 2). Raises ValueError when a pair is not one of this result's edges."""
-        n = self.vg.n_cameras
-        e = np.asarray(edges, np.int64).reshape(-1, 2)
+        n, e = self.vg.n_cameras, np.asarray(edges, np.int64).reshape(-1, 2)
         key_tv, key = self.vg.edges[:, 0] * n + self.vg.edges[:, 1], e[:, 0] * n + e[:, 1]
         order = np.argsort(key_tv)
-        pos = np.minimum(np.searchsorted(key_tv[order], key), max(len(order) - 1, 0))
-        if len(key) and (not len(order) or np.any(key_tv[order][pos] != key)):
+        e_tv = order[np.minimum(np.searchsorted(key_tv[order], key), len(order) - 1)] if len(order) else order
+        if len(e_tv) != len(key) or np.any(key_tv[e_tv] != key):
             raise ValueError("a pair is not among the two-view result's edges")
-        e_tv = order[pos] if len(key) else np.zeros(0, np.int64)
         counts = np.diff(self.offsets)[e_tv]
-        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        offsets = np.r_[0, np.cumsum(counts)].astype(np.int64)
         rows = np.arange(offsets[-1]) + np.repeat(self.offsets[e_tv] - offsets[:-1], counts)
         return offsets, np.stack([self.kp_i[rows], self.kp_j[rows]], axis=1)
 
@@ -160,14 +158,12 @@ def write_two_view(work: Path, vg: ViewGraph, K: np.ndarray, sizes: np.ndarray, 
 
 
 def _check_corr(path: Path, arr: dict[str, np.ndarray], vg: ViewGraph) -> None:
-    missing = [k for k in _CORR_ARRAYS if k not in arr]
-    if missing:
+    if missing := [k for k in _CORR_ARRAYS if k not in arr]:
         raise CacheError(f"{path} lacks the array(s) {missing}")
     for k, kinds in _CORR_ARRAYS.items():
         if arr[k].dtype.kind not in kinds:
             raise CacheError(f"{path}: {k} has dtype {arr[k].dtype}, expected {'float' if kinds == 'f' else 'integer'}")
-    N, M, T = vg.n_cameras, vg.n_edges, len(arr["x_i"]) if arr["x_i"].ndim else -1
-    off = arr["offsets"]
+    N, M, T, off = vg.n_cameras, vg.n_edges, len(arr["x_i"]) if arr["x_i"].ndim else -1, arr["offsets"]
     expected = {"K": (N, 3, 3), "sizes": (N, 2), "offsets": (M + 1,), "x_i": (T, 2), "x_j": (T, 2), "kp_i": (T,),
                 "kp_j": (T,)}
     for k, shape in expected.items():
