@@ -35,11 +35,17 @@ from pipeline.core.atomic import save_npz
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.readers import read_npz
 
-__all__ = ["ViewGraph", "Restriction", "precision_problem"]
+__all__ = ["ViewGraph", "Restriction", "precision_problem", "pair_keys"]
 
 FORMAT = "rotavg-viewgraph"
 FORMAT_VERSION = 1
 ROTATION_TOL = 1e-6
+
+
+def pair_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
+    """One integer per unordered image pair (either order): ``min(a, b)·n + max(a, b)`` for N = ``n`` images."""
+    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+    return np.minimum(a, b) * n + np.maximum(a, b)
 
 
 def precision_problem(H: np.ndarray) -> tuple[int, str] | None:

@@ -60,7 +60,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra, shortest_path
 
-__all__ = ["hop_distances", "loop_candidates", "saturated_candidates", "transitive_candidates", "pair_keys"]
+from pipeline.core.viewgraph import pair_keys
+
+__all__ = ["hop_distances", "loop_candidates", "saturated_candidates", "transitive_candidates"]
 
 _BFS_BLOCK = 256  # sources per shortest-path call: (256, N) distances at a time
 
@@ -91,12 +93,6 @@ def _hops(A: sp.csr_matrix, pairs: np.ndarray) -> np.ndarray:
         D = shortest_path(A, unweighted=True, directed=False, indices=src[s:s + _BFS_BLOCK])
         out[idx[sel]] = D[row[sel] - s, pairs[idx[sel], 1]]
     return out
-
-
-def pair_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
-    """One integer per unordered image pair (either order): ``min(a, b)·n + max(a, b)`` for N = ``n`` images."""
-    a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
-    return np.minimum(a, b) * n + np.maximum(a, b)
 
 
 def _best_per_pair(keys: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -279,9 +275,10 @@ def transitive_candidates(n: int, matched: np.ndarray, edges: np.ndarray, offset
     P = np.stack([C.row, C.col], axis=1).astype(np.int64)
     count = np.rint(C.data).astype(np.int64)
     m = np.asarray(matched, np.int64).reshape(-1, 2)
-    new = ~np.isin(pair_keys(P[:, 0], P[:, 1], n), pair_keys(m[:, 0], m[:, 1], n))
-    P, count = P[new], count[new]
+    key = pair_keys(P[:, 0], P[:, 1], n)
+    new = ~np.isin(key, pair_keys(m[:, 0], m[:, 1], n))
+    P, count, key = P[new], count[new], key[new]
     take = np.flatnonzero(count >= min_count)
-    take = take[np.lexsort((pair_keys(P[take, 0], P[take, 1], n), -count[take]))][:max(int(budget), 0)]
+    take = take[np.lexsort((key[take], -count[take]))][:max(int(budget), 0)]
     return {"pairs": P[take], "count": count[take], "n_candidates": int(len(P)),
             "n_eligible": int((count >= min_count).sum())}

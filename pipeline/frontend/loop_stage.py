@@ -47,10 +47,10 @@ from pipeline.core.atomic import write_json
 from pipeline.core.config import Config, option
 from pipeline.core.errors import CacheError, InputFileError, ViewGraphError
 from pipeline.core.readers import read_json
-from pipeline.core.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph, pair_keys
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import CamerasConfig, CamerasStage
-from pipeline.frontend.loop_closure import loop_candidates, pair_keys, saturated_candidates, transitive_candidates
+from pipeline.frontend.loop_closure import loop_candidates, saturated_candidates, transitive_candidates
 from pipeline.frontend.matching import MatchingConfig
 from pipeline.frontend.pairs import parse_selector, resolve_auto, selection_summary
 from pipeline.geometry.ba_solver import BAConfig

@@ -40,7 +40,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import save_npz
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.store import ItemStore, compute_missing, item_key
-from pipeline.core.viewgraph import ViewGraph
+from pipeline.core.viewgraph import ViewGraph, pair_keys
 from pipeline.frontend import feature_stage, matching_stage
 from pipeline.frontend.camera_stage import NAME as CAMERAS, cameras_for
 from pipeline.frontend.distortion import CameraModel, undistort_points
@@ -138,7 +138,7 @@ class TwoViewData:
         """The inliers of the pairs ``edges`` (E, 2), ``i < j``, in their order: offsets (E+1,) and the keypoint
         index pairs (total, 2). Raises ValueError when a pair is not one of this result's edges."""
         n, e = self.vg.n_cameras, np.asarray(edges, np.int64).reshape(-1, 2)
-        key_tv, key = self.vg.edges[:, 0] * n + self.vg.edges[:, 1], e[:, 0] * n + e[:, 1]
+        key_tv, key = pair_keys(*self.vg.edges.T, n), pair_keys(*e.T, n)
         order = np.argsort(key_tv)
         e_tv = order[np.minimum(np.searchsorted(key_tv[order], key), len(order) - 1)] if len(order) else order
         if len(e_tv) != len(key) or np.any(key_tv[e_tv] != key):
