@@ -71,7 +71,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.averaging.block import BlockLaplacianSolver, anisotropic_step, edge_metric, jl_inv, left_errors
-from pipeline.averaging.calibration import DEFAULT_METRICS, check_metric, mixture_irls, shape_metric
+from pipeline.averaging.calibration import DEFAULT_METRICS, RACE_CHECKPOINTS, check_metric, race_metrics, shape_metric
 from pipeline.averaging.certificate import certify_weights, metric_from_H
 from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.irls import IRLSConfig, irls
@@ -150,6 +150,8 @@ class IRLSHConfig(L1StartConfig, StopConfig):
     refine_iterations: int = option(50, "iteration cap of the polish (global scale) or of each metric's EM", ge=0)
     scale: float | None = option(None, "global scale: a fixed s² (NEES scale of H) instead of the robust estimate",
                                  gt=0)
+    race: bool = option(True, "calibrate: stop a candidate metric whose likelihood trails the leader's by a wide "
+                              "margin after a few EM iterations (false: every candidate runs to its end)")
     certify: bool = option(True, "dual certificate of the final reweighted problem (stats['certificate'])")
 
     def check(self) -> None:
@@ -219,12 +221,8 @@ def _calibrated(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.nda
     start = irls(vg, iso_cfg, init=None if isinstance(init, str) else init, init_weights=init_weights)
     solver = BlockLaplacianSolver(vg.edges, vg.n_cameras, ref=int(np.argmax(vg.degrees())))
     rule = StopRule(cfg.ftol, 0.01, cfg.tol_rad, cfg.refine_iterations)
-    fits, metrics = {}, {}
-    for name in dict.fromkeys(cfg.metrics):
-        P = shape_metric(vg, name)
-        if P is not None:
-            metrics[name] = P
-            fits[name] = mixture_irls(vg, start.R, name, P, rule, solver)
+    metrics = {name: P for name in dict.fromkeys(cfg.metrics) if (P := shape_metric(vg, name)) is not None}
+    fits, dropped = race_metrics(vg, start.R, metrics, rule, solver, RACE_CHECKPOINTS if cfg.race else ())
     best = max(fits, key=lambda k: fits[k].loglik)
     f = fits[best]
     r, _, dom = left_errors(vg, f.R)
@@ -244,9 +242,11 @@ def _calibrated(vg: ViewGraph, cfg: IRLSHConfig, init: Any, init_weights: np.nda
             "normalized_residuals": normalized.tolist(),
             "n_factorizations": solver.n_factorizations, "n_cg_iterations": solver.n_cg_iterations,
             "factor_fills": solver.fills,
-            "candidates": {k: {"loglik": v.loglik, "nu": v.nu, "s": v.s, "eps": v.eps, "iterations": v.iterations,
-                               "converged": v.converged, "n_outliers": int(np.sum(v.gamma < 0.5))}
-                           for k, v in fits.items()}})
+            "candidates": {**{k: {"loglik": v.loglik, "nu": v.nu, "s": v.s, "eps": v.eps, "iterations": v.iterations,
+                                  "converged": v.converged, "n_outliers": int(np.sum(v.gamma < 0.5))}
+                              for k, v in fits.items()},
+                           **{k: {"loglik": v["loglik"], "iterations": v["iterations"], "dropped_behind": v["behind"]}
+                              for k, v in dropped.items()}}})
     what = f"the final reweighted cost of calibrated IRLS-H (metric {best}, t-weights, ν={f.nu:g})"
     return res, metrics[best], what
 

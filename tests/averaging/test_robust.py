@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from pipeline.averaging import average
-from pipeline.averaging.calibration import DEFAULT_METRICS, shape_metric
+from pipeline.averaging.block import BlockLaplacianSolver
+from pipeline.averaging.calibration import DEFAULT_METRICS, RACE_CHECKPOINTS, mixture_irls, race_metrics, shape_metric
 from pipeline.averaging.evidence import camera_evidence
 from pipeline.averaging.irls import irls
 from pipeline.averaging.mixture import NU_GRID, fit_mixture
@@ -126,6 +127,43 @@ def test_calibration_prefers_the_metric_that_explains_the_residuals():
     e_cal = np.median(rotation_errors_deg(cal.R, g.R_true))
     e_glob = np.median(rotation_errors_deg(glob.R, g.R_true))
     assert e_cal < 0.8 * e_glob, (e_cal, e_glob)
+
+
+def test_the_race_of_the_metrics_selects_and_solves_as_running_every_candidate_to_its_end():
+    """The race stops candidates that trail by a wide margin after a few EM iterations: the metric chosen and the
+    rotations are those of every candidate run to its end, at a fraction of the EM iterations."""
+    g, _ = miscalibrated_h_graph(150, seed=1)
+    start = average(g.vg, "irls", certify=False).R
+    metrics = {m: shape_metric(g.vg, m) for m in DEFAULT_METRICS}
+    rule = StopRule(1e-5, 0.01, None, 50)
+
+    def solver() -> BlockLaplacianSolver:
+        return BlockLaplacianSolver(g.vg.edges, g.vg.n_cameras, ref=int(np.argmax(g.vg.degrees())))
+
+    full = {m: mixture_irls(g.vg, start, m, P, rule, solver()) for m, P in metrics.items()}
+    every, none_dropped = race_metrics(g.vg, start, metrics, rule, solver(), checkpoints=())
+    assert not none_dropped and set(every) == set(metrics)
+    for m in metrics:  # without checkpoints the race is each candidate's own EM, to the last digit
+        assert every[m].loglik == full[m].loglik and np.array_equal(every[m].R, full[m].R)
+    raced, dropped = race_metrics(g.vg, start, metrics, rule, solver())
+    best = max(full, key=lambda m: full[m].loglik)
+    assert max(raced, key=lambda m: raced[m].loglik) == best
+    assert rotation_errors_deg(raced[best].R, full[best].R, align="none").max() < 1e-6
+    assert dropped and set(raced) | set(dropped) == set(metrics) and not set(raced) & set(dropped)
+    margins = dict(RACE_CHECKPOINTS)
+    for m, d in dropped.items():  # dropped at a checkpoint, by more than its margin, and no better at the end
+        assert d["checkpoint"] in margins and d["behind"] > margins[d["checkpoint"]]
+        assert d["iterations"] <= d["checkpoint"]
+        assert full[m].loglik < full[best].loglik
+    assert sum(f.iterations for f in raced.values()) + sum(d["iterations"] for d in dropped.values()) \
+        < 0.6 * sum(f.iterations for f in full.values())
+    # the method reports every candidate, the dropped ones with how far behind they were; race=false runs them all
+    res, off = average(g.vg, "irls-h"), average(g.vg, "irls-h", race=False)
+    assert res.stats["selected"] == off.stats["selected"] == best
+    assert set(res.stats["candidates"]) == set(off.stats["candidates"]) == set(DEFAULT_METRICS)
+    assert {m for m, c in res.stats["candidates"].items() if "dropped_behind" in c} == set(dropped)
+    assert not any("dropped_behind" in c for c in off.stats["candidates"].values())
+    assert rotation_errors_deg(res.R, off.R, align="none").max() < 1e-6
 
 
 def test_shape_metrics_and_their_errors():
