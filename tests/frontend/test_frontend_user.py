@@ -198,3 +198,33 @@ def test_resume_through_the_command_line(scene, tmp_path):
     assert "skipping" in r.stderr
     r = _run("pipeline.matching", "--work", w, "--overwrite")
     assert "3 matched, 0 reused" in r.stderr
+
+
+def test_an_exif_rotated_photo_is_read_as_stored_as_colmap_reads_it(tmp_path):
+    """A phone photo taken upright carries EXIF orientation 6 (rotate 90° to display). COLMAP and pycolmap read the
+    pixels as stored and ignore the tag; so do we, so that our keypoints, K and rotations are in the frame of the
+    peers' and of a COLMAP model used as the truth (the displayed frame differs by a 90° roll)."""
+    import pycolmap
+    from PIL import Image
+
+    from pipeline.frontend.images import image_size, read_gray
+
+    rng = np.random.default_rng(0)
+    stored = cv2.GaussianBlur((rng.random((120, 200)) * 255).astype(np.uint8), (5, 5), 0)
+    folder = tmp_path / "images"
+    folder.mkdir()
+    im = Image.fromarray(stored)
+    exif = im.getexif()
+    exif[0x0112] = 6  # Orientation: the displayed image is the stored one turned 90° clockwise
+    im.save(folder / "phone.jpg", exif=exif.tobytes(), quality=95)
+    with Image.open(folder / "phone.jpg") as check:
+        assert check.getexif()[0x0112] == 6 and check.size == (200, 120)
+    gray, why = read_gray(folder / "phone.jpg")
+    assert why == "" and gray.shape == (120, 200)  # not the displayed 200 × 120
+    assert np.abs(gray.astype(int) - stored.astype(int)).mean() < 3  # the stored pixels (up to JPEG)
+    assert image_size(folder / "phone.jpg") == (200, 120)
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, folder)
+    with pycolmap.Database.open(db) as d:
+        cams = d.read_all_cameras()
+    assert [(c.width, c.height) for c in cams] == [(200, 120)]
