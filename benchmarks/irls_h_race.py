@@ -28,30 +28,19 @@ import argparse
 import logging
 import os
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.averaging import average
 from pipeline.core.atomic import write_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.metrics import rotation_errors_deg
 from pipeline.synthetic.protocols import miscalibrated_h_graph
+from robust_averaging import timed  # its median-of-repeats timer (this script's folder is on sys.path)
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SCENES = ("fountain-P11", "castle-P30", "temple")
-
-
-def timed(vg: ViewGraph, method: str, repeat: int, **opts: Any) -> tuple[Any, float]:
-    """The last result of ``average(vg, method, **opts)`` and the median wall time of ``repeat`` calls."""
-    ts, res = [], None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        res = average(vg, method, **opts)
-        ts.append(time.perf_counter() - t)
-    return res, float(np.median(ts))
 
 
 def em_iterations(res: Any) -> int:
