@@ -202,8 +202,8 @@ def race_metrics(vg: ViewGraph, R0: np.ndarray, metrics: dict[str, np.ndarray], 
     (nats per edge) below the best are dropped. The others run to their end. EM raises a candidate's likelihood
     every iteration, and by little after the first few: on 26 view graphs (the three real scenes, the rendered
     turntables, streets, rings and grids, and the miscalibrated-H protocols, N = 11–1000) the metric chosen at
-    convergence led at every checkpoint from iteration 3 on, while the others trailed by 0.07–0.85 nats per edge
-    at the end. With ``checkpoints=()`` every candidate runs to its end (the selection before the race).
+    convergence led when scored so at iterations 3, 5, 10, 15 and 20, while the others trailed it by 0.07–0.85
+    nats per edge at the end (notes/issue-15.md, last section). With ``checkpoints=()`` every candidate runs to its end (the selection before the race).
 
     Returns:
         The fits of the candidates that ran to their end (the selection is among them), and for each dropped one
