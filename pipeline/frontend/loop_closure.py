@@ -13,10 +13,11 @@ against 0.315° with those two pairs added). The first round's result says where
 - its **value** is its hop distance in the first round's verified graph (∞ across
   components): the length of the loop it would close. A pair two hops apart closes a triangle
   the graph nearly has already; a pair at the two ends of an open ring closes the ring;
-- the first round's averaged rotations rule out pairs whose relative rotation is larger than
-  ``max_angle_deg`` (for upright cameras, about the angle between their viewing directions: they
-  cannot overlap; a camera's roll counts too, so nadir views of different headings are ruled out
-  as well; where either camera is unsolved, no pair is ruled out);
+- the first round's averaged rotations rule out pairs whose viewing directions (optical axes) are
+  more than ``max_angle_deg`` apart: they cannot overlap. A camera's roll about its own axis does not
+  count, so nadir views of a survey flown as a serpentine, whose neighbouring lanes have opposite
+  headings (a relative rotation of 180°), stay candidates; where either camera is unsolved, no pair is
+  ruled out;
 - pairs at least ``min_hops`` apart are taken longest loop first (then most similar), up to
   a budget of pairs, each as if it will verify: a candidate that a pair already taken brings
   within ``min_hops`` (through that pair) is passed over. So one weak junction costs a few
@@ -109,9 +110,10 @@ def _pair_angles(R: np.ndarray | None, P: np.ndarray) -> np.ndarray:
 
 
 def _angles_deg(R: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (P,) in degrees of ``R_b R_aᵀ`` for rotations R (N, 3, 3); NaN where either is NaN."""
-    tr = np.einsum("pij,pij->p", R[b], R[a])  # tr(R_b R_aᵀ)
-    return np.degrees(np.arccos(np.clip(0.5 * (tr - 1.0), -1.0, 1.0)))
+    """Angle (P,) in degrees between the viewing directions of cameras a and b, for cam_from_world rotations R
+    (N, 3, 3): the optical axis of camera i in the world is the third row of R_i. NaN where either is NaN."""
+    cos = np.einsum("pj,pj->p", R[b, 2], R[a, 2])
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def _spread(A: sp.csr_matrix, P: np.ndarray, min_hops: int, budget: int) -> np.ndarray:
@@ -155,7 +157,7 @@ def loop_candidates(n: int, matched: np.ndarray, verified: np.ndarray, neighbour
         R: (N, 3, 3) the first round's averaged rotations, NaN for unsolved images; None: no angle test.
         min_hops: the least hop distance of a pair taken, in the verified graph and through each pair taken
             before it.
-        max_angle_deg: pairs whose rotations differ by more are not taken.
+        max_angle_deg: pairs whose viewing directions are further apart are not taken.
         budget: the most pairs taken.
     Returns:
         ``pairs`` (P, 2) ``a < b`` in the order taken, and per pair ``hops``, ``angle_deg`` (NaN: not known)

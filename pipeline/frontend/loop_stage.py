@@ -77,8 +77,8 @@ class LoopClosureConfig(Config):
                            "the first round's loops")
     min_hops: int = option(5, "a pair is matched only if its images are at least this many verified pairs apart "
                            "(also through each loop-closure pair taken before it)", ge=2)
-    max_angle_deg: float = option(60.0, "a pair whose first-round rotations differ by more is not matched", gt=0,
-                                  le=180)
+    max_angle_deg: float = option(60.0, "a pair whose viewing directions (by the first round's rotations) are "
+                                        "further apart is not matched", gt=0, le=180)
     max_fraction: float = option(0.1, "the second round matches at most this fraction of the first round's pairs",
                                  ge=0)
     saturated_share: float = option(0.95, "with retrieval whose k was chosen automatically, an image whose "

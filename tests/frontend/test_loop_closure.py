@@ -110,6 +110,27 @@ def test_rotations_rule_out_pairs_looking_apart():
     assert len(loop_candidates(n, verified, verified, nb, sim, R, budget=0)["pairs"]) == 0
 
 
+def test_the_angle_is_between_viewing_directions_so_a_serpentine_survey_keeps_its_cross_lane_pairs():
+    """A survey flown as a serpentine: views looking straight down, neighbouring lanes flown in opposite headings.
+    Two views over the same ground from neighbouring lanes differ by a half turn about their optical axes, yet
+    overlap; the angle test compares viewing directions, so it keeps them and still rules out views looking apart."""
+    n = 60
+    verified, R_ring = ring(n, span=2, gap=29)
+    nb, sim = ranked(n, 8)
+    down = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # cam_from_world of a nadir view, heading +x
+    R = np.stack([so3.exp(np.array([0.0, 0.0, np.pi * (k % 2)])) @ down for k in range(n)])  # rolls 0 and 180°
+    c = loop_candidates(n, verified, verified, nb, sim, R, min_hops=5, budget=6)
+    assert tuple(c["pairs"][0]) == (29, 30) and c["n_apart"] == 0 and np.allclose(c["angle_deg"], 0.0, atol=1e-4)
+    assert so3.angle_between(R[30] @ R[29].T, np.eye(3)) > 3.1  # a relative rotation of a half turn
+    R[30] = so3.exp(np.array([np.radians(100.0), 0.0, 0.0])) @ R[30]  # view 30 tilted 100°: looks away from 29
+    c = loop_candidates(n, verified, verified, nb, sim, R, min_hops=5, budget=6)
+    assert (29, 30) not in set(map(tuple, c["pairs"].tolist())) and c["n_apart"] >= 1
+    # on the ring (upright views turning about their vertical) the angle is that of the turn
+    c = loop_candidates(n, verified, verified, nb, sim, R_ring, min_hops=5, budget=6)
+    d = np.minimum(np.abs(np.diff(c["pairs"], axis=1)).ravel(), n - np.abs(np.diff(c["pairs"], axis=1)).ravel())
+    np.testing.assert_allclose(c["angle_deg"], 6.0 * d)
+
+
 def test_pairs_across_components_come_first():
     n = 40
     a, _ = ring(20, span=2)
