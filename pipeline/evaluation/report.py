@@ -248,8 +248,9 @@ def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
 
 
 def intrinsics_console(intr: dict[str, Any]) -> str:
-    """One console line: the focal used and its source."""
-    parts = [f"{f['median_px']:.1f} px ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
+    """One console line: the focal used (its median and, where the images' differ, their range) and its source."""
+    parts = [f"{f['median_px']:.1f} px" + ("" if f["min_px"] == f["max_px"] else f" ({f['min_px']:.1f}–{f['max_px']:.1f})")
+             + f" ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
     weak = [g["focal"] for g in intr.get("estimates", []) if (g.get("focal") or {}).get("determined") is False]
     sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" for w in weak)
     parts += [f"POORLY DETERMINED for {len(weak)} camera group(s) (jackknife sd {sds})"] if weak else []

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.evaluation.plots import spectral_layout
-from pipeline.evaluation.report import ReportData, metrics_table, write_report
+from pipeline.evaluation.report import ReportData, intrinsics_console, intrinsics_lines, metrics_table, write_report
+from pipeline.frontend.intrinsics import focal_summary
 
 
 def _summary(med: float, **extra) -> dict:
@@ -94,3 +95,18 @@ def test_report_data_and_console_table():
     table = summary_table(metrics)
     rows = [r.split() for r in table.splitlines()]
     assert rows[-1][:2] == ["pycolmap", "truth"] and table.endswith("3/4 reg.") and len(rows) == 2 + 3 + 1
+
+
+def test_the_focal_line_gives_the_range_where_the_images_focal_lengths_differ():
+    """Two cameras estimated from one folder (11 images of 3072 px at 2737 px, 16 of 640 px at 1537 px): one source,
+    so one row, whose median alone (1537 px for all 27) would misstate the larger images' focal; the console line,
+    as the report's table, gives the range."""
+    K = np.tile(np.eye(3), (27, 1, 1))
+    K[:11, 0, 0], K[11:, 0, 0] = 2737.4, 1537.2
+    focal = [{"source": s} | v for s, v in focal_summary(K, ["estimated:profile+rotcons"] * 27).items()]
+    line = intrinsics_console({"focal": focal})
+    assert line == "focal: 1537.2 px (1537.2–2737.4) (estimated:profile+rotcons, 27 images)"
+    assert "| 1537.2 (1537.2–2737.4) | 27 | estimated:profile+rotcons |" in intrinsics_lines({"focal": focal})
+    K[:, 0, 0] = 560.0
+    one = [{"source": "file:K.txt"} | v for v in focal_summary(K, ["file:K.txt"] * 27).values()]
+    assert intrinsics_console({"focal": one}) == "focal: 560.0 px (file:K.txt, 27 images)"
