@@ -146,7 +146,8 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
                                "cameras to the rest (a pan on the spot, a low-parallax step); the cameras they join "
                                "are flagged", chk.info["bridged"])
         if left_out:
-            logger.warning("the view graph is not connected: using the largest component (%d of %d images); "
+            logger.warning("the view graph is not connected: using the largest component (%d of %d images; another "
+                           "component's images, in a folder of their own, are solved by a run on that folder); "
                            "left out: %s", sub.n_cameras, vg_all.n_cameras,
                            "; ".join(f"{n}: {w}" for n, w in left_out.items()))
         for m in messages:
