@@ -10,6 +10,7 @@ without decoding a pixel. A bad input costs a second, not the front end.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import os
 import time
@@ -94,10 +95,19 @@ class Plan:
     notes: list[str] = field(default_factory=list)
     times: dict[str, float] = field(default_factory=dict)
     database: Path | None = None
+    work_dir: Path | None = None  # the front end's folder when it is not OUT/work (another component's run)
+    components: list[dict[str, Any]] = field(default_factory=list)  # the other components solved, for metrics.json
 
     @property
     def work(self) -> Path:
-        return self.out / "work"
+        return self.work_dir if self.work_dir is not None else self.out / "work"
+
+    def for_component(self, folder: Path, k: int) -> "Plan":
+        """The plan of the k-th component's run in ``folder``: the same inputs, configs and front end (this run's
+        WORK), its own outputs, no pycolmap peers (they ran once on every image, in OUT)."""
+        return dataclasses.replace(self, out=Path(folder), work_dir=self.work, reference=False, notes=[
+            f"component {k} of the view graph: no pair links its images to the largest component's (in the run's "
+            f"own folder), so its rotations are in a frame of their own"], times={}, components=[])
 
     @property
     def progress(self) -> bool:

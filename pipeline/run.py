@@ -20,7 +20,9 @@ recomputed), each also a command of its own:
    loop closure  ``python -m pipeline.loop_closure`` → OUT/work/loop_closure.json; with retrieval pairs, matching,
                  two-view and two-view BA run again with the pairs that close the first round's loops
 6. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
-                 (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras)
+                 (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras);
+                 each other component of at least 3 images in OUT/component-k/, where steps 7, 8 and 11 run
+                 for it too (its rotations in a frame of their own; no pycolmap peers there)
 7. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
 8. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
 9. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
@@ -53,6 +55,7 @@ from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import remove_stale_temporaries  # noqa: E402
 from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
@@ -112,12 +115,14 @@ class Runner:
             plan.notes.append(note)
 
 
-def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str, dict]]:
+def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, None] | None = None
+               ) -> tuple[list[Any], dict[str, dict]]:
+    """Every method on ``vg`` (OUT/viewgraph.npz); its input is the view-graph stage's record (``upstream``: where
+    that stage ran in OUT), else the file's content (another component's graph)."""
     specs = list(plan.methods)
     if not specs:
         specs, why = registry.default_methods(vg, plan.run, plan.yaml, plan.overrides)
         plan.notes.extend(why)
-    upstream = ("viewgraph", plan.out, None)
 
     def solve_all() -> dict[str, dict]:
         from tqdm import tqdm  # noqa: PLC0415
@@ -131,6 +136,31 @@ def _averaging(plan: Plan, runner: Runner, vg: Any) -> tuple[list[Any], dict[str
     results = runner.step("averaging", "rotation averaging", solve_all)
     runner.reused["averaging"] = all(r["record"].reused for r in results.values())
     return specs, results
+
+
+def _components(plan: Plan, t_start: float) -> None:
+    """The view graph's other components (OUT/component-k/), each averaged, refined, evaluated against the truth
+    and reported in its own folder, in a frame of its own; listed in ``plan.components`` for metrics.json."""
+    for c in load_graph_summary(plan.out).get("components", []):
+        k, sub = int(c["component"]), plan.for_component(plan.out / c["folder"], int(c["component"]))
+        if not plan.quiet:
+            print(f"component {k} of the view graph ({c['n_cameras']} images, {sub.out}):", file=sys.stderr,
+                  flush=True)
+        runner = Runner(sub)
+        vg = ViewGraph.load(sub.out / "viewgraph.npz")
+        specs, results = _averaging(sub, runner, vg)
+        if sub.run.refine:
+            results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
+                sub.out, sub.configs["refine"], list(results), sub.work, sub.overwrite, sub.notes)))
+        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(sub, vg, results, []))
+        runner.step("report", "report", lambda: write_report_md(sub, ev, specs, results, vg, runner))
+        write_metrics(sub, ev, vg, {}, runner, t_start)
+        medians = {m: (v.get("references") or {}).get("truth", {}).get("median_deg")
+                   for m, v in ev.metrics.get("methods", {}).items()}
+        plan.components.append({**{key: c[key] for key in ("component", "folder", "n_cameras", "n_edges", "names")},
+                                "median_deg_vs_truth": medians})
+        plan.notes.append(f"component {k} of the view graph ({c['n_cameras']} images: {', '.join(c['names'][:4])}"
+                          f"{'...' if len(c['names']) > 4 else ''}) solved in {c['folder']}/, in a frame of its own")
 
 
 def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
@@ -172,10 +202,10 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         vg = graph.load()
         left_out = load_graph_summary(plan.out)["left_out"]
         if left_out:
-            plan.notes.append(f"view graph not connected: the largest component ({vg.n_cameras} images) is used; "
-                              f"left out: {', '.join(left_out)}")
-            plan.notes.extend(f"left out of the view graph: {n}: {w}" for n, w in left_out.items())
-        specs, results = _averaging(plan, runner, vg)
+            plan.notes.append(f"view graph not connected: its largest component ({vg.n_cameras} images) is solved here; "
+                              f"outside it: {', '.join(left_out)}")
+            plan.notes.extend(f"outside the view graph's largest component: {n}: {w}" for n, w in left_out.items())
+        specs, results = _averaging(plan, runner, vg, ("viewgraph", plan.out, None))
         if plan.run.refine:  # the recommended method's rotations finished by pycolmap: rows <method>+refine
             results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
                 plan.out, plan.configs["refine"], list(results), work, plan.overwrite, plan.notes)))
@@ -185,9 +215,15 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
             plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
         peers = [p for p in (peer, glomap) if p is not None]
+        _components(plan, t_start)
         ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
         runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
-        return write_metrics(plan, ev, vg, left_out, runner, t_start)
+        path = write_metrics(plan, ev, vg, left_out, runner, t_start)
+        if not plan.quiet:
+            for c in plan.components:
+                print(f"component {c['component']} of the view graph ({c['n_cameras']} images, a frame of its own): "
+                      f"{plan.out / c['folder'] / 'report.md'}", flush=True)
+        return path
 
 
 def build_parser() -> argparse.ArgumentParser:

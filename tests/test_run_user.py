@@ -157,7 +157,8 @@ def test_no_K_no_exif_warns_and_estimates_the_focal(messy_run):
 
 @pytest.mark.slow
 def test_two_groups_without_overlap(tmp_path_factory, fast_config):
-    """Largest component is solved; a message names every image left out."""
+    """Two scenes in one folder: the largest component is solved in OUT, the other in OUT/component-2/ (its own
+    frame, its own metrics and report); a message names every image outside the largest and where it is solved."""
     folder = tmp_path_factory.mktemp("groups")
     for prefix, n, seed in (("a", 5, 3), ("b", 3, 11)):
         src = tmp_path_factory.mktemp(f"g{prefix}")
@@ -177,6 +178,19 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
     assert m["methods"]["irls-l0.5"]["n_cameras"] == 5
     assert "not connected" in r.stderr and all(n in r.stderr for n in b_names)
     assert any(all(n in note for n in b_names) for note in m["notes"])
+    assert all("solved as component 2 (component-2/" in m["input"]["left_out_why"][n] for n in b_names)
+    assert [c["names"] for c in m["components"]] == [b_names] and m["components"][0]["folder"] == "component-2"
+    m2 = json.loads((out / "component-2" / "metrics.json").read_text())
+    assert m2["methods"]["irls-l0.5"]["n_cameras"] == 3 and m2["input"]["n_cameras_graph"] == 3
+    assert (out / "component-2" / "rotations" / "irls-l0.5.txt").is_file() and (out / "component-2" / "report.md").is_file()
+    assert "component 2 of the view graph" in r.stderr
+    # a component's graph lost: the view-graph stage's cache is damaged, so it is recomputed, not trusted
+    (out / "component-2" / "viewgraph.npz").unlink()
+    r = subprocess.run([sys.executable, str(REPO / "run.py"), str(folder), "--out", str(out), "--config",
+                        str(fast_config), "--no-reference"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert (out / "component-2" / "viewgraph.npz").is_file()
+    assert json.loads((out / "component-2" / "metrics.json").read_text())["methods"]["irls-l0.5"]["n_cameras"] == 3
 
 
 def test_feature_notes_name_the_low_texture_images():

@@ -142,6 +142,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
                           "determined theirs (cameras.json: estimate); they are flagged")
     metrics["pairs"] = pairs_section(plan.work)
+    metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)
     if not plan.quiet:

@@ -97,6 +97,9 @@ class ViewGraphConfig(Config):
     robust_k_sigma: float = option(4.0, "robust filter: k", gt=0)
     robust_unconfirmed: bool = option(True, "robust filter: its solution also weighs the pairs dropped only as "
                                             "unconfirmed (never judged by it, never kept by it)")
+    components: int = option(8, "connected components solved, largest first, each in its own frame: the largest in "
+                                "OUT, the k-th in OUT/component-k/ (1: the largest only)", ge=1)
+    min_component_images: int = option(3, "a component of fewer images is left out (with why), not solved", ge=2)
 
     def check(self) -> None:
         if self.provisional_min_inliers > self.min_inliers:

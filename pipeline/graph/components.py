@@ -1,14 +1,23 @@
-"""Connected components of a view graph and why each image outside the largest one is left out."""
+"""Connected components of a view graph: why each image outside the largest one is left out, and the other
+components solved in folders of their own (OUT/component-k/, each in its own frame)."""
 
 from __future__ import annotations
 
+import re
+import shutil
 from collections import Counter
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from pipeline.core.atomic import write_json
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["left_out_reasons"]
+__all__ = ["left_out_reasons", "other_components", "write_component", "remove_stale_components", "COMPONENT_DIR"]
+
+#: The folder of the k-th component (k >= 2) in OUT.
+COMPONENT_DIR = "component-{k}"
 
 
 def left_out_reasons(vg_all: ViewGraph, rejected: list[dict]) -> dict[str, str]:
@@ -38,3 +47,36 @@ def left_out_reasons(vg_all: ViewGraph, rejected: list[dict]) -> dict[str, str]:
             reasons[nm] = (f"in another connected component of {sizes[labels[k]]} images "
                            f"(with {', '.join(others[:5])}{'...' if len(others) > 5 else ''}), not linked to the largest")
     return reasons
+
+
+def other_components(kept: ViewGraph, max_components: int, min_images: int) -> list[np.ndarray]:
+    """Camera indices (into ``kept``) of the components after the largest that are solved: at least ``min_images``
+    images each, largest first, up to ``max_components`` components in all (the largest included)."""
+    labels = kept.components()
+    sizes = np.bincount(labels)
+    take = [c for c in range(1, sizes.size) if sizes[c] >= min_images][:max(max_components - 1, 0)]
+    return [np.flatnonzero(labels == c) for c in take]
+
+
+def write_component(folder: Path, k: int, sub: ViewGraph, summary: dict[str, Any], graph_file: str,
+                    summary_file: str) -> tuple[list[Path], dict[str, Any]]:
+    """Write the k-th component's view graph and its summary (the main summary's format, for its cameras) into
+    ``folder/component-k/``; returns the paths and the entry the main summary lists it by."""
+    d = Path(folder) / COMPONENT_DIR.format(k=k)
+    d.mkdir(parents=True, exist_ok=True)
+    names = set(sub.names)
+    s = {"n_images": summary["n_images"], "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,
+         "names": list(sub.names), "left_out": {}, "flags": {n: w for n, w in summary["flags"].items() if n in names},
+         "messages": [], "n_cycles": max(sub.n_edges - sub.n_cameras + 1, 0), "component": k,
+         "checks": summary["checks"], "pairs": [r for r in summary["pairs"] if set(r.get("pair", [])) <= names]}
+    paths = [sub.save(d / graph_file), write_json(d / summary_file, s)]
+    return paths, {"component": k, "folder": d.name, "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,
+                   "names": list(sub.names)}
+
+
+def remove_stale_components(folder: Path, keep: int) -> None:
+    """Remove the ``component-k`` folders of an earlier run with k > ``keep`` (its components are gone)."""
+    for d in Path(folder).glob("component-*"):
+        m = re.fullmatch(r"component-(\d+)", d.name)
+        if d.is_dir() and m and int(m.group(1)) > keep and (d / "viewgraph.json").is_file():  # ours, not a user's
+            shutil.rmtree(d)

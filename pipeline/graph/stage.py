@@ -4,6 +4,9 @@ Reads the two-view BA's view graph (with H) from WORK, runs the checks of
 :mod:`pipeline.graph.checks` (evidence tiers, co-location, short and long cycles, the
 robust filter), keeps the largest connected component of the pairs that pass, and flags
 the cameras whose rotation rests on evidence nothing checks (:mod:`pipeline.graph.flags`).
+Each other component of at least ``min_component_images`` images (up to ``components`` in all, largest
+first) goes to ``OUT/component-k/`` (its graph and a summary of the same format, its images' flags), where
+``run.py`` solves it in a frame of its own, as COLMAP's mappers make a model of each component.
 Writes
 
 - ``OUT/viewgraph.npz``: the checked graph (stat ``confirmed``: the edge is in a consistent cycle);
@@ -35,7 +38,8 @@ from pipeline.core.viewgraph import ViewGraph
 from pipeline.geometry.ba_stage import load_ba_viewgraph
 from pipeline.geometry.two_view_stage import load_two_view
 from pipeline.graph.checks import GraphChecks, ViewGraphConfig, check_view_graph
-from pipeline.graph.components import left_out_reasons
+from pipeline.graph.components import (COMPONENT_DIR, left_out_reasons, other_components, remove_stale_components,
+                                       write_component)
 from pipeline.graph.flags import graph_flags
 from pipeline.graph.tiers import WEAK_H
 from pipeline.stage import Stage, StageRecord
@@ -85,7 +89,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     name = "viewgraph"
     title = "view graph and its checks"
     config_cls = ViewGraphConfig
-    version = 4  # 4: pairs[].tracks
+    version = 5  # 4: pairs[].tracks; 5: the other components (OUT/component-k/)
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)
@@ -110,14 +114,19 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
                          stats={**{k: v[chk.kept] for k, v in vg_all.stats.items()},
                                 "confirmed": chk.confirmed[chk.kept]}, allow_isolated=True)
         sub, info = kept.largest_component()
+        others = other_components(kept, self.config.components, self.config.min_component_images)
         two_view = load_two_view(self.work)
         ba_dropped = list(self.upstream("two_view_ba", self.work).summary.get("dropped", []))
         rejected = list(two_view.rejected) + [
             {"names": [vg_all.names[a], vg_all.names[b]], "reason": str(r)}
             for (a, b), r in zip(vg_all.edges[~chk.kept].tolist(), chk.reason[~chk.kept])]
         left_out = left_out_reasons(kept, rejected) if info.dropped_names else {}
+        for k, cams in enumerate(others, start=2):  # solved in a folder of their own: said where
+            for c in cams:
+                left_out[kept.names[c]] = (f"solved as component {k} ({COMPONENT_DIR.format(k=k)}/, {cams.size} "
+                                           f"images, in a frame of its own): no pair links it to the largest")
         solved = np.zeros(vg_all.n_cameras, bool)
-        solved[info.kept] = True
+        solved[np.concatenate([info.kept, *others])] = True
         fl = graph_flags(vg_all.edges, vg_all.n_cameras, chk.kept, chk.confirmed, chk.inconsistent, vg_all.names,
                          cameras=solved, cycles_checked=self.config.checks, bridged=chk.bridged)
         flags = {vg_all.names[k]: v for k, v in sorted(fl.cameras.items())}
@@ -129,8 +138,18 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
                    "n_cycles": fl.n_cycles, "n_bridges": int(fl.bridge.sum()) if fl.bridge is not None else 0,
                    "checks": {k: v for k, v in chk.info.items()},
                    "pairs": _pair_rows(vg_all, chk, list(two_view.rejected), ba_dropped)}
+        paths, components = [path], []
+        remove_stale_components(self.folder, keep=len(others) + 1)
+        for k, cams in enumerate(others, start=2):
+            written, entry = write_component(self.folder, k, kept.subgraph(cams)[0], summary, GRAPH, SUMMARY)
+            paths += written
+            components.append(entry)
+        main = set(sub.names)
+        summary["flags"] = {n: w for n, w in flags.items() if n in main}
+        summary["components"] = components
         counts = {k: summary[k] for k in ("n_images", "n_cameras", "n_edges", "n_cycles")}
-        return [path, write_json(self.folder / SUMMARY, summary)], {**counts, "n_flagged": len(flags)}
+        return [*paths, write_json(self.folder / SUMMARY, summary)], {**counts, "n_flagged": len(summary["flags"]),
+                                                                      "n_components": 1 + len(components)}
 
     @staticmethod
     def _log(vg_all: ViewGraph, sub: ViewGraph, chk: GraphChecks, left_out: dict[str, str],
@@ -146,9 +165,8 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
                                "cameras to the rest (a pan on the spot, a low-parallax step); the cameras they join "
                                "are flagged", chk.info["bridged"])
         if left_out:
-            logger.warning("the view graph is not connected: using the largest component (%d of %d images; another "
-                           "component's images, in a folder of their own, are solved by a run on that folder); "
-                           "left out: %s", sub.n_cameras, vg_all.n_cameras,
+            logger.warning("the view graph is not connected: its largest component (%d of %d images) is solved here; "
+                           "outside it: %s", sub.n_cameras, vg_all.n_cameras,
                            "; ".join(f"{n}: {w}" for n, w in left_out.items()))
         for m in messages:
             logger.warning("%s", m)
@@ -162,6 +180,14 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
         vg = ViewGraph.load(self.folder / GRAPH)
         if list(vg.names) != list(s["names"]) or vg.n_edges != s["n_edges"]:
             raise CacheError(f"{self.folder / GRAPH} does not hold the {s['n_cameras']} cameras its summary lists")
+        for c in s.get("components", []):  # each other component's graph, as listed
+            path = self.folder / str(c.get("folder", "")) / GRAPH
+            try:
+                ok = list(ViewGraph.load(path).names) == list(c["names"])
+            except (PipelineError, OSError, KeyError, ValueError):
+                ok = False
+            if not ok:
+                raise CacheError(f"{path} does not hold the component its summary lists")
 
     def load(self) -> ViewGraph:
         return ViewGraph.load(self.folder / GRAPH)
@@ -194,7 +220,9 @@ def main_cli(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m pipeline.viewgraph",
                                 description="Check the two-view BA's view graph of WORK (pair evidence, cycles, "
                                             "robust filter), keep its largest component, flag the cameras nothing "
-                                            "checks; writes OUT/viewgraph.npz and OUT/viewgraph.json.")
+                                            "checks; writes OUT/viewgraph.npz and OUT/viewgraph.json, and each other "
+                                            "component of at least min_component_images images to "
+                                            "OUT/component-k/.")
     p.add_argument("--work", type=Path, required=True, help="the WORK folder of the front end")
     p.add_argument("--out", type=Path, required=True, help="where viewgraph.npz and viewgraph.json go")
     p.add_argument("--config", type=Path, default=None, help="YAML config; its 'viewgraph' section is used")

@@ -117,3 +117,29 @@ def test_command_without_a_front_end_fails_in_one_line(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.strip().startswith("error:"), r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "two_view" in r.stderr
+
+
+def test_the_other_components_are_chosen_largest_first_and_stale_ones_removed(tmp_path):
+    """other_components: every component after the largest with at least min_images images, largest first, up to
+    max_components in all; remove_stale_components removes only this stage's folders of components now gone."""
+    from pipeline.graph.components import other_components, remove_stale_components
+
+    def chain(start: int, n: int) -> list[tuple[int, int]]:
+        return [(start + k, start + k + 1) for k in range(n - 1)]
+
+    sizes = (6, 2, 5, 3, 4)  # components of these many cameras, 20 cameras in all
+    starts = np.cumsum((0,) + sizes[:-1])
+    edges = np.array([e for s, n in zip(starts, sizes) for e in chain(int(s), n)])
+    names = [f"c{k:02d}" for k in range(20)]
+    vg = ViewGraph.from_absolute(names, np.tile(np.eye(3), (20, 1, 1)), edges)
+    got = other_components(vg, max_components=8, min_images=3)
+    assert [sorted(vg.names[i] for i in c) for c in got] == [names[8:13], names[16:20], names[13:16]]
+    assert len(other_components(vg, max_components=2, min_images=3)) == 1  # the largest and the next one
+    assert other_components(vg, max_components=1, min_images=3) == []
+    assert len(other_components(vg, max_components=8, min_images=2)) == 4  # the pair too
+    for k in (2, 3, 4):
+        (tmp_path / f"component-{k}").mkdir()
+        (tmp_path / f"component-{k}" / "viewgraph.json").write_text("{}")
+    (tmp_path / "component-5").mkdir()  # not this stage's: no summary in it
+    remove_stale_components(tmp_path, keep=2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["component-2", "component-5"]
