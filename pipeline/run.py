@@ -55,8 +55,8 @@ from pipeline.averaging.stage import run_averaging  # noqa: E402
 from pipeline.core.atomic import remove_stale_temporaries  # noqa: E402
 from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
-from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
+from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
