@@ -13,6 +13,7 @@ import numpy as np
 
 from pipeline.core.atomic import write_json
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.graph.flags import NO_CYCLE
 
 __all__ = ["left_out_reasons", "other_components", "write_component", "remove_stale_components", "COMPONENT_DIR"]
 
@@ -65,9 +66,10 @@ def write_component(folder: Path, k: int, sub: ViewGraph, summary: dict[str, Any
     d = Path(folder) / COMPONENT_DIR.format(k=k)
     d.mkdir(parents=True, exist_ok=True)
     names = set(sub.names)
+    n_cycles = max(sub.n_edges - sub.n_cameras + 1, 0)  # independent cycles of a connected graph
     s = {"n_images": summary["n_images"], "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,
          "names": list(sub.names), "left_out": {}, "flags": {n: w for n, w in summary["flags"].items() if n in names},
-         "messages": [], "n_cycles": max(sub.n_edges - sub.n_cameras + 1, 0), "component": k,
+         "messages": [NO_CYCLE] if n_cycles == 0 else [], "n_cycles": n_cycles, "component": k,
          "checks": summary["checks"], "pairs": [r for r in summary["pairs"] if set(r.get("pair", [])) <= names]}
     paths = [sub.save(d / graph_file), write_json(d / summary_file, s)]
     return paths, {"component": k, "folder": d.name, "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,

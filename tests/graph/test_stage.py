@@ -143,3 +143,14 @@ def test_the_other_components_are_chosen_largest_first_and_stale_ones_removed(tm
     (tmp_path / "component-5").mkdir()  # not this stage's: no summary in it
     remove_stale_components(tmp_path, keep=2)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["component-2", "component-5"]
+    # a component written with its images' flags and pairs; a chain (no cycle) says its result cannot be checked
+    from pipeline.graph.components import write_component
+
+    main = {"n_images": 20, "flags": {"c08": ["x"], "c00": ["y"]}, "checks": {},
+            "pairs": [{"pair": ["c08", "c09"]}, {"pair": ["c00", "c01"]}, {"pair": ["c12", "c13"]}]}  # in, out, across
+    paths, entry = write_component(tmp_path, 2, vg.subgraph(got[0])[0], main, "viewgraph.npz", "viewgraph.json")
+    summary = load_graph_summary(tmp_path / "component-2")
+    assert entry["folder"] == "component-2" and summary["names"] == names[8:13] == entry["names"]
+    assert summary["flags"] == {"c08": ["x"]} and [r["pair"] for r in summary["pairs"]] == [["c08", "c09"]]
+    assert summary["n_cycles"] == 0 and summary["messages"] == [NO_CYCLE] and summary["component"] == 2
+    assert list(ViewGraph.load(paths[0]).names) == names[8:13]
