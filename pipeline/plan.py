@@ -104,7 +104,7 @@ class Plan:
 
     def for_component(self, folder: Path, k: int) -> "Plan":
         """The plan of the k-th component's run in ``folder``: the same inputs, configs and front end (this run's
-        WORK), its own outputs, no pycolmap peers (they ran once on every image, in OUT)."""
+        WORK), its own outputs; the pycolmap peers are not run again (they ran once on every image, in OUT)."""
         return dataclasses.replace(self, out=Path(folder), work_dir=self.work, reference=False, notes=[
             f"component {k} of the view graph: no pair links its images to the largest component's (in the run's "
             f"own folder), so its rotations are in a frame of their own"], times={}, components=[])

@@ -22,7 +22,8 @@ recomputed), each also a command of its own:
 6. view graph    ``python -m pipeline.viewgraph``     → OUT/viewgraph.npz: the checked pairs' largest component
                  (+ viewgraph.json: every pair's fate and reason, why each image is left out, flagged cameras);
                  each other component of at least 3 images in OUT/component-k/, where steps 7, 8 and 11 run
-                 for it too (its rotations in a frame of their own; no pycolmap peers there)
+                 for it too (its rotations in a frame of their own; compared with the peers' model that holds most
+                 of its images)
 7. averaging     ``python -m pipeline.average``      → OUT/rotations/<method>.txt + .json, one per method
 8. refine        ``python -m pipeline.refine``       → OUT/sparse/ (COLMAP model), OUT/rotations/<method>+refine.txt
 9. reference     ``python -m pipeline.reference``    → OUT/reference/ (pycolmap incremental)
@@ -62,9 +63,10 @@ from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
 from pipeline.plan import Plan, prepare  # noqa: E402
+from pipeline.reference.global_mapping import LABEL as GLOBAL_LABEL  # noqa: E402
 from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
 from pipeline.reference.incremental import IncrementalReferenceStage  # noqa: E402
-from pipeline.reference.models import load_reference  # noqa: E402
+from pipeline.reference.models import load_reference, model_reference  # noqa: E402
 from pipeline.refine.stage import refine_for_run  # noqa: E402
 from pipeline.stage import Stage, StageRecord  # noqa: E402
 
@@ -138,9 +140,11 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
     return specs, results
 
 
-def _components(plan: Plan, t_start: float) -> None:
-    """The view graph's other components (OUT/component-k/), each averaged, refined, evaluated against the truth
-    and reported in its own folder, in a frame of its own; listed in ``plan.components`` for metrics.json."""
+def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
+    """The view graph's other components (OUT/component-k/), each averaged, refined, evaluated against the truth and
+    against the peers' model that holds most of its images, and reported in its own folder, in a frame of its own;
+    listed in ``plan.components`` for metrics.json."""
+    folders = {"pycolmap": plan.out / "reference", GLOBAL_LABEL: plan.out / "reference-global"}
     for c in load_graph_summary(plan.out).get("components", []):
         k, sub = int(c["component"]), plan.for_component(plan.out / c["folder"], int(c["component"]))
         if not plan.quiet:
@@ -152,7 +156,8 @@ def _components(plan: Plan, t_start: float) -> None:
         if sub.run.refine:
             results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
                 sub.out, sub.configs["refine"], list(results), sub.work, sub.overwrite, sub.notes)))
-        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(sub, vg, results, []))
+        models = [model_reference(folders[p.label], list(vg.names), p.label) for p in peers if p.label in folders]
+        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(sub, vg, results, [m for m in models if m]))
         runner.step("report", "report", lambda: write_report_md(sub, ev, specs, results, vg, runner))
         write_metrics(sub, ev, vg, {}, runner, t_start)
         medians = {m: (v.get("references") or {}).get("truth", {}).get("median_deg")
@@ -215,7 +220,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
             plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
         peers = [p for p in (peer, glomap) if p is not None]
-        _components(plan, t_start)
+        _components(plan, t_start, peers)
         ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
         runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
         path = write_metrics(plan, ev, vg, left_out, runner, t_start)

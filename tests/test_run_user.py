@@ -167,9 +167,8 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
             shutil.copy(p, folder / f"{prefix}_{p.name}")
     np.savetxt(folder / "K.txt", [[280.0, 0, 159.5], [0, 280.0, 119.5], [0, 0, 1]])
     out = tmp_path_factory.mktemp("groups_out")
-    # pycolmap's report of several models is tested in test_reference.py; skip it here for speed
     r = subprocess.run([sys.executable, str(REPO / "run.py"), str(folder), "--out", str(out), "--config",
-                        str(fast_config), "--no-reference"], capture_output=True, text=True)
+                        str(fast_config)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     b_names = [f"b_view_{k:03d}.png" for k in range(3)]
@@ -184,6 +183,10 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
     assert m2["methods"]["irls-l0.5"]["n_cameras"] == 3 and m2["input"]["n_cameras_graph"] == 3
     assert (out / "component-2" / "rotations" / "irls-l0.5.txt").is_file() and (out / "component-2" / "report.md").is_file()
     assert "component 2 of the view graph" in r.stderr
+    # the peers ran once, on every image: component 2 is compared with the model of theirs that holds its images
+    for label in ("pycolmap", "glomap"):
+        assert m2["peers"][label]["n_registered"] == 3 and m2["peers"][label]["n_images"] == 3, m2["peers"][label]
+        assert m2["methods"]["irls-l0.5"]["references"][label]["n_evaluated"] == 3
     # a component's graph lost: the view-graph stage's cache is damaged, so it is recomputed, not trusted
     (out / "component-2" / "viewgraph.npz").unlink()
     r = subprocess.run([sys.executable, str(REPO / "run.py"), str(folder), "--out", str(out), "--config",

@@ -33,6 +33,7 @@ from pipeline.reference.types import Reference
 logger = logging.getLogger(__name__)
 
 __all__ = ["SUMMARY", "ROTATIONS", "MODEL", "write_models", "load_models", "summarize_models", "write_result",
+           "model_reference",
            "result_files", "read_summary", "verify_result", "load_reference"]
 
 SUMMARY = "reference.json"
@@ -211,3 +212,30 @@ def load_reference(out: str | Path, label: str = "pycolmap") -> Reference:
                          "`python -m pipeline.reference` (or `pipeline.reference.global_mapping`)")
     return Reference(list(names), np.asarray(R), source="pycolmap", label=label,
                      unregistered=dict(s["unregistered"]), info=s)
+
+
+def model_reference(out: str | Path, names: list[str], label: str = "pycolmap") -> Reference | None:
+    """Of every model the peer in ``out`` returned, the one that registers most of ``names`` (a component of our
+    view graph solved apart), as a reference on those of ``names`` it registers; None when none registers two.
+
+    Its ``info`` is the peer's summary for those images: ``n_images`` and ``n_registered`` count ``names``; the
+    times are those of the peer's run on every image; ``model`` is the model's index.
+    """
+    import pycolmap  # noqa: PLC0415
+
+    out = Path(out)
+    s = read_summary(out)
+    want = set(names)
+    best = max(s.get("models", []), key=lambda m: (len(want & set(m["registered"])), -m["index"]), default=None)
+    folders = sorted(out.glob(f"models-*/{best['index']}")) if best is not None else []
+    if best is None or len(want & set(best["registered"])) < 2 or not folders:
+        return None
+    rec = pycolmap.Reconstruction(str(folders[0]))
+    by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
+    keep = [nm for nm in names if nm in by_name]
+    R = np.stack([by_name[nm].cam_from_world().rotation.matrix() for nm in keep])
+    unregistered = {nm: (s["unregistered"].get(nm) or f"registered in another of its models, not model {best['index']}")
+                    for nm in names if nm not in by_name}
+    info = {**{k: s.get(k) for k in ("time_s", "times", "mapping", "n_models", "pycolmap")},
+            "n_images": len(names), "n_registered": len(keep), "unregistered": unregistered, "model": best["index"]}
+    return Reference(keep, R, source="pycolmap", label=label, unregistered=unregistered, info=info)
