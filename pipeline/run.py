@@ -140,26 +140,38 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
     return specs, results
 
 
+def _refine(plan: Plan, runner: Runner, results: dict[str, dict]) -> None:
+    """The recommended method's rotations finished by pycolmap (rows ``<method>+refine``), when the run refines."""
+    if plan.run.refine:
+        results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
+            plan.out, plan.configs["refine"], list(results), plan.work, plan.overwrite, plan.notes)))
+
+
+def _report(plan: Plan, runner: Runner, vg: ViewGraph, specs: list[Any], results: dict[str, dict], peers: list[Any],
+            left_out: dict[str, str], t_start: float) -> tuple[Any, Path]:
+    """Evaluation, report.md and metrics.json of the run in ``plan.out``; returns the evaluation and the metrics' path."""
+    ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
+    runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
+    return ev, write_metrics(plan, ev, vg, left_out, runner, t_start)
+
+
 def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
     """The view graph's other components (OUT/component-k/), each averaged, refined, evaluated against the truth and
     against the peers' model that holds most of its images, and reported in its own folder, in a frame of its own;
     listed in ``plan.components`` for metrics.json."""
     folders = {"pycolmap": plan.out / "reference", GLOBAL_LABEL: plan.out / "reference-global"}
     for c in load_graph_summary(plan.out).get("components", []):
-        k, sub = int(c["component"]), plan.for_component(plan.out / c["folder"], int(c["component"]))
+        k = int(c["component"])
+        sub = plan.for_component(plan.out / c["folder"], k)
         if not plan.quiet:
             print(f"component {k} of the view graph ({c['n_cameras']} images, {sub.out}):", file=sys.stderr,
                   flush=True)
         runner = Runner(sub)
         vg = ViewGraph.load(sub.out / "viewgraph.npz")
         specs, results = _averaging(sub, runner, vg)
-        if sub.run.refine:
-            results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
-                sub.out, sub.configs["refine"], list(results), sub.work, sub.overwrite, sub.notes)))
+        _refine(sub, runner, results)
         models = [model_reference(folders[p.label], list(vg.names), p.label) for p in peers if p.label in folders]
-        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(sub, vg, results, [m for m in models if m]))
-        runner.step("report", "report", lambda: write_report_md(sub, ev, specs, results, vg, runner))
-        write_metrics(sub, ev, vg, {}, runner, t_start)
+        ev, _ = _report(sub, runner, vg, specs, results, [m for m in models if m], {}, t_start)
         medians = {m: (v.get("references") or {}).get("truth", {}).get("median_deg")
                    for m, v in ev.metrics.get("methods", {}).items()}
         plan.components.append({**{key: c[key] for key in ("component", "folder", "n_cameras", "n_edges", "names")},
@@ -211,9 +223,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                               f"outside it: {', '.join(left_out)}")
             plan.notes.extend(f"outside the view graph's largest component: {n}: {w}" for n, w in left_out.items())
         specs, results = _averaging(plan, runner, vg, ("viewgraph", plan.out, None))
-        if plan.run.refine:  # the recommended method's rotations finished by pycolmap: rows <method>+refine
-            results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
-                plan.out, plan.configs["refine"], list(results), work, plan.overwrite, plan.notes)))
+        _refine(plan, runner, results)
         names = list(load_manifest(work)["names"])
         peer = _reference(plan, runner, names)
         glomap = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
@@ -221,9 +231,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
         peers = [p for p in (peer, glomap) if p is not None]
         _components(plan, t_start, peers)
-        ev = runner.step("evaluation", "evaluation", lambda: evaluate_run(plan, vg, results, peers))
-        runner.step("report", "report", lambda: write_report_md(plan, ev, specs, results, vg, runner))
-        path = write_metrics(plan, ev, vg, left_out, runner, t_start)
+        _, path = _report(plan, runner, vg, specs, results, peers, left_out, t_start)
         if not plan.quiet:
             for c in plan.components:
                 print(f"component {c['component']} of the view graph ({c['n_cameras']} images, a frame of its own): "

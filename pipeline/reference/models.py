@@ -105,8 +105,7 @@ def summarize_models(pc: Any, recs: dict[int, Any], db_path: Path, names: list[s
     R = np.zeros((len(registered), 3, 3))
     rec = recs[used["index"]] if used else None
     if rec is not None and registered:
-        by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
-        R = np.stack([by_name[nm].cam_from_world().rotation.matrix() for nm in registered])
+        R = _rotations_by_name(rec, registered)
     unregistered: dict[str, str] = {}
     for nm in names:
         if nm in registered:
@@ -214,6 +213,12 @@ def load_reference(out: str | Path, label: str = "pycolmap") -> Reference:
                      unregistered=dict(s["unregistered"]), info=s)
 
 
+def _rotations_by_name(rec: Any, names: list[str]) -> np.ndarray:
+    """(n, 3, 3) cam_from_world rotations of the registered images ``names`` of a pycolmap model, in that order."""
+    by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
+    return np.stack([by_name[nm].cam_from_world().rotation.matrix() for nm in names])
+
+
 def model_reference(out: str | Path, names: list[str], label: str = "pycolmap") -> Reference | None:
     """Of every model the peer in ``out`` returned, the one that registers most of ``names`` (a component of our
     view graph solved apart), as a reference on those of ``names`` it registers; None when none registers two.
@@ -231,11 +236,11 @@ def model_reference(out: str | Path, names: list[str], label: str = "pycolmap") 
     if best is None or len(want & set(best["registered"])) < 2 or not folders:
         return None
     rec = pycolmap.Reconstruction(str(folders[0]))
-    by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
-    keep = [nm for nm in names if nm in by_name]
-    R = np.stack([by_name[nm].cam_from_world().rotation.matrix() for nm in keep])
+    registered = {rec.images[i].name for i in rec.reg_image_ids()}
+    keep = [nm for nm in names if nm in registered]
+    R = _rotations_by_name(rec, keep)
     unregistered = {nm: (s["unregistered"].get(nm) or f"registered in another of its models, not model {best['index']}")
-                    for nm in names if nm not in by_name}
+                    for nm in names if nm not in registered}
     info = {**{k: s.get(k) for k in ("time_s", "times", "mapping", "n_models", "pycolmap")},
             "n_images": len(names), "n_registered": len(keep), "unregistered": unregistered, "model": best["index"]}
     return Reference(keep, R, source="pycolmap", label=label, unregistered=unregistered, info=info)
