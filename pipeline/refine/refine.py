@@ -34,10 +34,11 @@ pycolmap's BA covariance, at most ``max_principal_point_sd`` of the image's long
 otherwise the refinement runs again with it fixed at the image centre, and says so. Cameras with fewer images (one
 each, as internet photos) are probed (:mod:`pipeline.refine.principal`): their principal points are refined where
 held at the centres they leave residuals ``principal_point_misfit`` × those refined. With the principal points
-held, a focal length the model does not determine (one standard deviation moving the image corner by more than
-``max_focal_sd`` of the image side: a camera that sees too little depth, whose focal trades against its distance)
-is held at the cameras stage's estimate in a second run, as the radial term is dropped (an internet imitation with
-crops 3% off the centre: one focal went to 9.8× its true value, sd 17%; held, the median 4.68° → 4.17°). Measured
+held, a focal length that COLMAP's own test calls bogus (outside ``min_focal_ratio``–``max_focal_ratio`` × the
+image side: a camera that sees too little depth, whose focal trades against its distance; an internet imitation:
+9.8× its true value) is held at the cameras stage's estimate in a second run; one the model merely determines
+poorly (``max_focal_sd``) stays refined, with a warning (held at a default 32% off, one such image went 0.9° → 11°).
+Measured
 (``notes/issue-13.md``): fountain-P11 without K 0.195° with the principal point at the centre
 (the truth's is 15 and 17 px away), 0.047° refined; templeSparseRing 0.666° → 0.259°.
 
@@ -61,8 +62,8 @@ import numpy as np
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
-from pipeline.refine.checks import checked_rotations
-from pipeline.refine.covariance import (camera_covariances, camera_covariances_and_sigma, focal_corner_sd,
+from pipeline.refine.checks import checked_rotations, focal_check
+from pipeline.refine.covariance import (camera_covariances, camera_covariances_and_sigma,
                                        principal_point_sd, radial_corner_sd)
 from pipeline.refine.principal import principal_point_entry, probe_principal_points
 from pipeline.refine.model import (camera_groups, check_inputs, correspondence_cache, radial_terms,
@@ -138,11 +139,18 @@ class RefineConfig(Config):
              "(notes/issue-13.md)", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
-    max_focal_sd: float = option(0.01, "cameras without a K file, principal points not refined: largest "
-                                        "displacement of the image corner by one standard deviation of a refined "
-                                        "focal length, as a fraction of the image's longest side; above it the "
-                                        "refinement runs again with that camera's focal held at the cameras stage's "
-                                        "estimate", gt=0)
+    max_focal_sd: float = option(0.01, "cameras without a K file, principal points not refined: a refined focal "
+                                        "length whose one standard deviation moves the image corner by more than "
+                                        "this fraction of the image's longest side is said to be weakly determined "
+                                        "(a warning and stats['focal_loose']); it stays as refined", gt=0)
+    min_focal_ratio: float = option(0.1, "principal points not refined: a refined focal length below this multiple "
+                                         "of the image's longest side is bogus (COLMAP's test, IncrementalMapper"
+                                         "Options.min_focal_length_ratio): the refinement runs again with that camera "
+                                         "held at the cameras stage's estimate", gt=0)
+    max_focal_ratio: float = option(10.0, "the same test: above this multiple (COLMAP's max_focal_length_ratio)",
+                                    gt=0)
+    max_extra_param: float = option(1.0, "the same test: a refined |k1| above this is bogus (COLMAP's "
+                                         "max_extra_param)", gt=0)
     covariance: bool = option(True, "estimate each camera's rotation covariance")
     seed: int = option(0, "random seed of positioning and triangulation", ge=0)
     num_threads: int = option(-1, "threads for pycolmap (-1: all cores)", ge=-1, runtime=True)
@@ -152,6 +160,9 @@ class RefineConfig(Config):
             raise ConfigError("[refine] num_threads=0 but expected a positive count or -1 (all cores)")
         if not self.start.strip() or any(c.isspace() or c in "/\\" for c in self.start):
             raise ConfigError(f"[refine] start={self.start!r} but expected 'auto' or a method label such as irls-h-l0.5")
+        if not self.min_focal_ratio < self.max_focal_ratio:
+            raise ConfigError(f"[refine] min_focal_ratio={self.min_focal_ratio:g} is not below max_focal_ratio="
+                              f"{self.max_focal_ratio:g}")
 
     def schedule(self) -> dict[str, int]:
         """The preset's values, overridden by the options given explicitly."""
@@ -403,25 +414,26 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                    f"the image corner has a standard deviation of {max(corner[c] for c in loose):.1f} px > "
                    f"{min(limit[c] for c in loose):.1f} px): every camera refined without one")
             return again(msg, "radial_rejected", stats["radial"], replace(cfg, radial="off"))
-    # a focal length the model does not determine is held at the cameras stage's estimate (a refined principal point
-    # trades against it: where one is refined and determined, so is the focal with it)
+    # a bogus focal length is held at the cameras stage's estimate; a weakly determined one stays (a refined
+    # principal point trades against it: where one is refined and determined, so is the focal with it)
     if not const.all() and not refine_pp:
-        try:
-            corner = focal_corner_sd(rec, camera_covariances(pc, rec, ba, const) if covs is None else covs)
-        except (RuntimeError, ValueError, np.linalg.LinAlgError):  # no covariance: the focal lengths stand as refined
-            corner = {}
-        side = {cid: max(rec.camera(cid).width, rec.camera(cid).height) for cid in corner}
-        loose = {cid: v for cid, v in corner.items() if not v <= cfg.max_focal_sd * side[cid]}
+        bogus, loose = focal_check(pc, rec, ba, const, covs, cfg)
         if loose:
-            held = np.isin(camera_groups(K, sizes, known, k1)[0], list(loose)) & ~known
-            refined_f = ", ".join(f"{rec.camera(c).mean_focal_length():.0f}" for c in loose)
-            msg = (f"the focal length of {len(loose)} camera(s) is not determined by the model (one standard "
-                   f"deviation moves the image corner by {max(loose.values()):.3g} px > {cfg.max_focal_sd:g} of the "
-                   f"image side; refined to {refined_f} px): refined again with it held at the cameras stage's "
-                   f"estimate ({', '.join(names[k] for k in np.flatnonzero(held)[:5])})")
-            return again(msg, "focal_held", {str(cid): {"refined_px": float(rec.camera(cid).mean_focal_length()),
-                                                        "corner_sd_px": v} for cid, v in loose.items()},
-                         cfg, hold | held)
+            stats["focal_loose"] = loose
+            warnings.append(f"the focal length of {len(loose)} camera(s) is weakly determined by the model (one "
+                            f"standard deviation moves the image corner by up to "
+                            f"{max(v['corner_sd_px'] for v in loose.values()):.3g} px > {cfg.max_focal_sd:g} of the "
+                            "image side), kept as refined: "
+                            + ", ".join(f"{v['refined_px']:.0f} px" for v in loose.values()))
+        if bogus:
+            held = np.isin(camera_groups(K, sizes, known, k1)[0], [int(c) for c in bogus]) & ~known
+            refined_f = ", ".join(f"{v['refined_px']:.0f}" for v in bogus.values())
+            msg = (f"the intrinsics of {len(bogus)} camera(s) are bogus by COLMAP's test (focal length outside "
+                   f"{cfg.min_focal_ratio:g}–{cfg.max_focal_ratio:g}× the image's longest side, or |k1| > "
+                   f"{cfg.max_extra_param:g}; refined to {refined_f} px): refined again with them held at the "
+                   "cameras stage's estimate "
+                   f"({', '.join(names[k] for k in np.flatnonzero(held)[:5])})")
+            return again(msg, "focal_held", bogus, cfg, hold | held)
     if probe_pp:  # a run with every principal point refined, taken where the image centre is a misfit
         probed, stats["principal_point_probe"] = probe_principal_points(pc, rec, ba, const, K, known, hold, cfg,
                                                                         names, rerun)

@@ -262,23 +262,41 @@ def test_unknown_intrinsics_are_refined_known_ones_kept(problem0):
     assert free.status == "ok" and free.stats["mean_reprojection_error_px"] < kept.stats["mean_reprojection_error_px"]
 
 
-def test_undetermined_focal_length_is_held_at_the_given_one(problem0):
-    """A focal length the model does not determine (here: a limit no estimate meets) is held at the cameras stage's
-    estimate: the refinement runs again with it constant, says so and records what it refined before; with the
-    default limit the same focal lengths are refined (they are determined on this scene)."""
+def test_a_bogus_focal_length_is_held_and_a_weakly_determined_one_stays_refined(problem0):
+    """COLMAP's bogus-camera test (here: a focal-length range no estimate meets) holds a camera at the cameras
+    stage's estimate: the refinement runs again with it constant, says so and records what it refined before. A
+    focal length the model determines poorly (here: a limit no estimate meets) stays as refined, with a warning and
+    its standard deviation on record; with the defaults neither happens (the focal lengths are determined)."""
     inp, R_true = problem0
     K = _shifted_intrinsics(inp)
     K[:, 0, 0] = K[:, 1, 1] = K[:, 0, 0] * (1.04 + 0.002 * np.arange(len(K)))  # 4-6% off, one camera per image
-    held = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
-                            config=ONE_THREAD.replace(max_focal_sd=1e-9))
-    free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
-    assert held.status == free.status == "ok" and held.refined.all()
-    assert any(f"focal length of {len(K)} camera(s) is not determined" in w for w in held.warnings), held.warnings
-    assert len(held.stats["focal_held"]) == len(K) and "focal_held" not in free.stats
-    for res, same in ((held, True), (free, False)):
+    run = lambda **kw: refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,  # noqa: E731
+                                        config=ONE_THREAD.replace(**kw))
+    side = float(np.max(inp["sizes"]))
+    held = run(min_focal_ratio=0.01, max_focal_ratio=0.5 * K[:, 0, 0].min() / side)
+    loose = run(max_focal_sd=1e-9)
+    free = run()
+    assert held.status == loose.status == free.status == "ok" and held.refined.all() and loose.refined.all()
+    assert any(f"intrinsics of {len(K)} camera(s) are bogus" in w for w in held.warnings), held.warnings
+    assert any(f"focal length of {len(K)} camera(s) is weakly determined" in w for w in loose.warnings), loose.warnings
+    assert len(held.stats["focal_held"]) == len(loose.stats["focal_loose"]) == len(K)
+    assert all(v["corner_sd_px"] > 0 for v in loose.stats["focal_loose"].values())
+    assert not {"focal_held", "focal_loose"} & (set(free.stats) | set(loose.stats) - {"focal_loose"})
+    for res, same in ((held, True), (loose, False), (free, False)):
         for iid, im in res.reconstruction.images.items():
             f = res.reconstruction.cameras[im.camera_id].mean_focal_length()
             assert np.isclose(f, K[iid - 1, 0, 0], rtol=1e-9) == same, (iid, f, K[iid - 1, 0, 0])
+    free_f = {i: free.reconstruction.cameras[im.camera_id].mean_focal_length()
+              for i, im in free.reconstruction.images.items()}
+    for i, im in loose.reconstruction.images.items():  # the warning changes nothing
+        assert loose.reconstruction.cameras[im.camera_id].mean_focal_length() == pytest.approx(free_f[i], rel=1e-9)
+
+
+def test_the_bogus_focal_range_is_checked():
+    from pipeline.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="min_focal_ratio=2 is not below max_focal_ratio=1"):
+        ONE_THREAD.replace(min_focal_ratio=2.0, max_focal_ratio=1.0).check()
 
 
 def test_focal_corner_sd_is_the_corner_displacement_of_one_standard_deviation():
