@@ -172,7 +172,7 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
         change, kept = m.get("change_from_averaged_deg") or {}, m.get("kept_averaged") or {}
         lines = [f"Start: {m.get('start_why', m.get('start'))}; status **{m.get('status')}**; "
                  "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge).", "",
-                 f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | kept averaged: why |",
+                 f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | not refined: why |",
                  "|---|---|---|---|---|"]
         for k, nm in enumerate(sigma):
             e = errs[k] if errs is not None and k < len(errs) else None

@@ -12,17 +12,22 @@ from pipeline.core import so3
 from pipeline.refine.covariance import camera_covariances, focal_corner_sd, rotation_covariance
 from pipeline.refine.model import model_rotations
 
-__all__ = ["checked_rotations", "focal_check"]
+__all__ = ["checked_rotations", "focal_check", "anchor_rotations"]
 
 
 def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.ndarray, K: np.ndarray, cfg: Any,
                       names: Sequence[str], R_init: np.ndarray, has_R: np.ndarray, active: np.ndarray, why: list[str],
-                      warnings: list[str], stats: dict[str, Any], times: dict[str, float], result: Any) -> Any:
+                      warnings: list[str], stats: dict[str, Any], times: dict[str, float], result: Any,
+                      pairs: tuple[np.ndarray, np.ndarray] | None = None) -> Any:
     """Step 5 and 6: which images keep a refined rotation (lost, moved too far), and their covariance.
 
     ``const``: images whose intrinsics the bundle adjustments held (a K file, or held by the refinement's checks);
     ``known``: those with a K file. ``max_change_deg`` guards only the latter (``max_change_known_only``): a held
     camera's averaged rotation rests on estimated intrinsics, its own and its pairs', as a refined camera's does.
+    ``pairs``: the edges the refinement kept and their relative rotations. An image the final model does not
+    support has its rotation chained from its refined neighbours through those pairs (:func:`anchor_rotations`)
+    where it has any: its averaged rotation carries the averaging's error of its whole neighbourhood, which the
+    refinement removed from the others (an internet imitation: a one-pair image 17.4° off as averaged, 3.9° chained).
     """
     n = len(names)
     R_model = model_rotations(rec, n)
@@ -31,10 +36,11 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
     for iid in rec.reg_image_ids():  # per image: pycolmap's count of its 3D points
         n_points[iid - 1] = rec.image(iid).num_points3D
     supported = in_model & (n_points >= cfg.min_image_observations)
-    for k in np.flatnonzero(active & ~supported):
+    lost = active & ~supported
+    for k in np.flatnonzero(lost):
         why[k] = f"{n_points[k]} 3D points in the final model (< {cfg.min_image_observations})"
-        warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation")
     if supported.sum() < 2:
+        warnings.extend(f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(lost))
         warnings.append("fewer than 2 images are supported by the final model; the averaged rotations are kept")
         return result("failed")
     # R_model ≈ R_init G (chordal ℓ2 over the supported images); the refined set in the averaged frame
@@ -72,8 +78,39 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # the refinement stands without it
             warnings.append(f"rotation covariance failed ({type(exc).__name__}: {' '.join(str(exc).split())[:100]})")
         times["covariance"] = time.perf_counter() - t0
+    R_anchor, n_pairs = None, np.zeros(n, np.int64)
+    if pairs is not None and lost.any():
+        R_anchor, n_pairs = anchor_rotations(*pairs, R_ref, refined, lost)
+        stats["anchored"] = {names[k]: int(n_pairs[k]) for k in np.flatnonzero(n_pairs)}
+    for k in np.flatnonzero(lost):
+        if n_pairs[k]:
+            why[k] += f"; its rotation is chained from refined neighbours through its {n_pairs[k]} kept pair(s)"
+        warnings.append(f"{names[k]}: {why[k]}" + ("" if n_pairs[k] else "; keeps its averaged rotation"))
     status = "ok" if refined[has_R].all() else "partial"
-    return result(status, rec, R_ref, refined, change, cov)
+    return result(status, rec, R_ref, refined, change, cov, R_anchor)
+
+
+def anchor_rotations(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, refined: np.ndarray, targets: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations of the ``targets`` chained from their ``refined`` neighbours: the chordal mean of the predictions
+    ``R_i = R_ijᵀ R_j`` and ``R_j = R_ij R_i`` (docs/CONVENTIONS.md: ``R_ij = R_j R_iᵀ``) over the pairs (M, 2) that
+    join a target to a refined image.
+
+    Returns:
+        (N, 3, 3) rotations (NaN where a target has no such pair, and for every other image); (N,) pair counts.
+    """
+    n = len(R)
+    i, j = np.asarray(edges, np.int64).reshape(-1, 2).T
+    a = targets[i] & refined[j]  # i predicted from j
+    b = targets[j] & refined[i]  # j predicted from i
+    S = np.zeros((n, 3, 3))
+    np.add.at(S, i[a], np.swapaxes(R_rel[a], 1, 2) @ R[j[a]])
+    np.add.at(S, j[b], R_rel[b] @ R[i[b]])
+    count = np.bincount(np.concatenate([i[a], j[b]]), minlength=n)
+    out = np.full((n, 3, 3), np.nan)
+    ok = count > 0
+    out[ok] = so3.project_to_so3(S[ok])
+    return out, count
 
 
 def focal_check(pc: Any, rec: Any, ba: Any, const: np.ndarray, covs: dict[int, np.ndarray | None] | None,

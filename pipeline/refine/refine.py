@@ -9,13 +9,12 @@ as GLOMAP does after its own rotation averaging (:mod:`pipeline.refine.mapper`):
    image with fewer than ``min_image_observations`` track observations is not refined;
 3. an in-memory COLMAP database and the starting reconstruction (:mod:`pipeline.refine.model`);
 4. global positioning, iterative bundle adjustment, retriangulation and a final BA;
-5. checks: an image the final model lost, or one of known K whose refined rotation is more
-   than ``max_change_deg`` from the averaged one (after one global alignment), keeps its
-   averaged rotation, and the warnings say so; both sets are returned. An image without a K
-   file keeps its refined rotation however far it moved (``max_change_known_only``): its
-   averaged rotation rested on the cameras stage's focal, which the model re-estimated, and
-   the warning gives both focal lengths (rendered cameras with focal lengths 34–71% off:
-   4.5–15.6° averaged, 0.43–2.2° refined, where the guard had kept the averaged ones);
+5. checks (:mod:`pipeline.refine.checks`): one of known K whose refined rotation is more than
+   ``max_change_deg`` from the averaged one (after one global alignment) keeps its averaged
+   rotation; an image the final model lost is chained from its refined neighbours through its
+   kept pairs (else averaged); the warnings say so. An image without a K file keeps its refined
+   rotation however far it moved (``max_change_known_only``): its averaged one rested on the
+   cameras stage's focal, which the model re-estimated;
 6. the per-camera rotation covariance (:mod:`pipeline.refine.covariance`).
 
 **Unknown intrinsics** (estimated, EXIF or default focal lengths; a K read from a file is
@@ -38,9 +37,8 @@ held, a focal length that COLMAP's own test calls bogus (outside ``min_focal_rat
 image side: a camera that sees too little depth, whose focal trades against its distance; an internet imitation:
 9.8× its true value) is held at the cameras stage's estimate in a second run; one the model merely determines
 poorly (``max_focal_sd``) stays refined, with a warning (held at a default 32% off, one such image went 0.9° → 11°).
-Measured
-(``notes/issue-13.md``): fountain-P11 without K 0.195° with the principal point at the centre
-(the truth's is 15 and 17 px away), 0.047° refined; templeSparseRing 0.666° → 0.259°.
+Measured (``notes/issue-13.md``): fountain-P11 without K 0.195° with the principal point at the centre (the truth's
+is 15 and 17 px away), 0.047° refined; templeSparseRing 0.666° → 0.259°.
 
 It never raises on a pycolmap failure: the status says ``failed`` and the averaged
 rotations are returned. Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``,
@@ -139,18 +137,14 @@ class RefineConfig(Config):
              "(notes/issue-13.md)", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
-    max_focal_sd: float = option(0.01, "cameras without a K file, principal points not refined: a refined focal "
-                                        "length whose one standard deviation moves the image corner by more than "
-                                        "this fraction of the image's longest side is said to be weakly determined "
-                                        "(a warning and stats['focal_loose']); it stays as refined", gt=0)
-    min_focal_ratio: float = option(0.1, "principal points not refined: a refined focal length below this multiple "
-                                         "of the image's longest side is bogus (COLMAP's test, IncrementalMapper"
-                                         "Options.min_focal_length_ratio): the refinement runs again with that camera "
-                                         "held at the cameras stage's estimate", gt=0)
-    max_focal_ratio: float = option(10.0, "the same test: above this multiple (COLMAP's max_focal_length_ratio)",
-                                    gt=0)
-    max_extra_param: float = option(1.0, "the same test: a refined |k1| above this is bogus (COLMAP's "
-                                         "max_extra_param)", gt=0)
+    max_focal_sd: float = option(0.01, "principal points not refined: a focal length whose one standard deviation "
+                                        "moves the image corner by more than this share of the image's longest side "
+                                        "is weakly determined (a warning, stats['focal_loose']); it stays refined", gt=0)
+    min_focal_ratio: float = option(0.1, "principal points not refined: intrinsics with a focal length below this "
+                                         "multiple of the image's longest side are bogus (COLMAP's test): the camera is "
+                                         "held at the cameras stage's estimate in a second run", gt=0)
+    max_focal_ratio: float = option(10.0, "the same test, above this multiple (COLMAP's max_focal_length_ratio)", gt=0)
+    max_extra_param: float = option(1.0, "the same test: |k1| above this is bogus (COLMAP's max_extra_param)", gt=0)
     covariance: bool = option(True, "estimate each camera's rotation covariance")
     seed: int = option(0, "random seed of positioning and triangulation", ge=0)
     num_threads: int = option(-1, "threads for pycolmap (-1: all cores)", ge=-1, runtime=True)
@@ -180,12 +174,13 @@ class RefineResult:
     Attributes:
         status: "ok" (every image with a start refined), "partial" (some kept the averaged
             rotation) or "failed" (none refined; ``R`` is the averaged set).
-        R: (N, 3, 3) the rotations to use: refined where ``refined``, averaged elsewhere,
-            in the averaged rotations' world frame.
+        R: (N, 3, 3) the rotations to use: refined where ``refined``, chained from refined neighbours where
+            ``anchored``, averaged elsewhere, in the averaged rotations' world frame.
         R_init: (N, 3, 3) the averaged rotations (NaN for images without one).
         R_refined: (N, 3, 3) pycolmap's rotations aligned to the averaged frame, before the
             change check (NaN where the image is not in the final model).
         refined: (N,) bool.
+        anchored: (N,) bool: not refined (lost by the final model) and chained from refined neighbours in ``R``.
         change_deg: (N,) angle between R_refined and R_init (NaN where not in the model).
         cov: (N, 3, 3) rotation covariance, rad², left perturbation ``R = exp([δ]×) R̂``,
             minimum-norm gauge; NaN where unavailable; None when not estimated.
@@ -206,6 +201,7 @@ class RefineResult:
     reconstruction: Any = None
     warnings: list[str] = field(default_factory=list)
     stats: dict[str, Any] = field(default_factory=dict)
+    anchored: np.ndarray | None = None
 
 
 def _pycolmap() -> Any:
@@ -267,11 +263,15 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     why = ["no averaged rotation" if not h else "" for h in has_R]
 
     def result(status: str, rec: Any = None, R_ref: np.ndarray | None = None, refined: np.ndarray | None = None,
-               change: np.ndarray | None = None, cov: np.ndarray | None = None) -> RefineResult:
+               change: np.ndarray | None = None, cov: np.ndarray | None = None,
+               R_anchor: np.ndarray | None = None) -> RefineResult:
         refined = np.zeros(n, bool) if refined is None else refined
         R_ref = np.full((n, 3, 3), np.nan) if R_ref is None else R_ref
         R_out = R_init.copy()
         R_out[refined] = R_ref[refined]
+        anchored = np.zeros(n, bool) if R_anchor is None else np.all(np.isfinite(R_anchor), axis=(1, 2)) & ~refined
+        if anchored.any():
+            R_out[anchored] = R_anchor[anchored]
         if status == "failed":
             for k in np.flatnonzero(has_R):
                 why[k] = why[k] or warnings[-1]
@@ -280,7 +280,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         for w in warnings:
             logger.warning("refine: %s", w)
         return RefineResult(status, R_out, R_init.copy(), R_ref, refined,
-                            np.full(n, np.nan) if change is None else change, cov, list(why), rec, warnings, stats)
+                            np.full(n, np.nan) if change is None else change, cov, list(why), rec, warnings, stats,
+                            anchored)
 
     def rerun(K_again: np.ndarray, hold_again: np.ndarray, cfg_again: RefineConfig) -> RefineResult:
         """The same refinement from other intrinsics, holding other cameras, with other options."""
@@ -445,4 +446,4 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     stats.update(n_points=int(rec.num_points3D()), mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
                  mean_track_length=float(rec.compute_mean_track_length()))
     return checked_rotations(pc, rec, ba, const, known, K, cfg, names, R_init, has_R, active, why, warnings, stats,
-                             times, result)
+                             times, result, (edges[keep], cam2_from_cam1[keep]))

@@ -293,6 +293,7 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "status": res.status, "warnings": res.warnings, "n_cameras": len(rows),
             "n_refined": int(res.refined[rows].sum()),
             "kept_averaged": {nm: res.why[k] for nm, k in cams if not res.refined[k]},
+            "anchored": [nm for nm, k in cams if res.anchored is not None and res.anchored[k]],
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
             "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
             "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
@@ -349,8 +350,8 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
                          f"px, standard deviation {pp['sd_px']:.2f} px")
         if s["status"] == "failed":
             notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
-        notes += [f"{label}: {nm} keeps its averaged rotation: {why}" for nm, why in s["kept_averaged"].items()
-                  if why != "no averaged rotation"]
+        notes += [f"{label}: {nm} {'is not refined' if nm in s.get('anchored', ()) else 'keeps its averaged rotation'}"
+                  f": {why}" for nm, why in s["kept_averaged"].items() if why != "no averaged rotation"]
     return notes
 
 
@@ -390,7 +391,7 @@ def main_cli(argv: Sequence[str] | None = None) -> int:
             s = r["stats"]
             print(f"{label}: {s['status']}, {s['n_refined']}/{s['n_cameras']} cameras refined; {r['rotations']}")
             for nm, why in s["kept_averaged"].items():
-                print(f"  kept averaged: {nm}: {why}")
+                print(f"  {'not refined' if nm in s.get('anchored', ()) else 'kept averaged'}: {nm}: {why}")
         return 0
 
     return run_cli(body, p, argv)

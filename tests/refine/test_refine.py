@@ -86,6 +86,56 @@ def test_change_guard_keeps_both():
     assert "max_change_deg" in res.why[2] and any("keeps its averaged rotation" in w for w in res.warnings)
 
 
+def test_anchor_rotations_chain_the_refined_neighbours_through_the_pairs():
+    """Exact pairs and exact neighbours give the truth; two pairs of opposite 2° errors average out; a target with
+    no refined neighbour (or only another target) gets none; the convention R_ij = R_j R_iᵀ both ways round."""
+    from pipeline.refine.checks import anchor_rotations
+
+    rng = np.random.default_rng(4)
+    R = so3.random_rotations(6, rng)
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 5], [4, 5], [1, 4]])
+    R_rel = R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2)
+    refined = np.array([True, False, True, True, False, False])
+    targets = ~refined
+    out, count = anchor_rotations(edges, R_rel, R, refined, targets)
+    assert count.tolist() == [0, 2, 0, 0, 0, 1]  # 1: from 0 and 2; 5: from 3 (4 is a target, not a source)
+    np.testing.assert_allclose(out[[1, 5]], R[[1, 5]], atol=1e-12)
+    assert np.isnan(out[[0, 2, 3, 4]]).all()
+    tilt = so3.exp(np.radians([2.0, 0.0, 0.0]))
+    noisy = R_rel.copy()
+    noisy[0] = tilt @ R_rel[0]  # R_1 = R_01 R_0 predicted as T R_1 ...
+    noisy[1] = R_rel[1] @ tilt  # ... and R_1 = R_12ᵀ R_2 as Tᵀ R_1: their chordal mean is R_1
+    out, _ = anchor_rotations(edges, noisy, R, refined, targets)
+    assert np.degrees(so3.angle_between(out[1:2], R[1:2]))[0] < 1e-9
+    one, _ = anchor_rotations(edges[:1], noisy[:1], R, refined, targets)  # one pair: its error, 2°
+    assert abs(np.degrees(so3.angle_between(one[1:2], R[1:2]))[0] - 2.0) < 1e-9
+
+
+def test_an_image_the_final_model_loses_is_chained_from_its_refined_neighbours(problem0, monkeypatch):
+    """An image lost by the final model (here: taken out of it) keeps no averaged rotation 5° off: it is chained from
+    its refined neighbours through its kept pairs, back near the truth, and says so."""
+    from pipeline.refine import checks
+
+    inp, R_true = problem0
+    R0 = R_true.copy()
+    R0[3] = so3.exp(np.radians([0.0, 0.0, 4.0])) @ R0[3]  # the averaging's error at this image
+    real = checks.model_rotations
+
+    def lose_3(rec, n):  # image 3 (id 4) leaves the final model, with its points
+        rec.deregister_frame(rec.image(4).frame_id)
+        return real(rec, n)
+
+    monkeypatch.setattr(checks, "model_rotations", lose_3)
+    res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD.replace(edge_filter_deg=None))
+    assert res.status == "partial" and not res.refined[3] and res.anchored.tolist() == [k == 3 for k in range(len(R0))]
+    err = np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1))
+    assert err[3] < 0.2 and err.max() < 0.2, err
+    assert "chained from refined neighbours" in res.why[3] and res.stats["anchored"] == {inp["names"][3]: 7}
+    monkeypatch.setattr(checks, "model_rotations", real)  # without the loss: nothing anchored
+    res = refine_rotations(**inp, R_init=R0, config=ONE_THREAD.replace(edge_filter_deg=None))
+    assert not res.anchored.any() and "anchored" not in res.stats
+
+
 def test_an_unknown_camera_keeps_its_refined_rotation_however_far_it_moved():
     """Without a K file the averaged rotation rested on the cameras stage's focal: a camera the model moves 3°
     (above a 1° guard) keeps the refined rotation, back at the truth, and the warning names both focal lengths;

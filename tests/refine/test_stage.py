@@ -104,6 +104,7 @@ def test_change_guard_keeps_both(rendered_run, tmp_path):
     s = json.loads((out / "rotations" / "irls-h-l0.5+refine.json").read_text())
     assert s["status"] == "partial" and s["n_refined"] == 0 and len(s["kept_averaged"]) == 8
     assert all("max_change_deg" in why for why in s["kept_averaged"].values())
+    assert s["anchored"] == []  # a camera the guard keeps is not chained from its neighbours: it keeps the averaged
     n1, R1 = read_rotations(out / "rotations" / "irls-h-l0.5+refine.txt")
     _, R0 = read_rotations(out / "rotations" / "irls-h-l0.5.txt")
     assert np.array_equal(R1, R0)
