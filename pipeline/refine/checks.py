@@ -25,7 +25,8 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
     ``known``: those with a K file. ``max_change_deg`` guards only the latter (``max_change_known_only``): a held
     camera's averaged rotation rests on estimated intrinsics, its own and its pairs', as a refined camera's does.
     ``pairs``: the edges the refinement kept and their relative rotations. An image the final model does not
-    support has its rotation chained from its refined neighbours through those pairs (:func:`anchor_rotations`)
+    support (lost, or too few track observations to enter it) is chained from its refined neighbours through those
+    pairs (:func:`anchor_rotations`)
     where it has any: its averaged rotation carries the averaging's error of its whole neighbourhood, which the
     refinement removed from the others (an internet imitation: a one-pair image 17.4° off as averaged, 3.9° chained).
     """
@@ -36,9 +37,9 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
     for iid in rec.reg_image_ids():  # per image: pycolmap's count of its 3D points
         n_points[iid - 1] = rec.image(iid).num_points3D
     supported = in_model & (n_points >= cfg.min_image_observations)
-    lost = active & ~supported
-    for k in np.flatnonzero(lost):
+    for k in np.flatnonzero(active & ~supported):
         why[k] = f"{n_points[k]} 3D points in the final model (< {cfg.min_image_observations})"
+    lost = has_R & ~supported  # and those with too few track observations to enter the model
     if supported.sum() < 2:
         warnings.extend(f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(lost))
         warnings.append("fewer than 2 images are supported by the final model; the averaged rotations are kept")

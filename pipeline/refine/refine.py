@@ -314,11 +314,11 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     stats.update(n_tracks=tracks.n_tracks, n_track_components=tracks.n_components, n_images_short_tracks=int(
         starved.sum()), n_tracks_inconsistent=tracks.n_inconsistent, n_tracks_short=tracks.n_short)
     active = has_R & (obs >= cfg.min_image_observations)
-    for k in np.flatnonzero(has_R & ~active):
+    for k in np.flatnonzero(has_R & ~active):  # warned where its rotation is decided (checks.checked_rotations)
         why[k] = f"{obs[k]} track observations (< {cfg.min_image_observations}): not refined"
-        warnings.append(f"{names[k]}: {why[k]}; keeps its averaged rotation")
     times["tracks"] = time.perf_counter() - t0
     if active.sum() < 2:
+        warnings.extend(f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(has_R & ~active))
         warnings.append(f"only {int(active.sum())} image(s) with enough tracks ({tracks.n_tracks} tracks): "
                         "nothing to refine; the averaged rotations are kept")
         return result("failed")

@@ -136,6 +136,25 @@ def test_an_image_the_final_model_loses_is_chained_from_its_refined_neighbours(p
     assert not res.anchored.any() and "anchored" not in res.stats
 
 
+def test_an_image_with_too_few_tracks_is_chained_from_its_refined_neighbours(problem0):
+    """An image whose pairs keep only 2 matches each (too few track observations to enter the model) and whose
+    averaged rotation is 4° off: chained from its refined neighbours through those pairs, back near the truth."""
+    inp, R_true = problem0
+    off, m = inp["match_offsets"], inp["matches"]
+    keep_rows = np.concatenate([np.arange(off[e], off[e + 1])[: 2 if 3 in inp["edges"][e] else None]
+                                for e in range(len(inp["edges"]))])
+    counts = np.array([min(off[e + 1] - off[e], 2) if 3 in inp["edges"][e] else off[e + 1] - off[e]
+                       for e in range(len(inp["edges"]))])
+    thin = dict(inp, match_offsets=np.r_[0, np.cumsum(counts)], matches=m[keep_rows])
+    R0 = R_true.copy()
+    R0[3] = so3.exp(np.radians([0.0, 4.0, 0.0])) @ R0[3]
+    res = refine_rotations(**thin, R_init=R0, config=ONE_THREAD.replace(edge_filter_deg=None))
+    assert res.status == "partial" and not res.refined[3] and res.anchored[3] and res.refined[np.arange(8) != 3].all()
+    assert "track observations" in res.why[3] and "chained from refined neighbours" in res.why[3]
+    err = np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1))
+    assert err[3] < 0.2 and err.max() < 0.2, err
+
+
 def test_an_unknown_camera_keeps_its_refined_rotation_however_far_it_moved():
     """Without a K file the averaged rotation rested on the cameras stage's focal: a camera the model moves 3°
     (above a 1° guard) keeps the refined rotation, back at the truth, and the warning names both focal lengths;
