@@ -361,6 +361,30 @@ def test_a_bogus_focal_length_is_held_and_a_weakly_determined_one_stays_refined(
         assert loose.reconstruction.cameras[im.camera_id].mean_focal_length() == pytest.approx(free_f[i], rel=1e-9)
 
 
+def test_without_a_covariance_the_bogus_test_still_holds_and_no_focal_is_called_weak(problem0, monkeypatch):
+    """pycolmap's covariance can fail (castle's weak internet graphs): then no focal length is said to be weakly
+    determined (nothing shows it), while COLMAP's bogus test, which needs none, still holds a camera."""
+    from pipeline.refine import checks
+    from pipeline.refine import refine as refine_module
+
+    def fail(*a, **k):
+        raise RuntimeError("[covariance.cc:1] rank deficient")
+
+    monkeypatch.setattr(checks, "camera_covariances", fail)
+    monkeypatch.setattr(refine_module, "camera_covariances", fail)  # the radial check's: it drops the radial term
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    K[:, 0, 0] = K[:, 1, 1] = K[:, 0, 0] * (1.04 + 0.002 * np.arange(len(K)))  # one camera per image, so
+    side = float(np.max(inp["sizes"]))  # principal points held and the focal check made
+    run = lambda **kw: refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,  # noqa: E731
+                                        config=ONE_THREAD.replace(covariance=False, **kw))
+    loose = run(max_focal_sd=1e-9)
+    held = run(min_focal_ratio=0.01, max_focal_ratio=0.5 * K[:, 0, 0].min() / side)
+    assert "focal_loose" not in loose.stats and "focal_held" not in loose.stats
+    assert len(held.stats["focal_held"]) == len(K)
+    assert all(np.isnan(v["corner_sd_px"]) for v in held.stats["focal_held"].values())
+
+
 def test_the_bogus_focal_range_is_checked():
     from pipeline.core.errors import ConfigError
 
