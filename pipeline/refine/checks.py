@@ -12,7 +12,7 @@ from pipeline.core import so3
 from pipeline.refine.covariance import camera_covariances, focal_corner_sd, rotation_covariance
 from pipeline.refine.model import model_rotations
 
-__all__ = ["checked_rotations", "focal_check", "anchor_rotations"]
+__all__ = ["checked_rotations", "focal_check", "anchor_rotations", "kept_averaged"]
 
 
 def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.ndarray, K: np.ndarray, cfg: Any,
@@ -41,7 +41,7 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
         why[k] = f"{n_points[k]} 3D points in the final model (< {cfg.min_image_observations})"
     lost = has_R & ~supported  # and those with too few track observations to enter the model
     if supported.sum() < 2:
-        warnings.extend(f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(lost))
+        warnings.extend(kept_averaged(names, why, lost))
         warnings.append("fewer than 2 images are supported by the final model; the averaged rotations are kept")
         return result("failed")
     # R_model ≈ R_init G (chordal ℓ2 over the supported images); the refined set in the averaged frame
@@ -89,6 +89,11 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
         warnings.append(f"{names[k]}: {why[k]}" + ("" if n_pairs[k] else "; keeps its averaged rotation"))
     status = "ok" if refined[has_R].all() else "partial"
     return result(status, rec, R_ref, refined, change, cov, R_anchor)
+
+
+def kept_averaged(names: Sequence[str], why: list[str], mask: np.ndarray) -> list[str]:
+    """One warning per image of ``mask`` (N,) that keeps its averaged rotation, with its ``why``."""
+    return [f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(mask)]
 
 
 def anchor_rotations(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, refined: np.ndarray, targets: np.ndarray

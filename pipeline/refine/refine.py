@@ -60,7 +60,7 @@ import numpy as np
 from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
-from pipeline.refine.checks import checked_rotations, focal_check
+from pipeline.refine.checks import checked_rotations, focal_check, kept_averaged
 from pipeline.refine.covariance import (camera_covariances, camera_covariances_and_sigma,
                                        principal_point_sd, radial_corner_sd)
 from pipeline.refine.principal import principal_point_entry, probe_principal_points
@@ -318,7 +318,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         why[k] = f"{obs[k]} track observations (< {cfg.min_image_observations}): not refined"
     times["tracks"] = time.perf_counter() - t0
     if active.sum() < 2:
-        warnings.extend(f"{names[k]}: {why[k]}; keeps its averaged rotation" for k in np.flatnonzero(has_R & ~active))
+        warnings.extend(kept_averaged(names, why, has_R & ~active))
         warnings.append(f"only {int(active.sum())} image(s) with enough tracks ({tracks.n_tracks} tracks): "
                         "nothing to refine; the averaged rotations are kept")
         return result("failed")
