@@ -345,7 +345,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         stats["n_points_start"] = int(state["rec"].num_points3D())
         return True, ""
 
-    refine_pp = cfg.principal_point != "fixed" and not known.all()
+    refine_pp = cfg.principal_point != "fixed" and bool((active & ~known).any())  # an image without a K file
     probe_pp = False  # principal points held for too few images per camera: is the image centre a misfit?
     if refine_pp and cfg.principal_point == "auto":  # one image cannot separate its principal point from its pose
         cam_id, _ = camera_groups(K, sizes, known, k1)

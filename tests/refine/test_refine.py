@@ -203,6 +203,22 @@ def test_the_fast_preset_and_an_image_without_a_start(problem0):
     assert np.isnan(res.R[5]).all() and res.refined.sum() == len(R0) - 1
 
 
+
+def test_a_k_file_for_the_refined_images_and_an_unknown_image_without_a_start(problem0):
+    """A K file for every image but one, which the view graph left out (no averaged rotation): the images refined
+    all have known K, so no principal point is refined or probed (it used to stop on an empty minimum)."""
+    inp, R_true = problem0
+    R0 = perturbed(R_true, 0.3, np.random.default_rng(4))
+    R0[5] = np.nan
+    known = np.ones(len(R0), bool)
+    known[5] = False
+    res = refine_rotations(**inp, R_init=R0, known_K=known, config=ONE_THREAD)
+    assert res.status == "ok" and not res.refined[5] and res.refined.sum() == len(R0) - 1
+    assert "principal_point" not in res.stats and "principal_point_probe" not in res.stats
+    assert all(c.model.name == "PINHOLE" for c in res.reconstruction.cameras.values())
+    err = np.degrees(np.linalg.norm(aligned_residuals(np.delete(res.R, 5, 0), np.delete(R_true, 5, 0)), axis=1))
+    assert err.max() < 0.1, err
+
 @pytest.mark.parametrize("kw, match", [
     ({"max_change_deg": 0}, r"\[refine\] max_change_deg=0.0 but expected > 0"),
     ({"preset": "slow"}, r"\[refine\] preset='slow' but expected one of 'glomap', 'fast'"),
