@@ -317,7 +317,7 @@ def refine_pair(
             if inliers.sum() < cfg.min_points:
                 raise TwoViewBAError(
                     f"only {int(inliers.sum())} of {n} points are inliers (threshold {np.sqrt(chi2_cls) * sigma_cls:.3g} px) "
-                    f"but min_points={cfg.min_points}; the pose is unreliable: drop the pair or raise inlier_chi2"
+                    f"but min_points={cfg.min_points}: too few to trust the pose"
                 )
             r, valid, w, _ = run("none", c, inliers, cfg.tol)
             if round_ == 1 or inliers.all():

@@ -221,6 +221,11 @@ class TwoViewBAStage(PairStage[BAConfig]):
         return [out] + store.write_index(keys), summary
 
 
+def _too_few_points(reason: str) -> bool:
+    """Whether a pair's failure is :func:`refine_pair`'s "too few points or inliers" (a weak pair, not a fault)."""
+    return reason.startswith(("only ", "pair has ")) or "effective points leave" in reason
+
+
 def _assemble(vg_in: ViewGraph, t_in: np.ndarray, results: list[dict[str, Any]]) -> tuple[ViewGraph, dict[str, Any]]:
     """The refined view graph of the pairs that succeeded and the summary of the run."""
     ok = np.array([r["ok"] for r in results], dtype=bool)
@@ -229,8 +234,14 @@ def _assemble(vg_in: ViewGraph, t_in: np.ndarray, results: list[dict[str, Any]])
         {"edge": int(k), "pair": [vg_in.names[vg_in.edges[k, 0]], vg_in.names[vg_in.edges[k, 1]]], "reason": results[k]["reason"]}
         for k in np.flatnonzero(~ok)
     ]
-    for d in dropped:
-        logger.warning("two-view BA dropped pair %s–%s: %s", d["pair"][0], d["pair"][1], d["reason"])
+    weak = [d for d in dropped if _too_few_points(d["reason"])]
+    for d in dropped:  # a pair with too few points is a weak pair, as RANSAC's are: one line for them all
+        if not _too_few_points(d["reason"]):
+            logger.warning("two-view BA dropped pair %s–%s: %s", d["pair"][0], d["pair"][1], d["reason"])
+    if weak:
+        logger.info("two-view BA dropped %d pair(s) with too few inlier points to trust their pose (e.g. %s); each is "
+                    "listed with its reason among the view graph's rejected pairs", len(weak),
+                    "; ".join(f"{d['pair'][0]}–{d['pair'][1]}: {d['reason']}" for d in weak[:2]))
     good = [results[k] for k in kept]
     R = np.array([r["R"] for r in good]).reshape(-1, 3, 3)
     H = np.array([r["H"] for r in good]).reshape(-1, 3, 3)

@@ -74,11 +74,16 @@ def _arrays(vg: ViewGraph) -> list[np.ndarray]:
     return [vg.edges, vg.R_rel, vg.H, vg.inliers] + [vg.stats[k] for k in sorted(vg.stats)]
 
 
-def test_stage_writes_graph_with_H_resumes_and_reports_dropped(tmp_path: Path) -> None:
+def test_stage_writes_graph_with_H_resumes_and_reports_dropped(tmp_path: Path, caplog) -> None:
     work, fake = _fake_work(tmp_path)
     truth = fake.truth
     cfg = BAConfig(workers=2, chunk_size=2, progress=False)
-    rec = TwoViewBAStage(work, cfg).run()
+    with caplog.at_level(logging.INFO, logger="pipeline.geometry.ba_stage"):
+        rec = TwoViewBAStage(work, cfg).run()
+    # a pair with too few points is a weak pair, not a fault: one line says so, no warning per pair
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    (line,) = [r.getMessage() for r in caplog.records if "dropped" in r.getMessage() and "too few" in r.getMessage()]
+    assert line.startswith("two-view BA dropped 1 pair(s) with too few inlier points") and "min_points" in line
     out = work / "viewgraph.npz"
     vg = ViewGraph.load(out, allow_isolated=True)
     M = len(fake.pairs)
