@@ -95,7 +95,9 @@ def _evidence(out: Path, intrinsics: dict[str, Any], methods: dict[str, Any], re
     except PipelineError:
         return {}
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
-    return run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics))
+    placed = {n: f"{why} ({label})" for label, r in results.items()
+              for n, why in ((r.get("stats") or {}).get("placed") or {}).items()}
+    return run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics), placed)
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,

@@ -70,7 +70,7 @@ GUESSED_FOCAL = ("its focal length is only the default guess 1.2·max(w, h) (no 
 
 def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
                  disagreement: dict[str, tuple[float, str]] | None = None,
-                 guessed_focal: list[str] | None = None) -> dict[str, Any]:
+                 guessed_focal: list[str] | None = None, placed: dict[str, str] | None = None) -> dict[str, Any]:
     """The ``evidence`` entry of metrics.json.
 
     Args:
@@ -79,6 +79,8 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
         disagreement: :func:`method_disagreement` of the methods' rotations; cameras beyond
             :data:`DISAGREEMENT_DEG` are flagged.
         guessed_focal: the images whose focal length is the default guess (:data:`GUESSED_FOCAL`); flagged.
+        placed: ``{name: why}`` of images the view graph left out that a refinement placed (``placed`` in its
+            stats): flagged with why, after the graph's reason for leaving them out.
     Returns:
         ``{"messages", "flags": {name: [reasons]}, "cameras": {name: {"status", "flags"}}, "n_flagged",
         "n_cycles", "left_out", "pairs": counts by status and step, "certificate_note"}``.
@@ -108,6 +110,9 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
             cameras[n]["methods_disagree_deg"] = round(disagreement[n][0], 4)
     for n, why in (graph.get("left_out") or {}).items():
         cameras[n] = {"status": "left out", "flags": [why]}
+    for n, why in (placed or {}).items():
+        flags[n] = [*cameras.get(n, {}).get("flags", []), why]
+        cameras[n] = {"status": "flagged", "flags": flags[n]}
     counts: dict[str, int] = {}
     for p in graph.get("pairs", []):
         key = p.get("status", "?") if p.get("status") == "kept" else f"rejected at {p.get('step', '?')}"

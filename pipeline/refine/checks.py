@@ -12,7 +12,7 @@ from pipeline.core import so3
 from pipeline.refine.covariance import camera_covariances, focal_corner_sd, rotation_covariance
 from pipeline.refine.model import model_rotations
 
-__all__ = ["checked_rotations", "focal_check", "anchor_rotations", "kept_averaged"]
+__all__ = ["checked_rotations", "focal_check", "anchor_rotations", "chain_starts", "kept_averaged"]
 
 
 def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.ndarray, K: np.ndarray, cfg: Any,
@@ -44,8 +44,10 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
         warnings.extend(kept_averaged(names, why, lost))
         warnings.append("fewer than 2 images are supported by the final model; the averaged rotations are kept")
         return result("failed")
-    # R_model ≈ R_init G (chordal ℓ2 over the supported images); the refined set in the averaged frame
-    G = so3.project_to_so3(np.einsum("nji,njk->ik", R_init[supported], R_model[supported]))
+    # R_model ≈ R_init G (chordal ℓ2 over the supported images that have an averaged rotation); the refined set
+    # in the averaged frame (an image started from its pairs, R_start, is refined but does not align)
+    aligned = supported & has_R
+    G = so3.project_to_so3(np.einsum("nji,njk->ik", R_init[aligned], R_model[aligned]))
     R_ref = R_model @ G.T
     change = np.full(n, np.nan)
     change[in_model] = np.degrees(so3.angle_between(R_ref[in_model], R_init[in_model]))
@@ -64,8 +66,8 @@ def checked_rotations(pc: Any, rec: Any, ba: Any, const: np.ndarray, known: np.n
                         f"({100 * (f1 / f0 - 1):+.1f}%): the refined rotation is kept (both are reported)")
     stats["n_moved_refined"] = int(np.sum(far & ~moved))
     refined = supported & ~moved
-    stats["change_deg_median"] = float(np.median(change[supported]))
-    stats["change_deg_max"] = float(np.max(change[supported]))
+    stats["change_deg_median"] = float(np.median(change[aligned]))
+    stats["change_deg_max"] = float(np.max(change[aligned]))
     cov = None
     if cfg.covariance:
         t0 = time.perf_counter()
@@ -116,6 +118,31 @@ def anchor_rotations(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, refine
     out = np.full((n, 3, 3), np.nan)
     ok = count > 0
     out[ok] = so3.project_to_so3(S[ok])
+    return out, count
+
+
+def chain_starts(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray, targets: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Starts of the ``targets`` (N,) bool, images without a rotation in ``R`` (N, 3, 3), chained through the pairs
+    ``edges`` (M, 2) / ``R_rel`` from the images with one, in rounds (:func:`anchor_rotations`): a target joined to
+    those only through other targets gets its start in a later round, from theirs.
+
+    Returns:
+        (N, 3, 3) starts (NaN where a target is joined to no image with a rotation, and for the other images);
+        (N,) the pairs each start came through.
+    """
+    have = np.all(np.isfinite(R), axis=(1, 2)) & ~targets
+    R = np.where(have[:, None, None], R, np.nan)
+    out, count = np.full_like(R, np.nan), np.zeros(len(R), np.int64)
+    todo = targets.copy()
+    while todo.any():
+        step, c = anchor_rotations(edges, R_rel, R, have, todo)
+        new = c > 0
+        if not new.any():
+            break
+        out[new], count[new], R[new] = step[new], c[new], step[new]
+        have |= new
+        todo &= ~new
     return out, count
 
 

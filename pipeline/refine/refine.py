@@ -9,36 +9,26 @@ as GLOMAP does after its own rotation averaging (:mod:`pipeline.refine.mapper`):
    image with fewer than ``min_image_observations`` track observations is not refined;
 3. an in-memory COLMAP database and the starting reconstruction (:mod:`pipeline.refine.model`);
 4. global positioning, iterative bundle adjustment, retriangulation and a final BA;
-5. checks (:mod:`pipeline.refine.checks`): one of known K whose refined rotation is more than
-   ``max_change_deg`` from the averaged one (after one global alignment) keeps its averaged
-   rotation; an image the final model lost is chained from its refined neighbours through its
-   kept pairs (else averaged); the warnings say so. An image without a K file keeps its refined
-   rotation however far it moved (``max_change_known_only``): its averaged one rested on the
-   cameras stage's focal, which the model re-estimated;
+5. checks (:mod:`pipeline.refine.checks`): an image of known K refined more than ``max_change_deg`` from
+   its averaged rotation (after one global alignment) keeps the averaged one (one without a K file keeps the
+   refined one: ``max_change_known_only``); one the final model lost is chained from its refined neighbours;
 6. the per-camera rotation covariance (:mod:`pipeline.refine.covariance`).
 
 **Unknown intrinsics** (estimated, EXIF or default focal lengths; a K read from a file is
-constant). Each such camera has one focal length and one radial term k1 (COLMAP's
-SIMPLE_RADIAL, as its mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE),
-k1 starting at 0 on the cameras stage's undistorted keypoints (the lens that stage left:
-rendered views each with its own lens, 0.090 → 0.018° and 0.091 → 0.012°; on views without
-a lens it costs 0–25%). Where the cameras stage estimated a lens (undistorting about the
-image centre, while a lens is centred on the principal point), ``lens: measured`` (default)
-gives BA the measured keypoints and the stage's k1, so the lens is modelled about the
-principal point it refines (rendered, k1 = −0.08 centred 15 px off: 0.064° → 0.0086°).
-With ``principal_point: auto``, its principal point is refined too when every such camera
-has ``min_principal_point_images`` images (one image cannot tell its principal point from
-its pose), and kept only where the final model determines it (its standard deviation, from
-pycolmap's BA covariance, at most ``max_principal_point_sd`` of the image's longest side);
-otherwise the refinement runs again with it fixed at the image centre, and says so. Cameras with fewer images (one
-each, as internet photos) are probed (:mod:`pipeline.refine.principal`): their principal points are refined where
-held at the centres they leave residuals ``principal_point_misfit`` × those refined. With the principal points
-held, a focal length that COLMAP's own test calls bogus (outside ``min_focal_ratio``–``max_focal_ratio`` × the
-image side: a camera that sees too little depth, whose focal trades against its distance; an internet imitation:
-9.8× its true value) is held at the cameras stage's estimate in a second run; one the model merely determines
-poorly (``max_focal_sd``) stays refined, with a warning (held at a default 32% off, one such image went 0.9° → 11°).
-Measured (``notes/issue-13.md``): fountain-P11 without K 0.195° with the principal point at the centre (the truth's
-is 15 and 17 px away), 0.047° refined; templeSparseRing 0.666° → 0.259°.
+constant). Each such camera has one focal length and one radial term k1 (COLMAP's SIMPLE_RADIAL, as its
+mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE), k1 from 0 on the cameras stage's
+undistorted keypoints, or, where that stage estimated a lens, from its k1 on the measured keypoints (``lens:
+measured``: the lens about the principal point BA refines, not the image centre). With ``principal_point: auto``
+the principal point is refined when every such camera has ``min_principal_point_images`` images and kept where
+the model determines it (``max_principal_point_sd``), else fixed at the image centre; cameras of fewer images
+(internet photos) are probed (:mod:`pipeline.refine.principal`). With them held, a focal length COLMAP's test
+calls bogus is held at the cameras stage's estimate in a second run; one merely weakly determined
+(``max_focal_sd``) stays refined, with a warning. Figures: ``notes/issue-13.md``.
+
+**Images left out of the view graph** (``place_left_out``): one whose pairs make tracks (rejected only as weak) is
+started from them (``R_start``, chained from the averaged rotations by :func:`pipeline.refine.checks.chain_starts`)
+and refined with the others; it does not enter the alignment to the averaged frame, and where the final model
+does not support it, it gets no rotation.
 
 It never raises on a pycolmap failure: the status says ``failed`` and the averaged
 rotations are returned. Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``,
@@ -108,6 +98,9 @@ class RefineConfig(Config):
                                                 "used (null: every pair)", gt=0)
     weak_pairs: bool = option(True, "the inlier matches of the pairs the view graph rejected only because their "
                                     "rotation is poorly determined (weak H) also make tracks (edge_filter_deg applies)")
+    place_left_out: bool = option(True, "an image the view graph left out whose pairs make tracks (weak_pairs) is "
+                                        "started from them, chained from the averaged rotations, and refined; "
+                                        "flagged (nothing but the refinement vouches for it)")
     min_track_views: int = option(3, "images a track must be seen in (a starved image keeps its shorter ones)", ge=2)
     track_consistency_px: float = option(10.0, "a track with two keypoints of one image farther apart is dropped",
                                          gt=0)
@@ -216,7 +209,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                      edges: np.ndarray, match_offsets: np.ndarray, matches: np.ndarray, cam2_from_cam1: np.ndarray,
                      t_cam2_from_cam1: np.ndarray, R_init: np.ndarray, known_K: np.ndarray | bool = True,
                      config: RefineConfig | None = None, scratch: Path | None = None,
-                     k1: np.ndarray | None = None, hold: np.ndarray | None = None) -> RefineResult:
+                     k1: np.ndarray | None = None, hold: np.ndarray | None = None,
+                     R_start: np.ndarray | None = None) -> RefineResult:
     """Refine averaged rotations with pycolmap's global positioning, bundle adjustment and retriangulation.
 
     Args:
@@ -238,6 +232,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
             ``radial: auto``, else held.
         hold: (N,) bool: cameras without a K file whose intrinsics are held at ``K`` (and ``k1``) all the same; the
             refinement sets it itself for a focal length the model does not determine (``max_focal_sd``).
+        R_start: (N, 3, 3) starts of images without an averaged rotation, to be refined all the same (NaN
+            elsewhere; :func:`pipeline.refine.checks.chain_starts`); one the final model does not support gets none.
     Returns:
         :class:`RefineResult`.
     """
@@ -260,7 +256,11 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     times: dict[str, float] = {}
     stats: dict[str, Any] = {"times": times, "n_images": n, "n_pairs_in": len(edges), "schedule": schedule}
     has_R = np.all(np.isfinite(R_init), axis=(1, 2))
-    why = ["no averaged rotation" if not h else "" for h in has_R]
+    if R_start is not None and np.shape(R_start) != R_init.shape:
+        raise ValueError(f"R_start.shape={np.shape(R_start)} but expected {R_init.shape}, as R_init's")
+    start = R_init if R_start is None else np.where(has_R[:, None, None], R_init, np.asarray(R_start, float))
+    placed = np.all(np.isfinite(start), axis=(1, 2))  # averaged, or started from pairs to be refined (R_start)
+    why = ["no averaged rotation" if not h else "" for h in placed]
 
     def result(status: str, rec: Any = None, R_ref: np.ndarray | None = None, refined: np.ndarray | None = None,
                change: np.ndarray | None = None, cov: np.ndarray | None = None,
@@ -273,7 +273,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         if anchored.any():
             R_out[anchored] = R_anchor[anchored]
         if status == "failed":
-            for k in np.flatnonzero(has_R):
+            for k in np.flatnonzero(placed):
                 why[k] = why[k] or warnings[-1]
         times["total"] = time.perf_counter() - t_all
         stats["n_refined"] = int(refined.sum())
@@ -286,7 +286,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     def rerun(K_again: np.ndarray, hold_again: np.ndarray, cfg_again: RefineConfig) -> RefineResult:
         """The same refinement from other intrinsics, holding other cameras, with other options."""
         return refine_rotations(names, K_again, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
-                                R_init, known, cfg_again, scratch, k1, hold_again)
+                                R_init, known, cfg_again, scratch, k1, hold_again, R_start)
 
     def again(msg: str, key: str, rejected: Any, cfg_again: RefineConfig, hold_again: np.ndarray = hold
               ) -> RefineResult:
@@ -300,7 +300,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
 
     # 1. edge filter from our averaged rotations; 2. tracks
     t0 = time.perf_counter()
-    keep, residual = tk.filter_edges(edges, cam2_from_cam1, R_init, cfg.edge_filter_deg)
+    keep, residual = tk.filter_edges(edges, cam2_from_cam1, start, cfg.edge_filter_deg)
     stats["n_pairs_kept"] = int(keep.sum())
     if np.isfinite(residual).any():
         stats["pair_residual_deg_median"] = float(np.nanmedian(residual))
@@ -313,8 +313,8 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     obs = tracks.observations_per_image(n)
     stats.update(n_tracks=tracks.n_tracks, n_track_components=tracks.n_components, n_images_short_tracks=int(
         starved.sum()), n_tracks_inconsistent=tracks.n_inconsistent, n_tracks_short=tracks.n_short)
-    active = has_R & (obs >= cfg.min_image_observations)
-    for k in np.flatnonzero(has_R & ~active):  # warned where its rotation is decided (checks.checked_rotations)
+    active = placed & (obs >= cfg.min_image_observations)
+    for k in np.flatnonzero(placed & ~active):  # warned where its rotation is decided (checks.checked_rotations)
         why[k] = f"{obs[k]} track observations (< {cfg.min_image_observations}): not refined"
     times["tracks"] = time.perf_counter() - t0
     if active.sum() < 2:
@@ -340,7 +340,7 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         tr = tracks
         if schedule["positioning_tracks_per_image"] > 0:
             tr = tk.subset_tracks(tr, tk.select_tracks(tr, n, schedule["positioning_tracks_per_image"]))
-        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, R_init, tr, scratch,
+        state["rec"] = starting_reconstruction(pc, names, K, sizes, known, keypoints, images, start, tr, scratch,
                                               radial=radial, k1=k1)
         stats["n_points_start"] = int(state["rec"].num_points3D())
         return True, ""

@@ -9,7 +9,8 @@ view graph) and one averaging method's rotations in ``OUT/rotations/``, runs
                                          absent when the refinement failed
     OUT/rotations/<start>+refine.txt     the rotations to use: refined, or averaged where the
                                          refinement failed or moved a camera more than
-                                         ``max_change_deg`` (same cameras as <start>.txt)
+                                         ``max_change_deg`` (the cameras of <start>.txt, then
+                                         those the refinement placed: ``place_left_out``)
     OUT/rotations/<start>+refine.json    status, warnings, per camera: refined or kept averaged
                                          and why, change from the averaged rotation, predicted
                                          uncertainty (√tr Σ, degrees) and covariance (rad²)
@@ -205,6 +206,7 @@ class RefineStage(Stage[RefineConfig]):
         self.rotations_path = self.rot_dir / f"{self.label}.txt"
         self.stats_path = self.rot_dir / f"{self.label}.json"
         self.known_K: np.ndarray | None = None
+        self.placed: dict[str, str] = {}
 
     def inputs(self) -> dict[str, str]:
         if not (self.rot_dir / f"{self.start}.record.json").is_file():
@@ -224,7 +226,13 @@ class RefineStage(Stage[RefineConfig]):
         inputs, start_names, rows = load_inputs(self.work, self.rot_dir / f"{self.start}.txt", self.folder / GRAPH,
                                                  self.config.lens, self.config.weak_pairs)
         self.known_K = inputs["known_K"]
-        res = refine_rotations(**inputs, config=self.config, scratch=self.folder)
+        R_start, through = self._left_out_starts(inputs)
+        res = refine_rotations(**inputs, config=self.config, scratch=self.folder, R_start=R_start)
+        placed = [k for k in np.flatnonzero(through) if res.refined[k]]  # started from its pairs and refined
+        start_names, rows = list(start_names) + [inputs["names"][k] for k in placed], np.r_[rows, placed].astype(int)
+        self.placed = {inputs["names"][k]: (f"placed by the refinement alone, from its {int(through[k])} pair(s) the "
+                                            "view graph rejected as weak (rotation poorly determined); no averaged "
+                                            "rotation confirms it") for k in placed}
         paths: list[Path] = []
         model = self.folder / MODEL
         if res.reconstruction is not None:
@@ -243,12 +251,29 @@ class RefineStage(Stage[RefineConfig]):
                     self.rotations_path)
         return paths, {k: stats[k] for k in ("label", "status", "n_cameras", "n_refined", "n_points", "time_s")}
 
+    def _left_out_starts(self, inputs: dict[str, Any]) -> tuple[np.ndarray | None, np.ndarray]:
+        """Starts of the images the view graph left out (not solved as a component of their own) whose pairs make
+        tracks, chained from the averaged rotations (``place_left_out``); the pairs each came through."""
+        from pipeline.graph.stage import SUMMARY, load_graph_summary  # noqa: PLC0415
+        from pipeline.refine.checks import chain_starts  # noqa: PLC0415
+
+        n = len(inputs["names"])
+        if not (self.config.place_left_out and self.config.weak_pairs and (self.folder / SUMMARY).is_file()):
+            return None, np.zeros(n, np.int64)
+        left = {nm for nm, why in load_graph_summary(self.folder).get("left_out", {}).items()
+                if not str(why).startswith("solved as component")}
+        targets = np.array([nm in left for nm in inputs["names"]], bool) & ~np.isfinite(inputs["R_init"]).all(axis=(1, 2))
+        if not targets.any():
+            return None, np.zeros(n, np.int64)
+        return chain_starts(inputs["edges"], inputs["cam2_from_cam1"], inputs["R_init"], targets)
+
     def verify(self, record: StageRecord) -> None:
         names, _ = read_rotations(self.rotations_path)
         start_names, _ = read_rotations(self.rot_dir / f"{self.start}.txt")
-        if list(names) != list(start_names):
-            raise CacheError(f"{self.rotations_path} holds other cameras than {self.start}.txt")
         stats = read_stats(self.stats_path)
+        if list(names) != list(start_names) + list(stats.get("placed") or {}):
+            raise CacheError(f"{self.rotations_path} holds other cameras than {self.start}.txt and the images the "
+                             "refinement placed")
         if stats.get("n_cameras") != len(names) or (stats.get("model") is not None) != (self.folder / MODEL).is_dir():
             raise CacheError(f"{self.stats_path} does not describe {self.rotations_path} and {self.folder / MODEL}")
 
@@ -294,6 +319,7 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "n_refined": int(res.refined[rows].sum()),
             "kept_averaged": {nm: res.why[k] for nm, k in cams if not res.refined[k]},
             "anchored": [nm for nm, k in cams if res.anchored is not None and res.anchored[k]],
+            "placed": dict(stage.placed),
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
             "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
             "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
@@ -350,6 +376,7 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
                          f"px, standard deviation {pp['sd_px']:.2f} px")
         if s["status"] == "failed":
             notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
+        notes += [f"{label}: {nm}, left out of the view graph, is {why}" for nm, why in (s.get("placed") or {}).items()]
         notes += [f"{label}: {nm} {'is not refined' if nm in s.get('anchored', ()) else 'keeps its averaged rotation'}"
                   f": {why}" for nm, why in s["kept_averaged"].items() if why != "no averaged rotation"]
     return notes
@@ -392,6 +419,8 @@ def main_cli(argv: Sequence[str] | None = None) -> int:
             print(f"{label}: {s['status']}, {s['n_refined']}/{s['n_cameras']} cameras refined; {r['rotations']}")
             for nm, why in s["kept_averaged"].items():
                 print(f"  {'not refined' if nm in s.get('anchored', ()) else 'kept averaged'}: {nm}: {why}")
+            for nm, why in (s.get("placed") or {}).items():
+                print(f"  placed: {nm}: {why}")
         return 0
 
     return run_cli(body, p, argv)

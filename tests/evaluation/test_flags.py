@@ -38,6 +38,15 @@ def test_a_guessed_focal_flags_its_camera() -> None:
     assert ev["cameras"]["b"]["status"] == "flagged" and "not-in-the-graph" not in ev["cameras"]
 
 
+
+def test_an_image_left_out_of_the_view_graph_that_a_refinement_placed_is_flagged_with_both_reasons() -> None:
+    g = dict(_graph(["a", "b", "c"]), left_out={"d": "no accepted image pair", "e": "no accepted image pair"})
+    ev = run_evidence(g, {}, {}, placed={"d": "placed by the refinement alone (x+refine)"})
+    assert ev["flags"] == {"d": ["no accepted image pair", "placed by the refinement alone (x+refine)"]}
+    assert ev["n_flagged"] == 1 and ev["cameras"]["d"]["status"] == "flagged"
+    assert ev["cameras"]["e"] == {"status": "left out", "flags": ["no accepted image pair"]}
+    assert ev["left_out"] == g["left_out"]  # the view graph's own verdict is kept as it was
+
 @pytest.mark.slow
 def test_a_run_whose_focal_lengths_stay_guessed_flags_every_camera(tiny_scene: Path, tiny_config: Path,
                                                                     tmp_path: Path) -> None:

@@ -219,6 +219,50 @@ def test_a_k_file_for_the_refined_images_and_an_unknown_image_without_a_start(pr
     err = np.degrees(np.linalg.norm(aligned_residuals(np.delete(res.R, 5, 0), np.delete(R_true, 5, 0)), axis=1))
     assert err.max() < 0.1, err
 
+
+def test_chain_starts_reach_targets_through_other_targets_in_rounds():
+    """Exact pairs: a target two pairs away from every image with a rotation gets its start in the second round,
+    through the first; a target joined to none gets none; the other images get none."""
+    from pipeline.refine.checks import chain_starts
+
+    R = so3.exp(np.random.default_rng(3).normal(size=(6, 3)))
+    edges = np.array([[0, 1], [1, 2], [2, 3], [0, 4]])  # 3 only through 2; 5 joined to nothing
+    R_rel = R[edges[:, 1]] @ np.swapaxes(R[edges[:, 0]], 1, 2)
+    targets = np.array([False, False, True, True, False, True])
+    R_in = np.where(targets[:, None, None], np.nan, R)
+    out, count = chain_starts(edges, R_rel, R_in, targets)
+    np.testing.assert_allclose(out[[2, 3]], R[[2, 3]], atol=1e-12)
+    assert count.tolist() == [0, 0, 1, 1, 0, 0] and np.isnan(out[[0, 1, 4, 5]]).all()
+
+
+def test_an_image_without_an_averaged_rotation_is_refined_from_its_start(problem0):
+    """An image the averaging left out, started 3° off (R_start): refined back to the truth with the others, kept
+    out of the alignment to the averaged frame (whose other rotations it does not move), and without a change from
+    an averaged rotation; started without tracks, it gets no rotation and says why."""
+    inp, R_true = problem0
+    R0 = R_true.copy()
+    R0[5] = np.nan
+    R_start = np.full_like(R_true, np.nan)
+    R_start[5] = so3.exp(np.radians([3.0, 0.0, 0.0])) @ R_true[5]
+    res = refine_rotations(**inp, R_init=R0, R_start=R_start, config=ONE_THREAD)
+    assert res.status == "ok" and res.refined.all() and res.why[5] == "" and np.isnan(res.change_deg[5])
+    err = np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1))
+    assert err.max() < 0.1, err
+    without = refine_rotations(**inp, R_init=R0, config=ONE_THREAD)
+    assert not without.refined[5] and np.isnan(without.R[5]).all()
+    others = np.arange(8) != 5
+    assert np.degrees(so3.angle_between(res.R[others], without.R[others])).max() < 0.02
+    off, m = inp["match_offsets"], inp["matches"]
+    keep = [e for e in range(len(inp["edges"])) if 5 not in inp["edges"][e]]
+    rows = np.concatenate([np.arange(off[e], off[e + 1]) for e in keep])
+    counts = [off[e + 1] - off[e] if e in keep else 0 for e in range(len(inp["edges"]))]
+    bare = refine_rotations(**dict(inp, match_offsets=np.r_[0, np.cumsum(counts)], matches=m[rows]), R_init=R0,
+                            R_start=R_start, config=ONE_THREAD)
+    assert bare.status == "ok" and not bare.refined[5] and np.isnan(bare.R[5]).all()
+    assert "track observations" in bare.why[5]
+    with pytest.raises(ValueError, match=r"R_start.shape=\(3, 3, 3\) but expected \(8, 3, 3\)"):
+        refine_rotations(**inp, R_init=R0, R_start=R_start[:3], config=ONE_THREAD)
+
 @pytest.mark.parametrize("kw, match", [
     ({"max_change_deg": 0}, r"\[refine\] max_change_deg=0.0 but expected > 0"),
     ({"preset": "slow"}, r"\[refine\] preset='slow' but expected one of 'glomap', 'fast'"),

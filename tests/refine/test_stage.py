@@ -197,6 +197,52 @@ def test_a_pair_rejected_only_as_weak_makes_tracks_and_no_other_rejected_pair_do
     assert inputs(True, weak_pairs=False) == base
 
 
+
+@pytest.mark.slow
+def test_an_image_the_view_graph_left_out_with_weak_pairs_is_placed_refined_and_said_so(rendered_run, tmp_path,
+                                                                                          monkeypatch):
+    # The last image taken out of the checked graph and of the averaged rotations, its pairs marked rejected as weak
+    # (their matches make tracks) and itself left out: the refinement starts it from those pairs and refines it,
+    # after the start's cameras in its rotations file, and its stats say so; place_left_out false leaves it out.
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.compare import match_reference
+    from pipeline.evaluation.metrics import rotation_errors_deg
+    from pipeline.io.rotations import write_rotations
+    from pipeline.reference.truth import read_reference
+
+    out = _copy(rendered_run, tmp_path / "out")
+    checked = ViewGraph.load(out / "viewgraph.npz", allow_isolated=True)
+    gone = checked.names[-1]
+    keep = ~np.any(checked.edges == len(checked.names) - 1, axis=1)
+    ViewGraph(checked.names, checked.edges[keep], checked.R_rel[keep], H=checked.H[keep],
+              inliers=None if checked.inliers is None else checked.inliers[keep],
+              stats={k: np.asarray(v)[keep] for k, v in checked.stats.items()}, allow_isolated=True
+              ).save(out / "viewgraph.npz")
+    summary = json.loads((out / "viewgraph.json").read_text())
+    for r in summary["pairs"]:
+        if gone in r["pair"]:
+            r.update(status="rejected", step="acceptance", tracks=True, reason="rotation poorly determined (weak H)")
+    summary["left_out"] = {gone: "no accepted image pair (7 pair(s) rejected: rotation poorly determined ×7)"}
+    (out / "viewgraph.json").write_text(json.dumps(summary))
+    names, R = read_rotations(out / "rotations" / "irls-h-l0.5.txt")
+    write_rotations(out / "rotations" / "irls-h-l0.5.txt", names[:-1], R[:-1])
+    monkeypatch.setattr(RefineStage, "inputs", lambda self: {"edited": "by this test"})  # upstream records as they were
+    stage = RefineStage(out, RefineConfig(num_threads=1))
+    rec = stage.run(overwrite=True)
+    got, R_got = read_rotations(stage.rotations_path)
+    assert list(got) == list(names[:-1]) + [gone] and rec.summary["n_cameras"] == 8
+    s = json.loads(stage.stats_path.read_text())
+    assert list(s["placed"]) == [gone] and "placed by the refinement alone" in s["placed"][gone]
+    assert s["cameras"][gone]["refined"] and s["n_refined"] == 8
+    truth = read_reference(rendered_run.parent / "scene" / "cameras.txt")
+    R_true, mask = match_reference(list(got), truth.names, truth.R)
+    assert rotation_errors_deg(R_got, R_true, mask).max() < 0.05
+    assert RefineStage(out, RefineConfig(num_threads=1)).run().reused  # its own verify accepts the placed image
+    assert any(gone in n and "placed by the refinement alone" in n for n in refine_notes(run_refine(out, RefineConfig(num_threads=1))))
+    RefineStage(out, RefineConfig(place_left_out=False)).run()
+    assert list(read_rotations(stage.rotations_path)[0]) == list(names[:-1])
+    assert json.loads(stage.stats_path.read_text())["placed"] == {}
+
 def test_the_report_says_what_the_principal_point_probe_decided():
     base = {"start_why": "the recommended method", "status": "ok", "n_refined": 9, "n_cameras": 9, "model": "sparse",
             "focal_refined": False, "kept_averaged": {}}
