@@ -276,6 +276,9 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     images = Path(images)
     if not images.is_dir():
         raise InputFileError(f"image folder {images} does not exist or is not a folder; pass a folder of images")
+    if out.resolve() == images.resolve():
+        raise InputFileError(f"--out {out} is the image folder: the run's plots would be read as photos by the next "
+                             f"run; pass another output folder (the default is {default_out(images)})")
     if database is not None:
         from pipeline.frontend.database_stage import DatabaseFeaturesStage  # noqa: PLC0415
 

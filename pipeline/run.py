@@ -239,11 +239,18 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         return path
 
 
+def _folder_arg(text: str) -> Path:
+    """A path argument that is not empty (``--out ""`` would write the whole run into the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; pass a folder")
+    return Path(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="run.py", description="Rotation averaging from images, evaluated and reported. "
                                 "With no IMAGE_DIR, runs on a rendered default scene.")
     p.add_argument("images", nargs="?", type=Path, default=None, help="folder of images (default: render a scene)")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default: out/<folder name>)")
+    p.add_argument("--out", type=_folder_arg, default=None, help="output folder (default: out/<folder name>)")
     p.add_argument("--config", type=Path, default=None, help="YAML config (default: configs/default.yaml)")
     p.add_argument("--methods", nargs="+", default=None, metavar="M",
                    help=f"averaging methods: {registry.tokens_help()}; put IMAGE_DIR first or separate methods "

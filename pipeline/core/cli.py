@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import signal
 import sys
 import typing
 from pathlib import Path
@@ -38,8 +39,12 @@ def run_cli(body: Callable[[argparse.Namespace], int | None], parser: argparse.A
     add_common_args(parser)
     args = parser.parse_args(argv)
     setup_logging(args.verbose, args.quiet)
+    previous = _terminate_as_interrupt()
     try:
         rc = body(args)
+    except Terminated:
+        print("error: terminated; finished stages are kept and a re-run resumes", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("error: interrupted; finished stages are kept and a re-run resumes", file=sys.stderr)
         return 130
@@ -51,7 +56,32 @@ def run_cli(body: Callable[[argparse.Namespace], int | None], parser: argparse.A
             msg = f"out of memory ({msg}); the input is too large for this machine"
         print(f"error: {msg}", file=sys.stderr)
         return 2
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return int(rc or 0)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C's KeyboardInterrupt is: the same clean-up, then one line."""
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
+def _terminate_as_interrupt() -> Any:
+    """Make SIGTERM raise :class:`Terminated` in the main thread; returns the handler it replaced (None off the main
+    thread). pycolmap's glog installs a handler that dumps a native stack trace on SIGTERM and leaves temporary
+    files: it is imported first, so that this one comes after it."""
+    try:
+        import pycolmap  # noqa: F401, PLC0415 - its import installs glog's signal handlers
+    except ImportError:  # pragma: no cover
+        pass
+    try:
+        return signal.signal(signal.SIGTERM, _raise_terminated)
+    except ValueError:  # not the main thread: signals cannot be handled here
+        return None
 
 
 def _flag(name: str) -> str:

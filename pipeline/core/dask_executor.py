@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import re
 import shutil
 import tempfile
 from typing import Any, Callable, Iterator, Sequence, TypeVar
@@ -145,11 +146,18 @@ def local_cluster(workers: int | None = None) -> Iterator[LocalDaskCluster]:
         cluster.close()
 
 
+#: A scheduler's address: ``[protocol://]host:port`` (host a name, an IPv4 address or a bracketed IPv6 one).
+ADDRESS = re.compile(r"(?:[a-z][a-z0-9+]*://)?(?:\[[0-9A-Fa-f:.]+\]|[\w.\-]+):\d{1,5}|inproc://\S+")
+
+
 def check_scheduler(address: str, timeout: float | None = None) -> int:
     """The number of workers of the Dask scheduler at ``address``; :class:`PipelineError` if unreachable or empty.
 
     ``timeout``: seconds to wait for the connection (default :data:`CONNECT_TIMEOUT_S`).
     """
+    if not ADDRESS.fullmatch(str(address).strip()):  # a client of a malformed address hangs 20 s in its __del__
+        raise PipelineError(f"--scheduler {address!r} is not a Dask scheduler address; expected [PROTOCOL://]HOST:PORT, "
+                            "e.g. tcp://127.0.0.1:8786 (what `dask scheduler` prints)")
     distributed = require_distributed()
     try:
         with distributed.Client(address, timeout=timeout or CONNECT_TIMEOUT_S, set_as_default=False) as client:

@@ -164,6 +164,8 @@ def die_with_parent(parent_pid: int | None = None) -> None:
 
 def _init_worker(threads: int, parent_pid: int | None = None) -> None:
     die_with_parent(parent_pid)
+    # Ctrl-C reaches the whole process group: the parent stops the pool and says so in one line, a worker says nothing
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # one pool worker per core: keep each worker's own libraries to one thread
     os.environ["OMP_NUM_THREADS"] = str(threads)
     try:
@@ -185,7 +187,16 @@ class ProcessExecutor(_Fetching):
                                          initializer=_init_worker, initargs=(1, os.getpid()))
 
     def map(self, fn: Callable[[T], R], items: Sequence[T]) -> Iterator[R]:
-        return self._pool.map(fn, items)
+        # the workers are spawned here (every item is submitted at once): started with SIGINT ignored, a Ctrl-C
+        # while they import prints no traceback of theirs (the disposition survives exec; Python then keeps it)
+        try:
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        except ValueError:  # not the main thread
+            return self._pool.map(fn, items)
+        try:
+            return self._pool.map(fn, items)
+        finally:
+            signal.signal(signal.SIGINT, previous)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -193,7 +204,12 @@ class ProcessExecutor(_Fetching):
     def __enter__(self) -> "ProcessExecutor":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        if exc_type is not None:  # interrupted or failed: the workers ignore Ctrl-C, so stop them here
+            for proc in list(getattr(self._pool, "_processes", {}).values()):
+                proc.terminate()
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            return
         self.close()
 
 

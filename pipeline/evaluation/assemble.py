@@ -9,6 +9,7 @@ adds the error-against-time curves, writes ``OUT/report.md`` (and its plots);
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -155,4 +156,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         if lines:
             print(lines, flush=True)
         print(f"report: {plan.out / 'report.md'}\nmetrics: {path}", flush=True)
+    elif (metrics.get("evidence") or {}).get("n_flagged"):  # -q: warnings only, and a flagged camera is one
+        print("\n".join(ln for ln in evidence_console(metrics["evidence"]).splitlines() if not ln.startswith("†"))
+              + f"\nmetrics: {path}", file=sys.stderr, flush=True)
     return path

@@ -155,12 +155,22 @@ def read_gray(path: str | os.PathLike) -> tuple[np.ndarray | None, str]:
 
 def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     """``(w, h)`` from the file header (Pillow), or None."""
+    got = _header(path)
+    return None if got is None else got[0]
+
+
+def _header(path: str | os.PathLike) -> tuple[tuple[int, int], int] | None:
+    """``((w, h), EXIF orientation)`` from the file header (Pillow; orientation 1 where there is none), or None."""
     try:
         from PIL import Image  # noqa: PLC0415
 
         Image.MAX_IMAGE_PIXELS = None  # the size is judged by check_headers, not by a Pillow warning
         with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
+            try:
+                orientation = int(im.getexif().get(0x0112, 1) or 1)
+            except Exception:  # noqa: BLE001 - an unreadable EXIF block is no orientation
+                orientation = 1
+            return (int(im.size[0]), int(im.size[1])), orientation
     except Exception:  # noqa: BLE001 - any failure means "unknown"
         return None
 
@@ -175,6 +185,7 @@ def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, 
     """
     sizes: dict[str, tuple[int, int]] = {}
     bad: dict[str, str] = {}
+    turned: dict[str, int] = {}
     for n in names:  # one header read per image
         path = Path(folder) / n
         try:
@@ -184,7 +195,10 @@ def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, 
         except OSError as exc:
             bad[n] = f"cannot be read ({exc.strerror or exc})"
             continue
-        wh = image_size(path)
+        got = _header(path)
+        wh = None if got is None else got[0]
+        if got is not None and got[1] != 1:
+            turned[n] = got[1]
         if wh is None:
             bad[n] = "is not an image this program can read (corrupt, truncated or not an image)"
         elif wh[0] * wh[1] > MAX_PIXELS:
@@ -194,4 +208,9 @@ def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, 
             bad[n] = f"is too small ({wh[0]}x{wh[1]} pixels)"
         else:
             sizes[n] = wh
+    if turned:  # COLMAP reads the stored pixels too; a K or a truth made for the displayed orientation would not fit
+        n0 = next(iter(turned))
+        logger.warning("%d image(s) carry an EXIF orientation tag (e.g. %s: %d); their pixels are used as stored, as "
+                       "COLMAP uses them, so their K and true cameras must be for the stored orientation (rotate the "
+                       "files themselves to change it)", len(turned), n0, turned[n0])
     return sizes, bad

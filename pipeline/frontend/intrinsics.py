@@ -221,6 +221,18 @@ def default_K(w: int, h: int, focal: float | None = None) -> np.ndarray:
     return np.array([[f, 0, (w - 1) / 2.0], [0, f, (h - 1) / 2.0], [0, 0, 1.0]])
 
 
+def _check_principal_points(K: np.ndarray, sizes: np.ndarray, names: list[str], src: Path) -> None:
+    """Refuse a K whose principal point lies outside its image: it was made for images of another size."""
+    c, wh = K[:, :2, 2], np.asarray(sizes, float)
+    bad = np.flatnonzero(np.any((c < 0) | (c > wh), axis=1))
+    if bad.size:
+        k = int(bad[0])
+        raise InputFileError(
+            f"{src} puts the principal point of {names[k]} at ({c[k, 0]:.1f}, {c[k, 1]:.1f}) px, outside its "
+            f"{int(wh[k, 0])}×{int(wh[k, 1])} image ({bad.size} image(s) so): the K is for images of another size "
+            "(e.g. the full-resolution ones); scale its first two rows by the images' scale")
+
+
 def resolve_intrinsics(folder: Path, names: list[str], sizes: np.ndarray, K_path: Path | None = None,
                        parsed: np.ndarray | dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, list[str]]:
     """One K per image, from a file, EXIF or the default focal length.
@@ -240,6 +252,10 @@ def resolve_intrinsics(folder: Path, names: list[str], sizes: np.ndarray, K_path
     if src is not None:
         logger.info("intrinsics from %s", src)
         K, found = intrinsics_for_names(parsed, names, src)
+        if not found.any():
+            raise InputFileError(f"{src} names none of the {len(names)} images of {folder} (e.g. {names[0]}): it is "
+                                 "the intrinsics of other images; pass the file made for these, or none")
+        _check_principal_points(K[found], sizes[found], [n for n, f in zip(names, found) if f], src)
     else:
         K, found = np.zeros((len(names), 3, 3)), np.zeros(len(names), bool)
     sources = [f"file:{src}" if f else "" for f in found]

@@ -258,6 +258,24 @@ def test_output_folder_is_a_file(run, tmp_path):
     assert (tmp_path / "afile").read_text() == "x"
 
 
+def test_output_folder_that_is_the_image_folder_or_empty(run, cli, tiny_scene, tmp_path):
+    # the run's plots would be read as photos by the next run
+    images = tmp_path / "images"
+    shutil.copytree(tiny_scene, images)
+    before = sorted(p.name for p in images.iterdir())
+    refused(run(images=images, out=images), r"--out .*images is the image folder: .* pass another output folder")
+    assert sorted(p.name for p in images.iterdir()) == before
+    r = cli("run.py", tiny_scene, "--out", "", "-q", cwd=tmp_path)  # argparse's own usage line, then its error
+    assert r.rc == 2 and r.lines[-1].endswith("argument --out: an empty path; pass a folder") and not any(
+        tmp_path.joinpath(d).exists() for d in ("work", "rotations")), r.stderr
+
+
+def test_a_malformed_scheduler_address_is_refused_at_once(run):
+    t0 = time.monotonic()
+    refused(run("--scheduler", "bogus"), r"--scheduler 'bogus' is not a Dask scheduler address; expected")
+    assert time.monotonic() - t0 < 15  # a client of it waited 20 s in its __del__, then printed a traceback
+
+
 def test_output_folder_not_writable(run, tmp_path):
     (tmp_path / "afile").write_text("x")  # a folder cannot be made under a file, even by root
     refused(run(out=tmp_path / "afile" / "out"), r"cannot write to the output folder")
@@ -373,6 +391,9 @@ BAD_K = [  # (id, file name, content, pattern)
     ("not-utf8", "K.txt", b"\xff\xfe280 0 120\n", r"is not UTF-8 text"),
     ("empty", "K.txt", "", r"K.txt holds no camera"),
     ("unclosed-quote", "cams.txt", '"view_000.png 210 210 120 90\n', r"line 1: a quoted name is not closed"),
+    ("full-size-K", "K.txt", "840 0 480\n0 840 360\n0 0 1\n",  # the K of the 4× larger originals
+     r"principal point of view_000.png at \(480.0, 360.0\) px, outside its 240×180 image \(6 image\(s\) so\)"),
+    ("other-images", "cams.txt", "other.png 210 210 120 90\n", r"names none of the 6 images .* \(e.g. view_000.png\)"),
 ]
 
 
@@ -573,6 +594,25 @@ def test_a_second_run_on_the_same_out_is_refused(cli, tiny_scene, tmp_path):
     finally:
         _, err = first.communicate(timeout=300)
     assert first.returncode == 0, err
+    nothing_half_written(out)
+
+
+def test_sigterm_stops_a_run_in_one_line_and_leaves_nothing_half_written(tiny_scene, tmp_path):
+    # pycolmap's glog dumped a native stack trace on SIGTERM and the run's temporaries stayed; now SIGTERM is Ctrl-C
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_WAIT_POLICY": "PASSIVE"}
+    proc = subprocess.Popen([sys.executable, str(REPO / "run.py"), tiny_scene, "--out", out, "--no-reference", "-q"],
+                            env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (out / "work").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    time.sleep(0.5)
+    assert proc.poll() is None, "the run ended before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 143 and lines[-1] == "error: terminated; finished stages are kept and a re-run resumes"
+    assert "Traceback" not in err and "Aborted at" not in err and "stack trace" not in err, err[-2000:]
     nothing_half_written(out)
 
 

@@ -199,3 +199,20 @@ def test_unreachable_scheduler_is_one_line_before_any_stage(tmp_path, monkeypatc
     err = capsys.readouterr().err
     assert err.count("error:") == 1 and "cannot reach the Dask scheduler" in err and "Traceback" not in err
     assert not (tmp_path / "o" / "work").exists()
+
+
+def _sigint_disposition(_: int) -> str:
+    import signal  # noqa: PLC0415
+
+    return "ignored" if signal.getsignal(signal.SIGINT) == signal.SIG_IGN else "handled"
+
+
+def test_process_workers_ignore_ctrl_c_and_the_parent_keeps_it():
+    """Ctrl-C reaches the whole process group: the workers ignore it (no traceback of theirs; the parent stops the
+    pool and says so in one line), and the parent's own Ctrl-C handling is back once the workers are started."""
+    import signal  # noqa: PLC0415
+
+    before = signal.getsignal(signal.SIGINT)
+    with make_executor(2, "processes") as ex:
+        assert set(ex.map(_sigint_disposition, range(4))) == {"ignored"}
+        assert signal.getsignal(signal.SIGINT) is before

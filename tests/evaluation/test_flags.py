@@ -47,9 +47,10 @@ def test_an_image_left_out_of_the_view_graph_that_a_refinement_placed_is_flagged
     assert ev["cameras"]["e"] == {"status": "left out", "flags": ["no accepted image pair"]}
     assert ev["left_out"] == g["left_out"]  # the view graph's own verdict is kept as it was
 
+
 @pytest.mark.slow
 def test_a_run_whose_focal_lengths_stay_guessed_flags_every_camera(tiny_scene: Path, tiny_config: Path,
-                                                                    tmp_path: Path) -> None:
+                                                                    tmp_path: Path, capsys) -> None:
     images = tmp_path / "images"
     images.mkdir()
     for p in tiny_scene.glob("*.png"):  # no cameras.txt beside them, and PNGs carry no EXIF
@@ -63,3 +64,6 @@ def test_a_run_whose_focal_lengths_stay_guessed_flags_every_camera(tiny_scene: P
     assert ev["n_flagged"] == len(ev["cameras"]) > 0
     assert all(GUESSED_FOCAL in c["flags"] for c in ev["cameras"].values())
     assert any("kept the default focal guess" in n for n in m["notes"])
+    err = capsys.readouterr().err  # quiet (-q: warnings only) still says which cameras are flagged, and why
+    assert f"{ev['n_flagged']} camera(s) flagged" in err and err.count("  flagged ") == min(ev["n_flagged"], 10)
+    assert "default guess" in err

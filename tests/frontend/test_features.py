@@ -344,3 +344,23 @@ def test_an_exif_rotated_photo_is_read_in_its_stored_frame_as_colmap_reads_it(tm
     bitmap = pycolmap.Bitmap.read(str(path), as_rgb=False)
     assert (bitmap.width, bitmap.height) == (200, 120)
     assert np.abs(img.astype(int) - pixels.astype(int)).mean() < 3  # the same pixels, not a transpose
+
+
+def test_an_exif_orientation_is_said_and_the_stored_pixels_are_used(scene, tmp_path, caplog):
+    """COLMAP reads the stored pixels whatever the EXIF orientation; so do we, and the warning says so (a K or a
+    truth made for the turned picture would not fit them)."""
+    from PIL import Image
+
+    from pipeline.frontend.images import check_headers, read_gray
+
+    im = Image.fromarray(np.asarray(scene.images[0], np.uint8)).convert("RGB")
+    exif = Image.Exif()
+    exif[0x0112] = 6  # displayed turned by 90°
+    im.save(tmp_path / "turned.jpg", exif=exif.tobytes())
+    im.save(tmp_path / "plain.jpg")
+    with caplog.at_level(logging.WARNING, logger="pipeline.frontend.images"):
+        sizes, bad = check_headers(tmp_path, ["plain.jpg", "turned.jpg"])
+    assert sizes["turned.jpg"] == sizes["plain.jpg"] == im.size and not bad
+    (msg,) = [r.getMessage() for r in caplog.records]
+    assert msg.startswith("1 image(s) carry an EXIF orientation tag (e.g. turned.jpg: 6)") and "as stored" in msg
+    assert read_gray(tmp_path / "turned.jpg")[0].shape == im.size[::-1]  # not turned on reading
