@@ -20,7 +20,7 @@ from typing import Any, Iterator, Literal
 
 from pipeline.averaging import registry
 from pipeline.averaging.registry import MethodSpec, parse_methods
-from pipeline.core.atomic import TMP_TAG
+from pipeline.core.atomic import TMP_TAG, write_json
 from pipeline.core.config import Config, check_sections, load_yaml, option, stage_config
 from pipeline.core.errors import ConfigError, InputFileError, PipelineError
 from pipeline.core.names import match_names
@@ -38,6 +38,7 @@ from pipeline.reference.global_mapping import GlobalReferenceConfig
 from pipeline.reference.incremental import ReferenceConfig
 from pipeline.reference.types import Reference
 from pipeline.refine.refine import RefineConfig
+from pipeline.stage import output_digest
 
 logger = logging.getLogger(__name__)
 
@@ -241,6 +242,32 @@ def load_configs(config: Path | None = None, methods: list[str] | None = None
         raise ConfigError(msg) from None
 
 
+#: What the default scene was rendered with, and each file's CRC-32: a scene of other settings, or one damaged, is
+#: rendered again (the features stage would skip a damaged view and solve the others).
+SCENE_RECORD = "scene.json"
+
+
+def _scene_intact(scene: Path, spec: dict[str, Any]) -> bool:
+    """Whether ``scene`` holds the default scene of ``spec``, every file as it was written, and no other view."""
+    import json  # noqa: PLC0415
+
+    try:
+        rec = json.loads((scene / SCENE_RECORD).read_text())
+        crc = dict(rec.pop("crc32"))
+        views = {p.name for p in scene.glob("view_*.png")}
+        return rec == spec and views == set(crc) - {"cameras.txt"} and all(
+            output_digest(scene / n) == c for n, c in crc.items())
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return False
+
+
+def _clear_scene(scene: Path) -> None:
+    """Remove the files of an earlier default scene (its views, cameras and record; nothing else)."""
+    for p in [*scene.glob("view_*.png"), scene / "cameras.txt", scene / "points3d.txt", scene / SCENE_RECORD]:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
 def prepare(images: Path | None = None, out: Path | None = None, config: Path | None = None,
             methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
             reference: bool | None = None, overwrite: bool = False, quiet: bool = False,
@@ -253,9 +280,10 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     """
     yaml_data, configs, given, overrides = load_configs(config, methods)
     _executor_configs(configs, executor, scheduler)
-    if database is not None and (images is None or K is not None):
-        raise PipelineError("--database DB needs the image folder it was made from (run.py --database DB IMAGE_DIR) "
-                            "and takes the intrinsics from the database (drop --K)")
+    if database is not None and images is None:
+        raise PipelineError("--database DB needs the image folder it was made from (run.py --database DB IMAGE_DIR)")
+    if database is not None and K is not None:
+        raise PipelineError("--database DB takes the intrinsics from the database's cameras: drop --K")
     run_cfg: RunConfig = configs["run"]  # type: ignore[assignment]
     parse_selector(configs["matching"].pairs)  # type: ignore[attr-defined]  # a bad matching.pairs fails here
     out = Path(out) if out is not None else default_out(images)
@@ -266,9 +294,13 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
         from pipeline.synthetic import render  # noqa: PLC0415
 
         scene = out / "scene"
-        if not (scene / "cameras.txt").exists() or overwrite:
+        spec = {"views": run_cfg.scene_views, "seed": run_cfg.scene_seed, "noise": run_cfg.scene_noise}
+        if overwrite or not _scene_intact(scene, spec):
             t0 = time.perf_counter()
+            _clear_scene(scene)
             render.main(scene, n_views=run_cfg.scene_views, seed=run_cfg.scene_seed, noise_sigma=run_cfg.scene_noise)
+            files = sorted(p.name for p in scene.glob("view_*.png")) + ["cameras.txt"]
+            write_json(scene / SCENE_RECORD, {**spec, "crc32": {n: output_digest(scene / n) for n in files}})
             times["render"] = time.perf_counter() - t0
         images, gt = scene, gt if gt is not None else scene / "cameras.txt"
         notes.append(f"default scene: {run_cfg.scene_views} rendered views (seed {run_cfg.scene_seed}) in {scene}; "

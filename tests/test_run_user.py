@@ -135,6 +135,10 @@ def test_unreadable_files_are_skipped_and_named(messy_run):
     assert m["input"]["n_images"] == 5  # the 5 good views, not notes.jpg nor truncated.jpg
     assert any("notes.jpg" in w for w in warnings) and any("truncated.jpg" in w for w in warnings), warnings
     assert m["methods"]["irls-l0.5"]["n_cameras"] == 5
+    # every image of the folder is accounted for in metrics.json, the skipped ones with why
+    assert m["input"]["n_skipped"] == 2 and {"notes.jpg", "truncated.jpg"} <= set(m["input"]["left_out"])
+    assert "truncated JPEG" in m["input"]["left_out_why"]["truncated.jpg"]
+    assert m["input"]["left_out_why"]["notes.jpg"].startswith("skipped by the features stage: it ")
 
 
 @pytest.mark.slow
@@ -215,3 +219,29 @@ def test_feature_notes_name_the_low_texture_images():
     Plan.note_features(plan := SimpleNamespace(notes=[]), {"names": ["a.png"], "skipped": [], "lowered": {}})
     assert plan.notes == []
 
+
+
+def test_the_default_scene_is_rendered_again_when_its_settings_change_or_a_view_is_damaged(tmp_path):
+    """OUT/scene is a cache of the rendered default scene: other settings (fewer views), a damaged view or
+    --overwrite render it again, with no view of the earlier scene left beside the new ones."""
+    from pipeline.plan import SCENE_RECORD, prepare
+
+    def plan_with(views: int, overwrite: bool = False):
+        cfg = tmp_path / f"v{views}.yaml"
+        cfg.write_text(f"run:\n  scene_views: {views}\n  plots: false\n")
+        return prepare(None, tmp_path / "out", cfg, overwrite=overwrite, quiet=True)
+
+    scene = tmp_path / "out" / "scene"
+    p8 = plan_with(8)
+    assert "render" in p8.times and len(list(scene.glob("view_*.png"))) == 8
+    assert "render" not in plan_with(8).times  # intact and of these settings: reused
+    p6 = plan_with(6)
+    assert "render" in p6.times and sorted(q.name for q in scene.glob("view_*.png")) == [
+        f"view_{k:03d}.png" for k in range(6)]
+    assert json.loads((scene / SCENE_RECORD).read_text())["views"] == 6
+    view = scene / "view_003.png"
+    data = bytearray(view.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one byte, the size kept
+    view.write_bytes(bytes(data))
+    assert "render" in plan_with(6).times and "render" not in plan_with(6).times
+    assert "render" in plan_with(6, overwrite=True).times

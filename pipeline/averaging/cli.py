@@ -69,6 +69,10 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
     if out_path.suffix.lower() == ".json":
         raise ConfigError(f"--out {out_path} is the rotations text file (e.g. rotations.txt); its stats go beside "
                           "it as .json")
+    for flag, path in (("--out", out_path), ("--json", json_path)):  # found before the work, not when writing
+        if path is not None and Path(path).is_dir():
+            raise InputFileError(f"{flag} {path} is a folder; pass a file name in it (e.g. {Path(path) / 'x'}"
+                                 f"{'.txt' if flag == '--out' else '.json'})")
     init_file = None
     if init is not None and str(init) in _START_KINDS:
         options["init"] = str(init)

@@ -232,6 +232,29 @@ def _plain(v: Any) -> Any:
     return v
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (plain YAML keeps the last one silently: a
+    second ``matching:`` section would drop the first one's options)."""
+
+
+def _unique_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            first = seen.setdefault(key, key_node.start_mark.line + 1)
+        except TypeError:  # an unhashable key: the constructor below names it
+            continue
+        if first != key_node.start_mark.line + 1:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"{key!r} is given twice in one mapping (lines {first} and {key_node.start_mark.line + 1}); "
+                "YAML would keep only the last: merge them", None)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
 def load_yaml(path: str | os.PathLike | None) -> dict[str, dict[str, Any]]:
     """Read a YAML config file into ``{section: {key: value}}``; ``None`` gives ``{}``."""
     if path is None:
@@ -242,7 +265,7 @@ def load_yaml(path: str | os.PathLike | None) -> dict[str, dict[str, Any]]:
     if not path.is_file():
         raise InputFileError(f"config file {path} does not exist")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader) or {}  # noqa: S506 - a SafeLoader
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except yaml.YAMLError as exc:

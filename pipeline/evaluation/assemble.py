@@ -130,12 +130,18 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     metrics = ev.metrics
     from pipeline.frontend.feature_stage import load_manifest  # noqa: PLC0415
 
-    names = load_manifest(plan.work)["names"]  # the images whose features were extracted
+    manifest = load_manifest(plan.work)
+    names = manifest["names"]  # the images whose features were extracted
+    # every image of the folder is accounted for: those the features stage skipped (unreadable, too small, ...) too
+    skipped = {str(d["name"]): f"skipped by the features stage: it {d['reason']}" for d in manifest.get("skipped") or []
+               if isinstance(d, dict) and "name" in d}
+    left_out = {**skipped, **left_out}
     metrics["stages"] = dict(runner.times)
     metrics["stages_reused"] = dict(runner.reused)
     metrics["total_s"] = time.perf_counter() - t_start
     metrics["our_path_s"] = sum(runner.times.get(k, 0.0) for k in OUR_PATH)
-    metrics["input"] = {"images": str(plan.images), "n_images": len(names), "n_cameras_graph": vg.n_cameras,
+    metrics["input"] = {"images": str(plan.images), "n_images": len(names), "n_skipped": len(skipped),
+                        "n_cameras_graph": vg.n_cameras,
                         "n_edges": vg.n_edges, "left_out": list(left_out), "left_out_why": left_out,
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}

@@ -43,7 +43,7 @@ from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.readers import array_field, name_list, read_json
 from pipeline.core.store import ItemStore, item_key
 from pipeline.frontend.features import FeatureConfig, extract_sift_adaptive
-from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, list_images, read_gray
+from pipeline.frontend.images import IMAGE_EXTENSIONS, check_headers, ends_crc, list_images, read_gray
 from pipeline.frontend.intrinsics import check_K, resolve_intrinsics
 from pipeline.stage import Stage, StageRecord, fingerprint_of, read_record
 
@@ -160,9 +160,9 @@ class FeaturesStage(Stage[FeatureConfig]):
                                  f"({'; '.join(f'{n} {w}' for n, w in list(bad.items())[:5])}); at least 2 are needed")
         K, sources = resolve_intrinsics(self.images, ok, np.array([sizes[n] for n in ok], np.int64), self.K_path)
         sigs = {}
-        for n in ok:
+        for n in ok:  # an image is known by its size, time and the checksum of its ends (a copy with the same time)
             st = (self.images / n).stat()
-            sigs[n] = (int(st.st_size), int(st.st_mtime_ns))
+            sigs[n] = (int(st.st_size), int(st.st_mtime_ns), ends_crc(self.images / n))
         self._scan = {"names": ok, "other": other, "sizes": sizes, "bad": bad, "K": K, "sources": sources,
                       "sigs": sigs}
         return self._scan
@@ -224,7 +224,7 @@ class FeaturesStage(Stage[FeatureConfig]):
             "K_source": [s["sources"][k] for k in keep],
             "skipped": skipped,
             "ignored_files": s["other"],
-            "signatures": [list(s["sigs"][n]) for n in usable],
+            "signatures": [list(s["sigs"][n][:2]) for n in usable],  # size, time (the ends' CRC is in the keys)
             "keys": [keys[n] for n in usable],
             "config": cfg.as_dict(),
             "lowered": lowered,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import zlib
 from pathlib import Path
 
 import cv2
@@ -27,7 +28,7 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".pbm", ".bmp", ".t
 MAX_PIXELS = 250_000_000  # 250 Mpx: more is a damaged or hostile header, not a photo
 MIN_SIDE = 16
 
-__all__ = ["IMAGE_EXTENSIONS", "MAX_PIXELS", "list_images", "read_gray", "image_size", "check_headers"]
+__all__ = ["IMAGE_EXTENSIONS", "MAX_PIXELS", "list_images", "read_gray", "image_size", "check_headers", "ends_crc"]
 
 
 def list_images(folder: str | os.PathLike) -> tuple[list[str], list[str]]:
@@ -214,3 +215,15 @@ def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, 
                        "COLMAP uses them, so their K and true cameras must be for the stored orientation (rotate the "
                        "files themselves to change it)", len(turned), n0, turned[n0])
     return sizes, bad
+
+
+def ends_crc(path: Path, head: int = 1 << 18, tail: int = 1 << 16) -> str:
+    """CRC-32 of a file's first 256 kB and last 64 kB: with its size and time, what tells an image from another one
+    put in its place (re-copied with its time kept) without reading whole photos on every run."""
+    with open(path, "rb") as f:
+        crc = zlib.crc32(f.read(head))
+        size = f.seek(0, os.SEEK_END)
+        if size > head:
+            f.seek(max(head, size - tail))
+            crc = zlib.crc32(f.read(tail), crc)
+    return f"{crc & 0xFFFFFFFF:08x}"

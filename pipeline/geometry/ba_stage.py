@@ -162,7 +162,16 @@ class TwoViewBAStage(PairStage[BAConfig]):
         if not self.folder.is_dir():
             raise InputFileError(f"WORK folder {self.folder} does not exist; run the front end "
                                  "(features, matching, two_view) first")
-        return {TWO_VIEW: self.upstream(TWO_VIEW).fingerprint}
+        from pipeline.frontend.camera_stage import NAME as CAMERAS  # noqa: PLC0415
+
+        two_view = self.upstream(TWO_VIEW)
+        cams = read_record(self.folder, CAMERAS)  # its K's (and which focal lengths to refine) are read here too
+        if cams is not None and two_view.inputs.get(CAMERAS) != cams.fingerprint:
+            raise InputFileError(f"the two-view result in {self.folder} was computed "
+                                 f"{'before' if CAMERAS not in two_view.inputs else 'with other intrinsics than'} "
+                                 f"the cameras stage's result there; re-run `python -m pipeline.two_view --work "
+                                 f"{self.folder}` first")
+        return {TWO_VIEW: two_view.fingerprint, **({CAMERAS: cams.fingerprint} if cams is not None else {})}
 
     def verify(self, record: StageRecord) -> None:
         path = self.folder / OUTPUT_NAME

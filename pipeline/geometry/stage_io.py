@@ -20,7 +20,7 @@ from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.readers import read_npz as core_read_npz
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.core.config import Config
-from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, read_record
+from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, output_digest, read_record
 
 __all__ = ["PairStage", "read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
 
@@ -69,6 +69,9 @@ def recorded_output(work: Path, stage: str, name: str, command: str) -> tuple[St
     if path.stat().st_size != rec.outputs[name]:
         raise CacheError(f"{path} has {path.stat().st_size} bytes, not the {rec.outputs[name]} recorded (truncated "
                          f"or overwritten); {rerun_hint(command, work)}")
+    if name in rec.digests and output_digest(path) != rec.digests[name]:
+        raise CacheError(f"{path} has changed since it was written (its CRC-32 is not the one recorded); "
+                         f"{rerun_hint(command, work)}")
     return rec, path
 
 

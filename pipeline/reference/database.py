@@ -311,6 +311,19 @@ def remove_database(db_path: Path) -> None:
         p.unlink(missing_ok=True)
 
 
+def _read_times(path: Path) -> dict[str, float]:
+    """The timings beside a database; :class:`CacheError` if they are missing or damaged."""
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+        times = {str(k): float(v) for k, v in d.items()}
+        if not times or not all(t >= 0 for t in times.values()):
+            raise ValueError("no timings")
+        return times
+    except (OSError, ValueError, TypeError, AttributeError) as exc:
+        raise CacheError(f"the timings of the pycolmap database, {path}, are missing or damaged "
+                         f"({' '.join(str(exc).split())[:60]})") from None
+
+
 def ensure_database(db_path: Path, names: list[str], build: Callable[[Path], dict[str, float]],
                     overwrite: bool = False) -> dict[str, float]:
     """The timings of the database at ``db_path``, built by ``build(tmp_path)`` unless an intact one is there.
@@ -323,10 +336,9 @@ def ensure_database(db_path: Path, names: list[str], build: Callable[[Path], dic
     if db_path.exists() and not overwrite:
         try:
             check_database(db_path, names)
+            times = _read_times(times_path)  # the peers' timings back the speed comparisons: never guessed
             logger.info("pycolmap: reusing database %s", db_path)
-            with contextlib.suppress(OSError, ValueError, TypeError, AttributeError):
-                return {k: float(v) for k, v in json.loads(times_path.read_text(encoding="utf-8")).items()}
-            return {}
+            return times
         except CacheError as exc:
             logger.warning("%s; building it again", exc)
     remove_database(db_path)

@@ -137,7 +137,7 @@ class PeerStage(Stage[PeerConfig]):
         """List the images, check their headers and resolve K (no decoding); done once."""
         if self._scan is not None:
             return self._scan
-        from pipeline.frontend.images import check_headers, list_images  # noqa: PLC0415
+        from pipeline.frontend.images import check_headers, ends_crc, list_images  # noqa: PLC0415
         from pipeline.frontend.intrinsics import find_intrinsics_file  # noqa: PLC0415
 
         if self.config.use_our_matches and self.work is None:
@@ -159,7 +159,7 @@ class PeerStage(Stage[PeerConfig]):
         sigs = []
         for n in given:
             st = (self.images / n).stat()
-            sigs.append([n, int(st.st_size), int(st.st_mtime_ns)])
+            sigs.append([n, int(st.st_size), int(st.st_mtime_ns), ends_crc(self.images / n)])
         self._scan = {"names": list(names), "given": given, "bad": bad, "Ks": Ks, "sigs": sigs}
         return self._scan
 

@@ -310,6 +310,7 @@ def main(out: str | Path, n_views: int = 12, seed: int = 0, noise_sigma: float =
 
 def main_cli(argv: list[str] | None = None) -> int:
     from pipeline.core.cli import run_cli
+    from pipeline.core.errors import ConfigError
 
     p = argparse.ArgumentParser(prog="python -m pipeline.synthetic.render", description=__doc__.split("\n")[0])
     p.add_argument("--views", type=int, default=12, help="number of views (default 12)")
@@ -321,6 +322,11 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--points", action="store_true", help="also write points3d.txt (true 3D points)")
 
     def body(a: argparse.Namespace) -> int:
+        for flag, v, low in (("--views", a.views, 2), ("--width", a.width, 16), ("--height", a.height, 16)):
+            if v < low:
+                raise ConfigError(f"{flag} {v}; expected at least {low}")
+        if not a.noise >= 0:
+            raise ConfigError(f"--noise {a.noise}; expected a pixel noise sigma >= 0")
         cfg = SceneConfig(width=a.width, height=a.height, focal=560.0 * a.width / 640)
         main(a.out, a.views, a.seed, a.noise, a.points, cfg)
         return 0

@@ -17,7 +17,7 @@ from pipeline.core import so3
 from pipeline.core.errors import InputFileError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.rotations import read_rotations, write_rotations
-from pipeline.stage import fingerprint_of
+from pipeline.stage import fingerprint_of, output_digest
 
 
 @pytest.fixture
@@ -156,11 +156,21 @@ def test_a_damaged_cache_is_recomputed_with_one_warning(six, tmp_path, calls, ca
     assert _run(out, "irls", path)["record"].reused  # healed
 
 
-def test_same_size_cut_is_caught_by_verify_not_by_the_size(six, tmp_path, caplog):
+def test_same_size_cut_is_caught_by_its_checksum_and_by_verify(six, tmp_path, caplog):
     path, _ = six
     out = tmp_path / "rotations"
     _run(out, "irls", path)
     _cut_same_size(out / "irls-l0.5.txt", 2)
+    with caplog.at_level(logging.WARNING):
+        _run(out, "irls", path)
+    assert "irls-l0.5.txt has changed since it was written (its CRC-32 is not the one recorded)" in caplog.text
+    # and where the record's checksum agrees with the damaged file (written so by hand), verify still sees it
+    _cut_same_size(out / "irls-l0.5.txt", 2)
+    rec_path = out / "irls-l0.5.record.json"
+    rec = json.loads(rec_path.read_text())
+    rec["digests"]["irls-l0.5.txt"] = output_digest(out / "irls-l0.5.txt")
+    rec_path.write_text(json.dumps(rec))
+    caplog.clear()
     with caplog.at_level(logging.WARNING):
         _run(out, "irls", path)
     assert "holds 2 camera(s) but the solved component" in caplog.text

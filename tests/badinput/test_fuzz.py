@@ -36,6 +36,7 @@ from pipeline.core import so3
 from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.frontend.intrinsics import check_K
+from pipeline.stage import output_digest
 from pipeline.synthetic.damage import damaged_copies
 
 N = int(os.environ.get("FUZZ_N", "200"))
@@ -194,6 +195,7 @@ def _fix_sizes(folder: Path, stage: str) -> None:
     with contextlib.suppress(Exception):
         rec = json.loads(path.read_text())
         rec["outputs"] = {k: (folder / k).stat().st_size for k in rec["outputs"] if (folder / k).is_file()}
+        rec["digests"] = {k: output_digest(folder / k) for k in rec["outputs"]}
         path.write_text(json.dumps(rec))
 
 

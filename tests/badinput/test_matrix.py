@@ -186,7 +186,10 @@ def test_bad_config_is_refused_before_any_work(run, yaml_file, tmp_path, text, p
     (b"- a\n- b\n", r"expected a mapping of section name"),
     (b"run:\n  plots: \xff\xfe\n", r"is not UTF-8 text"),
     (b"\x89PNG\r\n\x1a\n\x00\x00", r"is not UTF-8 text|is not valid YAML"),
-], ids=["not-yaml", "yaml-list", "not-utf8", "binary"])
+    (b"matching:\n  ratio: 0.7\nrun:\n  plots: false\nmatching:\n  mutual: false\n",  # YAML keeps the last one
+     r"'matching' is given twice in one mapping \(lines 1 and 5\); YAML would keep only the last: merge them$"),
+    (b"matching:\n  ratio: 0.7\n  ratio: 0.9\n", r"'ratio' is given twice in one mapping \(lines 2 and 3\)"),
+], ids=["not-yaml", "yaml-list", "not-utf8", "binary", "section-twice", "key-twice"])
 def test_config_file_that_is_not_a_config(run, tmp_path, content, pattern):
     cfg = tmp_path / "bad.yaml"
     cfg.write_bytes(content)
@@ -268,6 +271,12 @@ def test_output_folder_that_is_the_image_folder_or_empty(run, cli, tiny_scene, t
     r = cli("run.py", tiny_scene, "--out", "", "-q", cwd=tmp_path)  # argparse's own usage line, then its error
     assert r.rc == 2 and r.lines[-1].endswith("argument --out: an empty path; pass a folder") and not any(
         tmp_path.joinpath(d).exists() for d in ("work", "rotations")), r.stderr
+
+
+def test_database_with_K_says_to_drop_K(run, tmp_path):
+    refused(run("--database", tmp_path / "db.db", "--K", tmp_path / "K.txt"),
+            r"^error: --database DB takes the intrinsics from the database's cameras: drop --K$")
+    no_work_done(tmp_path / "out")
 
 
 def test_a_malformed_scheduler_address_is_refused_at_once(run):
@@ -532,7 +541,16 @@ def _rotations_cut_to_2(path: Path) -> None:
     path.write_text("\n".join([ln for ln in lines if ln.startswith("#")] + body[:2]) + "\n")
 
 
+def _same_size(path: Path) -> None:
+    """One digit changed in place: the size, the JSON and the numbers' shapes all stay valid."""
+    text = path.read_bytes()
+    k = max(i for i, c in enumerate(text) if chr(c).isdigit() and chr(c) not in "9")
+    path.write_bytes(text[:k] + bytes([text[k] + 1]) + text[k + 1:])
+
+
 DAMAGE = [  # (id, file in OUT, damage, the stage that heals it)
+    ("cameras-a-digit-changed-same-size", "work/cameras.json", _same_size, "cameras"),
+    ("rotations-a-digit-changed-same-size", "rotations/irls-l0.5.txt", _same_size, "averaging"),
     ("rotations-cut-to-2-of-6", "rotations/irls-l0.5.txt", _rotations_cut_to_2, "averaging"),  # issue
     ("rotations-garbled", "rotations/irls-l0.5.txt", _garble, "averaging"),
     ("matches-chunk-truncated", "work/matches/chunk-*.npz", _cut, "matching"),  # issue
@@ -706,6 +724,15 @@ def test_average_refuses_bad_options(cli, graphs, tmp_path, args, pattern):
     assert not (tmp_path / "r").exists()
 
 
+def test_average_refuses_an_output_that_is_a_folder_before_any_work(cli, graphs, tmp_path):
+    (tmp_path / "adir").mkdir()
+    refused(cli("-m", "pipeline.average", graphs / "good.npz", "--out", tmp_path / "adir", "-q"),
+            r"--out .*adir is a folder; pass a file name in it \(e.g. .*adir/x.txt\)")
+    refused(cli("-m", "pipeline.average", graphs / "good.npz", "--out", tmp_path / "s.txt", "--json", tmp_path / "adir",
+                "-q"), r"--json .*adir is a folder")
+    assert not (tmp_path / "s.txt").exists() and list((tmp_path / "adir").iterdir()) == []  # nothing written first
+
+
 def test_evaluate_names_a_file_that_is_not_utf8(cli, tiny_scene, tmp_path):  # issue: decode errors name the file
     rot = tmp_path / "rot.txt"
     rot.write_bytes(b"view_000.png \xff\xfe 0 0 0 1 0 0 0 1\n")
@@ -719,6 +746,19 @@ def test_stage_commands_on_a_missing_or_empty_work_folder(cli, tmp_path):
     refused(cli("-m", "pipeline.matching", "--work", tmp_path / "empty", "-q"), r"run `python -m pipeline.features")
     refused(cli("-m", "pipeline.two_view", "--work", tmp_path / "empty", "-q"), r"features")
     assert sorted(p.name for p in (tmp_path / "empty").iterdir()) == []
+
+
+def test_two_view_ba_refuses_a_two_view_result_older_than_the_cameras_stage(cli, tiny_scene, tmp_path):
+    # stages run out of order: the cameras stage after two_view changes the K's the two-view geometry was made with
+    w = tmp_path / "w"
+    for stage in ("features --images " + str(tiny_scene), "matching", "two_view", "cameras"):
+        name, *rest = stage.split()
+        handled(cli("-m", f"pipeline.{name}", *rest, "--work", w, "-q"))
+    refused(cli("-m", "pipeline.two_view_ba", "--work", w, "-q"),
+            r"the two-view result in .* was computed before the cameras stage's result there; re-run "
+            r"`python -m pipeline.two_view --work .*` first")
+    handled(cli("-m", "pipeline.two_view", "--work", w, "-q"))  # in order, it goes through
+    handled(cli("-m", "pipeline.two_view_ba", "--work", w, "-q"))
 
 
 def test_features_command_refuses_a_singular_K_before_sift(cli, tiny_scene, tmp_path):  # issue

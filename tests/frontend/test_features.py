@@ -225,6 +225,25 @@ def test_main_cache_and_resume(scene, tmp_path):
     assert all(len(k) <= 500 for k in fs.keypoints)
 
 
+def test_an_image_replaced_by_another_of_the_same_size_and_time_is_extracted_again(scene, tmp_path):
+    import os
+
+    images = tmp_path / "img"
+    shutil.copytree(scene.out, images)
+    a = images / "view_000.png"
+    img = cv2.imread(str(a))
+    cv2.imwrite(str(a), img, [cv2.IMWRITE_PNG_COMPRESSION, 0])  # stored, not deflated: its size is its shape's
+    work = tmp_path / "work"
+    features.main(images, work, progress=False)
+    st = a.stat()
+    img[:, : img.shape[1] // 2] = img[:, : img.shape[1] // 2] // 2  # another picture in its place
+    cv2.imwrite(str(a), img, [cv2.IMWRITE_PNG_COMPRESSION, 0])
+    os.utime(a, ns=(st.st_atime_ns, st.st_mtime_ns))  # its time put back, as a copy that keeps times does
+    assert a.stat().st_size == st.st_size and a.stat().st_mtime_ns == st.st_mtime_ns
+    m = json.loads(features.main(images, work, progress=False).read_text())
+    assert m["n_extracted"] == 1 and m["n_cached"] == 2 and not m["skipped"], m  # only it
+
+
 def test_intrinsics_K_txt_default_and_exif(scene, tmp_path, caplog):
     images = tmp_path / "img"
     images.mkdir()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import subprocess
@@ -16,6 +17,7 @@ from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.geometry.epipolar import essential_from_Rt
 from pipeline.geometry.ransac import TwoViewConfig
 from pipeline.geometry.two_view_stage import CORRESPONDENCES, VIEWGRAPH, TwoViewStage, load_two_view
+from pipeline.stage import output_digest
 from pipeline.synthetic.render import SceneConfig, render_scene
 
 CFG = SceneConfig(width=320, height=240, focal=280.0, texture_px_per_unit=150.0)
@@ -209,18 +211,30 @@ def test_a_stored_pair_that_reads_but_is_wrong_is_recomputed(work_copy, change, 
 
 
 def test_readers_fail_in_one_line_naming_the_file(work_copy):
+    record = work_copy / "two_view.record.json"
+    kept = record.read_text()
+
+    def record_agrees() -> None:  # the damage written into the record too: the reader must judge the content itself
+        rec = json.loads(kept)
+        rec["digests"] = {k: output_digest(work_copy / k) for k in rec["outputs"]}
+        record.write_text(json.dumps(rec))
+
     for name in (VIEWGRAPH, CORRESPONDENCES):
         path = work_copy / name
         data = path.read_bytes()
-        for bad, what in ((data[: len(data) // 3], "bytes, not the"), (b"x" * len(data), "is not an .npz archive"),
-                          (b"PK\x03\x04" + bytes(len(data) - 4), "is not a")):
+        for bad, what, agree in ((data[: len(data) // 3], "bytes, not the", False),
+                                 (b"x" * len(data), "has changed since it was written (its CRC-32", False),
+                                 (b"x" * len(data), "is not an .npz archive", True),
+                                 (b"PK\x03\x04" + bytes(len(data) - 4), "is not a", True)):
             path.write_bytes(bad)
+            record_agrees() if agree else record.write_text(kept)
             with pytest.raises(CacheError) as e:
                 load_two_view(work_copy)
             msg = str(e.value)
             assert str(path) in msg and what in msg and "\n" not in msg and "re-run" in msg, msg
             assert "pickle" not in msg
         path.write_bytes(data)
+        record.write_text(kept)
     (work_copy / "two_view.record.json").write_text("{not json")
     with pytest.raises(CacheError, match="two_view.record.json is damaged"):
         load_two_view(work_copy)
