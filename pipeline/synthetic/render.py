@@ -322,7 +322,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     p.add_argument("--points", action="store_true", help="also write points3d.txt (true 3D points)")
 
     def body(a: argparse.Namespace) -> int:
-        for flag, v, low in (("--views", a.views, 2), ("--width", a.width, 16), ("--height", a.height, 16)):
+        for flag, v, low in (("--width", a.width, 16), ("--height", a.height, 16)):  # views: render_scene's check
             if v < low:
                 raise ConfigError(f"{flag} {v}; expected at least {low}")
         if not a.noise >= 0:

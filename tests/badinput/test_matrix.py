@@ -784,6 +784,8 @@ def test_reference_command_refuses_a_bad_key_before_any_work(cli, tiny_scene, tm
 
 def test_render_command_refuses_one_view(cli, tmp_path):
     refused(cli("-m", "pipeline.synthetic.render", "--views", "1", "--out", tmp_path / "s", "-q"), r"at least 2 views")
+    refused(cli("-m", "pipeline.synthetic.render", "--width", "0", "--out", tmp_path / "s", "-q"),
+            r"^error: --width 0; expected at least 16$")  # it said "Singular matrix"
 
 
 # ================================================================ processes
