@@ -28,6 +28,7 @@ import logging
 import os
 import re
 import shutil
+import signal
 import tempfile
 from typing import Any, Callable, Iterator, Sequence, TypeVar
 
@@ -85,6 +86,10 @@ def single_thread(client_pid: int | None = None) -> int:
         threadpool_limits(1)
     if client_pid is not None and os.getppid() == client_pid:
         die_with_parent(client_pid)
+        # a worker of our own cluster: Ctrl-C reaches the whole process group, and the client closes the cluster
+        # and says so in one line; the worker prints no traceback of its own
+        with contextlib.suppress(ValueError):  # not this process's main thread: left as it is
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     return os.getpid()
 
 

@@ -179,6 +179,8 @@ def test_local_cluster_leaves_no_process_and_no_scratch_space(tmp_path, monkeypa
             assert len(ex.client.scheduler_info()["workers"]) == 2
             # the local cluster's workers run without the statistical profiler (no dashboard to show it)
             assert set(ex.client.run(_profiling).values()) == {False}
+            # Ctrl-C reaches the workers too: they ignore it (no traceback of theirs), the client closes the cluster
+            assert set(ex.client.run(_sigint_disposition, 0).values()) == {"ignored"}
             raise KeyboardInterrupt  # Ctrl-C in the middle of a run
     alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
     assert not alive
