@@ -176,10 +176,12 @@ def _header(path: str | os.PathLike) -> tuple[tuple[int, int], int] | None:
         return None
 
 
-def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, int]], dict[str, str]]:
+def check_headers(folder: Path, names: list[str], say_orientation: bool = True
+                  ) -> tuple[dict[str, tuple[int, int]], dict[str, str]]:
     """Sizes from the headers of ``names``, and the reason for each image left out.
 
-    Decodes nothing, so a header that claims 60000×60000 pixels costs nothing.
+    Decodes nothing, so a header that claims 60000×60000 pixels costs nothing. Images with an EXIF orientation
+    tag are named in one warning (``say_orientation``): their stored pixels are used, as COLMAP uses them.
 
     Returns:
         ``{name: (w, h)}`` of the usable images and ``{name: reason}`` of the others.
@@ -209,7 +211,7 @@ def check_headers(folder: Path, names: list[str]) -> tuple[dict[str, tuple[int, 
             bad[n] = f"is too small ({wh[0]}x{wh[1]} pixels)"
         else:
             sizes[n] = wh
-    if turned:  # COLMAP reads the stored pixels too; a K or a truth made for the displayed orientation would not fit
+    if turned and say_orientation:  # COLMAP reads the stored pixels too; a K or truth for the turned picture would not fit
         n0 = next(iter(turned))
         logger.warning("%d image(s) carry an EXIF orientation tag (e.g. %s: %d); their pixels are used as stored, as "
                        "COLMAP uses them, so their K and true cameras must be for the stored orientation (rotate the "

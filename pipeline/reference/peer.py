@@ -145,7 +145,7 @@ class PeerStage(Stage[PeerConfig]):
         names = self.names if self.names is not None else list_images(self.images)[0]
         if len(names) < 2:
             raise InputFileError(f"{self.images} has {len(names)} image(s); a reconstruction needs at least 2")
-        sizes, bad = check_headers(self.images, names)
+        sizes, bad = check_headers(self.images, names, say_orientation=False)  # our features stage said it
         for n, why in bad.items():
             logger.warning("%s: leaving out %s: it %s", self.title, self.images / n, why)
         given = [n for n in names if n in sizes]
