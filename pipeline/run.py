@@ -76,6 +76,17 @@ STEPS = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_clo
          "refine", "reference", "global_reference", "evaluation", "report")
 
 
+def _reused(res: Any) -> bool | None:
+    """Whether a step reused its result: a stage's record, or ``{label: {"record": ...}}`` of several (the averaging
+    methods, the refinement); None where the step says nothing of it."""
+    if isinstance(res, StageRecord):
+        return res.reused
+    if isinstance(res, dict) and res and all(isinstance(v, dict) and isinstance(v.get("record"), StageRecord)
+                                             for v in res.values()):
+        return all(v["record"].reused for v in res.values())
+    return None
+
+
 class Runner:
     """Runs the steps in order: one progress line each, its wall time, whether it reused its result."""
 
@@ -95,11 +106,11 @@ class Runner:
         res = fn()
         dt = time.perf_counter() - t0
         self.times[name] = self.times.get(name, 0.0) + dt  # both rounds of a step
-        if isinstance(res, StageRecord):
-            self.reused[name] = res.reused and self.reused.get(name, True)
+        reused = _reused(res)
+        if reused is not None:
+            self.reused[name] = reused and self.reused.get(name, True)
         if not self.plan.quiet:
-            tag = " (reused)" if isinstance(res, StageRecord) and res.reused else ""
-            print(f"{k} {title}: {dt:.2f} s{tag}", file=sys.stderr, flush=True)
+            print(f"{k} {title}: {dt:.2f} s{' (reused)' if reused else ''}", file=sys.stderr, flush=True)
         return res
 
     def stage(self, stage: Stage, overwrite: bool | None = None, again: bool = False) -> StageRecord:
@@ -136,7 +147,6 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
         return res
 
     results = runner.step("averaging", "rotation averaging", solve_all)
-    runner.reused["averaging"] = all(r["record"].reused for r in results.values())
     return specs, results
 
 
