@@ -141,6 +141,15 @@ def test_unreadable_files_are_skipped_and_named(messy_run):
     assert m["input"]["left_out_why"]["notes.jpg"].startswith("skipped by the features stage: it ")
 
 
+def test_a_resumed_quiet_run_still_names_the_images_it_did_not_solve(messy, messy_run, fast_config, capsys):
+    out, _ = messy_run
+    run.main(messy, out, config=fast_config, quiet=True, reference=False)  # every stage reused
+    err = capsys.readouterr().err
+    (line,) = [ln for ln in err.splitlines() if "not solved" in ln]
+    assert line.startswith("WARNING: 2 image(s) not solved in this frame: ") and "notes.jpg" in line
+    assert "truncated.jpg" in line and line.endswith("(why: metrics.json input.left_out_why)")
+
+
 @pytest.mark.slow
 def test_no_K_no_exif_warns_and_estimates_the_focal(messy_run):
     out, warnings = messy_run

@@ -154,6 +154,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
     path = write_json(plan.out / "metrics.json", metrics)
+    unsolved = _unsolved_line(left_out)  # every run says it, a resumed one too (the stages that found it may not run)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
         if metrics["intrinsics"]:
@@ -161,8 +162,20 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         lines = evidence_console(metrics.get("evidence") or {})
         if lines:
             print(lines, flush=True)
+        if unsolved:
+            print(unsolved, flush=True)
         print(f"report: {plan.out / 'report.md'}\nmetrics: {path}", flush=True)
-    elif (metrics.get("evidence") or {}).get("n_flagged"):  # -q: warnings only, and a flagged camera is one
-        print("\n".join(ln for ln in evidence_console(metrics["evidence"]).splitlines() if not ln.startswith("†"))
-              + f"\nmetrics: {path}", file=sys.stderr, flush=True)
+    elif (metrics.get("evidence") or {}).get("n_flagged") or unsolved:  # -q: warnings only, and these are
+        lines = [ln for ln in evidence_console(metrics.get("evidence") or {}).splitlines() if not ln.startswith("†")]
+        print("\n".join(lines + ([unsolved] if unsolved else []) + [f"metrics: {path}"]), file=sys.stderr, flush=True)
     return path
+
+
+def _unsolved_line(left_out: dict[str, str], limit: int = 5) -> str:
+    """One console line naming the images this run did not solve here ("" when none)."""
+    if not left_out:
+        return ""
+    names = list(left_out)
+    more = f" and {len(names) - limit} more" if len(names) > limit else ""
+    return (f"WARNING: {len(names)} image(s) not solved in this frame: {', '.join(names[:limit])}{more} (why: "
+            "metrics.json input.left_out_why)")
