@@ -246,6 +246,10 @@ class Stage(abc.ABC, Generic[C]):
                             self.name, self.record_path)
                 return rec
         made = [p for p in [self.folder, *self.folder.parents] if not p.exists()]
+        blocking = next((p for p in [self.folder, *self.folder.parents] if p.exists() and not p.is_dir()), None)
+        if blocking is not None:  # mkdir would say only "[Errno 17] File exists"
+            raise InputFileError(f"{blocking} is a file, not a folder: {self.name} writes its results into "
+                                 f"{self.folder}; pass a folder (or remove the file)")
         self.folder.mkdir(parents=True, exist_ok=True)
         remove_stale_temporaries(self.folder)
         t0 = time.perf_counter()

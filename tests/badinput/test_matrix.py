@@ -740,6 +740,13 @@ def test_evaluate_names_a_file_that_is_not_utf8(cli, tiny_scene, tmp_path):  # i
             re.escape(str(rot)) + r".*not UTF-8")
 
 
+def test_a_stage_command_whose_work_folder_is_a_file(cli, tiny_scene, tmp_path):
+    (tmp_path / "afile").write_text("x")  # mkdir said only "[Errno 17] File exists: 'afile'"
+    refused(cli("-m", "pipeline.features", "--images", tiny_scene, "--work", tmp_path / "afile", "-q"),
+            r"afile is a file, not a folder: features writes its results into .*afile; pass a folder")
+    assert (tmp_path / "afile").read_text() == "x"
+
+
 def test_stage_commands_on_a_missing_or_empty_work_folder(cli, tmp_path):
     refused(cli("-m", "pipeline.two_view_ba", "--work", tmp_path / "missing", "-q"), r"does not exist")
     (tmp_path / "empty").mkdir()
