@@ -41,7 +41,8 @@ from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.readers import read_json
 
-__all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "file_fingerprint", "RECORD_SUFFIX"]
+__all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "file_fingerprint", "output_digest", "check_output",
+           "RECORD_SUFFIX"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,6 +66,17 @@ def output_digest(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 22), b""):
             crc = zlib.crc32(block, crc)
     return f"{crc & 0xFFFFFFFF:08x}"
+
+
+def check_output(path: Path, size: int, digest: str | None) -> None:
+    """An output as its record describes it: present, of its recorded size and, where one is recorded, of its CRC-32
+    (:func:`output_digest`); :class:`CacheError` naming it otherwise."""
+    if not path.is_file():
+        raise CacheError(f"{path} is missing")
+    if path.stat().st_size != size:
+        raise CacheError(f"{path} has {path.stat().st_size} bytes, not the {size} recorded (truncated or overwritten)")
+    if digest is not None and output_digest(path) != digest:
+        raise CacheError(f"{path} has changed since it was written (its CRC-32 is not the one recorded)")
 
 
 def file_fingerprint(path: Path) -> str:
@@ -219,14 +231,7 @@ class Stage(abc.ABC, Generic[C]):
             return None
         try:
             for rel, size in rec.outputs.items():
-                p = self.folder / rel
-                if not p.is_file():
-                    raise CacheError(f"its output {p} is missing")
-                if p.stat().st_size != size:
-                    raise CacheError(f"its output {p} has {p.stat().st_size} bytes, not the {size} recorded")
-                if output_digest(p) != rec.digests[rel]:
-                    raise CacheError(f"its output {p} has changed since it was written (its CRC-32 is not the one "
-                                     "recorded)")
+                check_output(self.folder / rel, size, rec.digests[rel])
             self.verify(rec)
         except (CacheError, InputFileError, OSError, ValueError, KeyError) as exc:
             logger.warning("the cached result of %s is damaged (%s); recomputing it",

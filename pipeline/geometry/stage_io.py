@@ -20,7 +20,7 @@ from pipeline.core.errors import CacheError, InputFileError, PipelineError
 from pipeline.core.readers import read_npz as core_read_npz
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.core.config import Config
-from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, output_digest, read_record
+from pipeline.stage import RECORD_SUFFIX, Stage, StageRecord, check_output, read_record
 
 __all__ = ["PairStage", "read_npz", "read_viewgraph", "recorded_output", "rerun_hint", "stage_cli"]
 
@@ -64,14 +64,10 @@ def recorded_output(work: Path, stage: str, name: str, command: str) -> tuple[St
     path = work / name
     if name not in rec.outputs:
         raise CacheError(f"the record of {stage} in {work} does not list {name}; {rerun_hint(command, work)}")
-    if not path.is_file():
-        raise CacheError(f"{path} is missing; {rerun_hint(command, work)}")
-    if path.stat().st_size != rec.outputs[name]:
-        raise CacheError(f"{path} has {path.stat().st_size} bytes, not the {rec.outputs[name]} recorded (truncated "
-                         f"or overwritten); {rerun_hint(command, work)}")
-    if name in rec.digests and output_digest(path) != rec.digests[name]:
-        raise CacheError(f"{path} has changed since it was written (its CRC-32 is not the one recorded); "
-                         f"{rerun_hint(command, work)}")
+    try:
+        check_output(path, rec.outputs[name], rec.digests.get(name))
+    except CacheError as exc:
+        raise CacheError(f"{exc}; {rerun_hint(command, work)}") from None
     return rec, path
 
 
