@@ -9,7 +9,11 @@ a lamp fixed in the world (``light="world"``, the Middlebury gantry) or moving w
 camera (``"camera"``, a turntable with its lamp: harder), and Gaussian sensor noise.
 Faceted prisms make silhouettes slide over the surface from view to view and legs
 occlude one another: matches on outlines and T-junctions are not 3-D consistent, as on a
-real smooth object. The truth of which pairs overlap comes from
+real smooth object. View-dependent appearance (off by default, :mod:`pipeline.synthetic.shading`):
+``shading="smooth"`` shades every texel from its own light direction and, on prism sides,
+from normals interpolated across the facet (a smooth cylinder's shading); ``specular`` adds a
+highlight that moves with the view; ``body_sides`` / ``limb_sides`` (e.g. 64 / 32) make the
+silhouettes nearly smooth contours. The truth of which pairs overlap comes from
 :mod:`pipeline.synthetic.overlap`; 32 of the 120 pairs (the 22.5° and 45° neighbours) do.
 
 :func:`write_scene` writes images, ``cameras.txt`` (the truth), ``K.txt``, ``overlap.npy``
@@ -31,6 +35,7 @@ from pipeline.core.errors import PipelineError
 from pipeline.synthetic.overlap import covisibility, sample_surface, true_pairs, visibility
 from pipeline.synthetic.render import render_view
 from pipeline.synthetic.scene import Plane, look_at
+from pipeline.synthetic.shading import texel_shading
 
 __all__ = ["LowTexConfig", "MaskedPlane", "LowTexScene", "dino_planes", "turntable_ring", "shade_planes",
            "render_views", "render_lowtex", "write_scene"]
@@ -38,10 +43,12 @@ __all__ = ["LowTexConfig", "MaskedPlane", "LowTexScene", "dino_planes", "turntab
 
 @dataclass
 class MaskedPlane(Plane):
-    """A :class:`Plane` with an alpha ``mask`` (polygons, discs) and its unshaded grey ``albedo_tex``."""
+    """A :class:`Plane` with an alpha ``mask`` (polygons, discs), its unshaded grey ``albedo_tex`` and, on a
+    prism's side, ``edge_normals`` (2, 3): the smooth surface's normals at texture column 0 and column w."""
 
     mask: np.ndarray | None = None
     albedo_tex: np.ndarray | None = None
+    edge_normals: np.ndarray | None = None
 
     @property
     def rgba(self) -> np.ndarray:  # type: ignore[override]
@@ -106,6 +113,7 @@ def prism(p0, p1, radius: float, n_sides: int, name: str, **kw) -> list[MaskedPl
         a, u = ring[k], ring[k + 1] - ring[k]
         out = np.dot(np.cross(u, ax), a + ring[k + 1]) > 0  # normal u × axis points outwards
         planes.append(_quad(p0 + a if out else p1 + a, u, L * ax if out else -L * ax, name=f"{name}-s{k}", **kw))
+        planes[-1].edge_normals = np.stack([ring[k], ring[k + 1]]) / radius  # column 0 is at ring[k]
     for p, sgn, cname in ((p0, -1, "c0"), (p1, 1, "c1")):  # n-gon caps
         u, v = 2 * radius * e1, 2 * radius * e2
         v = -v if np.dot(np.cross(u, v), sgn * ax) < 0 else v
@@ -167,19 +175,30 @@ def turntable_ring(n_views: int, radius: float, elevation_deg: float, target, fo
     return np.repeat(K[None], n_views, 0), np.array(Rs), np.array(ts)
 
 
-def shade_planes(planes: list[Plane], light: np.ndarray, ambient: float) -> list[Plane]:
-    """Copies with Lambertian shading ``albedo·(ambient + (1 − ambient)·max(0, n·l))`` from a point ``light``."""
+def shade_planes(planes: list[Plane], light: np.ndarray, ambient: float, *, eye: np.ndarray | None = None,
+                 smooth: bool = False, specular: float = 0.0, shininess: float = 30.0) -> list[Plane]:
+    """Copies with Lambertian shading ``albedo·(ambient + (1 − ambient)·max(0, n·l))`` from a point ``light``:
+    one factor per plane (at its centre), or per texel with ``smooth`` (interpolated normals) or a
+    ``specular`` highlight seen from ``eye`` (:func:`pipeline.synthetic.shading.texel_shading`)."""
+    per_texel = smooth or specular > 0
+    if per_texel and eye is None:
+        raise PipelineError("shade_planes: smooth or specular shading needs the camera centre (eye)")
     out = []
     for pl in planes:
         alb = getattr(pl, "albedo_tex", None)
         if alb is None:
             out.append(pl)
             continue
-        lv = light - pl.corners().mean(axis=0)
-        f = ambient + (1 - ambient) * max(0.0, float(pl.normal @ (lv / np.linalg.norm(lv))))
-        g = np.clip(alb * f, 0, 255).astype(np.uint8)
+        if per_texel:
+            g = np.clip(texel_shading(alb, pl.origin, pl.a, pl.b, pl.normal, light, eye, ambient,
+                                      edge_normals=pl.edge_normals, smooth=smooth, specular=specular,
+                                      shininess=shininess), 0, 255).astype(np.uint8)
+        else:
+            lv = light - pl.corners().mean(axis=0)
+            f = ambient + (1 - ambient) * max(0.0, float(pl.normal @ (lv / np.linalg.norm(lv))))
+            g = np.clip(alb * f, 0, 255).astype(np.uint8)
         out.append(MaskedPlane(pl.origin, pl.a, pl.b, np.repeat(g[..., None], 3, 2), pl.name, mask=pl.mask,
-                               albedo_tex=alb))
+                               albedo_tex=alb, edge_normals=pl.edge_normals))
     return out
 
 
@@ -190,17 +209,18 @@ def _moved(p: Plane, A: np.ndarray, b: np.ndarray) -> Plane:
 
 def render_views(planes: list[Plane], K, R, t, width: int, height: int, *, noise_sigma: float, rng, supersample=2,
                  background: int = 0, lamp: tuple[str, tuple[float, float, float]] | None = None, ambient=1.0,
-                 static: tuple[list[Plane], np.ndarray, np.ndarray] | None = None
-                 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Render every view; ``lamp = ("world" | "camera", position)`` shades the albedo planes per view;
-    ``static = (planes, R_s, t_s)`` is an object fixed in the camera frame (every view sees it from one pose)."""
+                 static: tuple[list[Plane], np.ndarray, np.ndarray] | None = None, smooth: bool = False,
+                 specular: float = 0.0, shininess: float = 30.0) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Render every view; ``lamp = ("world" | "camera", position)`` shades the albedo planes per view
+    (``smooth``, ``specular``, ``shininess``: :func:`shade_planes`); ``static = (planes, R_s, t_s)`` is an object
+    fixed in the camera frame (every view sees it from one pose)."""
     images, depths = [], []
     for n in range(len(R)):
         pls = planes
         if lamp is not None:
             C = -R[n].T @ t[n]
             light = np.asarray(lamp[1], float) if lamp[0] == "world" else C + R[n].T @ np.asarray(lamp[1], float)
-            pls = shade_planes(planes, light, ambient)
+            pls = shade_planes(planes, light, ambient, eye=C, smooth=smooth, specular=specular, shininess=shininess)
         if static is not None:  # X_world = R_nᵀ (R_s X + t_s − t_n)
             A, b = R[n].T @ static[1], R[n].T @ (static[2] - t[n])
             pls = list(pls) + [_moved(p, A, b) for p in static[0]]
@@ -233,6 +253,11 @@ class LowTexConfig:
     px_per_unit: float = 500.0
     overlap_threshold: float = 0.3
     max_ray_deg: float = 60.0
+    body_sides: int = 24
+    limb_sides: int = 12
+    shading: str = "flat"
+    specular: float = 0.0
+    shininess: float = 30.0
 
 
 @dataclass
@@ -268,14 +293,21 @@ def render_lowtex(config: LowTexConfig | None = None, seed: int = 0) -> LowTexSc
     cfg = config or LowTexConfig()
     if cfg.light not in ("world", "camera"):
         raise PipelineError(f"light={cfg.light!r} but expected 'world' or 'camera'")
+    if cfg.shading not in ("flat", "smooth"):
+        raise PipelineError(f"shading={cfg.shading!r} but expected 'flat' or 'smooth'")
+    if min(cfg.body_sides, cfg.limb_sides) < 3 or not cfg.specular >= 0:
+        raise PipelineError(f"body_sides={cfg.body_sides}, limb_sides={cfg.limb_sides}, specular={cfg.specular}: "
+                            "expected at least 3 sides and specular >= 0")
     rng = np.random.default_rng(seed)
-    planes = dino_planes(int(rng.integers(2**31)), cfg.albedo, cfg.contrast, cfg.px_per_unit)
+    planes = dino_planes(int(rng.integers(2**31)), cfg.albedo, cfg.contrast, cfg.px_per_unit, cfg.body_sides,
+                         cfg.limb_sides)
     K, R, t = turntable_ring(cfg.n_views, cfg.radius, cfg.elevation_deg, [0.0, 0.0, 0.42], cfg.focal, cfg.width,
                              cfg.height, np.random.default_rng(int(rng.integers(2**31))))
     lamp = ("world", cfg.world_lamp) if cfg.light == "world" else ("camera", cfg.lamp_offset)
     images, depths = render_views(planes, K, R, t, cfg.width, cfg.height, noise_sigma=cfg.noise_sigma,
                                   rng=np.random.default_rng(int(rng.integers(2**31))), supersample=cfg.supersample,
-                                  lamp=lamp, ambient=cfg.ambient)
+                                  lamp=lamp, ambient=cfg.ambient, smooth=cfg.shading == "smooth",
+                                  specular=cfg.specular, shininess=cfg.shininess)
     X, normals = sample_surface([p for p in planes if p.name != "stand"], 4000.0, np.random.default_rng(seed + 1))
     ov = covisibility(X, visibility(X, normals, K, R, t, depths), -np.einsum("nji,nj->ni", R, t), cfg.max_ray_deg)
     tp = true_pairs(ov, cfg.overlap_threshold)
