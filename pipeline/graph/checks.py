@@ -79,6 +79,9 @@ class ViewGraphConfig(Config):
     cycle_k_sigma: float = option(3.0, "a cycle is consistent when its angle <= k·κ·σ_C", gt=0)
     cycle_min_deg: float = option(1.0, "a cycle below this angle is always consistent, degrees", ge=0)
     cycle_max_deg: float = option(10.0, "a cycle above this angle is never consistent, degrees", gt=0)
+    confirm_max_deg: float = option(5.0, "a camera with a pair that only cycles (or paths) closing above this confirm "
+                                         "is flagged: such agreement does not vouch for a degree or two, degrees",
+                                    gt=0)
     max_bad_fraction: float = option(0.5, "an edge is removed when more than this share of its cycles is bad", ge=0,
                                      lt=1)
     sigma_floor_deg: float = option(0.5, "floor of every edge's σ, degrees (H is most overconfident where strongest)",
@@ -123,6 +126,8 @@ class GraphChecks:
         inconsistent: edges rejected because they disagree with the others (steps 2–4, 6).
         bridged: kept edges confirmed by no cycle that step 5 kept only because they join cameras to the rest.
         info: counts and figures of each step (JSON-ready).
+        confirm_deg: how closely each confirmed edge is checked, degrees: the angle of its tightest consistent
+            short cycle, or its disagreement with the path that confirmed it (inf: not confirmed).
     """
 
     kept: np.ndarray
@@ -133,6 +138,7 @@ class GraphChecks:
     inconsistent: np.ndarray
     bridged: np.ndarray
     info: dict[str, Any] = field(default_factory=dict)
+    confirm_deg: np.ndarray | None = None
 
 
 def _reject(chk: GraphChecks, mask: np.ndarray, step: str, why: Callable[[np.ndarray], list[str]] | np.ndarray) -> int:
@@ -182,6 +188,9 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
         f"disagrees by {pc.discrepancy_deg[k]:.1f}° (threshold {pc.threshold_deg[k]:.1f}°) with the path of "
         f"{pc.path_length[k]} confirmed pairs between its cameras" for k in ix])
     confirmed |= pc.checked & pc.consistent
+    by_path = pc.checked & pc.consistent
+    confirm_deg = cf.confirm_deg.copy()
+    confirm_deg[by_path] = np.fmin(confirm_deg[by_path], pc.discrepancy_deg[by_path])
     unconf = chk.kept & ~confirmed & ((tier != "strong") | tiers.provisional)
     info["unconfirmed"] = _reject(chk, unconf, "unconfirmed", np.where(
         tiers.provisional, "provisional (few inliers) and confirmed by no cycle",
@@ -194,6 +203,7 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
         info["bridged_dropped"] = _drop_disputed_bridges(vg, chk)
     chk.confirmed = confirmed & chk.kept
     chk.bridged = chk.bridged & chk.kept
+    chk.confirm_deg = np.where(chk.confirmed, confirm_deg, np.inf)
     info["n_kept"], info["n_confirmed"] = int(chk.kept.sum()), int(chk.confirmed.sum())
     chk.info = info
     return chk

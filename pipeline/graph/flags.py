@@ -7,6 +7,10 @@ Pure functions on arrays. A camera is flagged when
   can never be detected), i.e. it lies outside the largest 2-edge-connected block of
   its component;
 - none of its pairs is in a consistent cycle (unconfirmed);
+- one of its pairs is confirmed only loosely: every cycle (or path) that confirms it closes above
+  ``confirm_max_deg`` (the checks' tolerance widens with the pairs' overconfidence, κ, up to
+  ``cycle_max_deg``; a triangle closing at 6° has a pair 2° off, so it does not vouch for a degree or two, and
+  such a pair may be degrees off and pull the camera);
 - some of its pairs were rejected as inconsistent with the others;
 - it is joined to the largest block only through pairs that no cycle confirmed and that
   the checks kept only so as not to lose cameras (``bridged``: a pan on the spot).
@@ -180,9 +184,32 @@ def _bridged_reason(pairs: list[int], pair: Callable[[int], str]) -> str:
             "the graph is not lost: " + ", ".join(pair(e) for e in pairs[:3]) + ("…" if len(pairs) > 3 else ""))
 
 
+def _loose_reasons(edges: np.ndarray, loose: np.ndarray, cd: np.ndarray, cams: np.ndarray,
+                   pair: Callable[[int], str], limit: float) -> tuple[np.ndarray, list[str]]:
+    """The cameras of the loosely confirmed pairs ``loose`` (edge indices) and, for each, its reason naming them."""
+    cam, via = np.r_[edges[loose, 0], edges[loose, 1]], np.r_[loose, loose]
+    order = np.lexsort((cd[via], cam))  # by camera, then tightest first
+    cam, via = cam[order], via[order]
+    starts = np.flatnonzero(np.r_[True, cam[1:] != cam[:-1]]) if cam.size else np.zeros(0, np.int64)
+    out_c, out_w = [], []
+    for lo, hi in zip(starts.tolist(), np.r_[starts[1:], cam.size].tolist()):  # one per flagged camera
+        if not cams[cam[lo]]:
+            continue
+        ps = via[lo:hi]
+        one = ps.size == 1
+        out_c.append(cam[lo])
+        out_w.append(f"{'its pair' if one else f'{ps.size} of its pairs'} {', '.join(pair(e) for e in ps[:3])}"
+                     f"{'…' if ps.size > 3 else ''} {'is' if one else 'are'} confirmed only loosely (the tightest "
+                     f"cycle through {'it' if one else 'each'} closes at "
+                     f"{', '.join(f'{cd[e]:.1f}°' for e in ps[:3])}, > {limit:g}°): such a pair may be degrees off "
+                     "and pull this rotation")
+    return np.asarray(out_c, np.int64), out_w
+
+
 def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarray, inconsistent: np.ndarray,
                 names: list[str], cameras: np.ndarray | None = None, cycles_checked: bool = True,
-                bridged: np.ndarray | None = None) -> GraphFlags:
+                bridged: np.ndarray | None = None, confirm_deg: np.ndarray | None = None,
+                confirm_max_deg: float = 5.0) -> GraphFlags:
     """Flag the cameras whose rotation rests on unchecked or disputed evidence (module docstring).
 
     Args:
@@ -196,6 +223,8 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
         cycles_checked: False when no cycle was tested (``confirmed`` means nothing): the
             structural flags only (single pair, bridge).
         bridged: (M,) bool kept edges that the checks kept only because they join cameras to the rest.
+        confirm_deg: (M,) how closely each confirmed edge was checked, degrees (the checks' ``confirm_deg``);
+            with it, a camera with a kept pair confirmed only above ``confirm_max_deg`` is flagged.
     Returns:
         :class:`GraphFlags`.
     """
@@ -228,6 +257,10 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
+    if confirm_deg is not None and cycles_checked:
+        cd = np.asarray(confirm_deg, float)
+        add(*_loose_reasons(edges, np.flatnonzero(kept & confirmed & (cd > confirm_max_deg)), cd, cams, pair,
+                            confirm_max_deg))
     if bridged is not None and (kept & bridged).any():
         _flag_bridged(edges, n, kept, kept & np.asarray(bridged, bool), cams, pair, add)
     rej = np.bincount(edges[np.asarray(inconsistent, bool)].ravel(), minlength=n)

@@ -70,9 +70,26 @@ def _pair_rows(vg: ViewGraph, chk: GraphChecks, two_view_rejected: list[dict], b
     for k, (a, b) in enumerate(vg.edges.tolist()):  # one JSON row per pair: I/O, not a hot path
         rows.append({"pair": [vg.names[a], vg.names[b]], "status": "kept" if chk.kept[k] else "rejected",
                      "step": str(chk.step[k]), "reason": str(chk.reason[k]), "tier": str(chk.tier[k]),
-                     "confirmed": bool(chk.confirmed[k]), "n_inliers": int(n_in[k]),
+                     "confirmed": bool(chk.confirmed[k]), "confirm_deg": _finite(chk.confirm_deg, k),
+                     "n_inliers": int(n_in[k]),
                      "bridged": bool(chk.bridged[k]), "tracks": bool(tracks[k])})
     return rows
+
+
+def overconfidence_message(kappa2: float | None, cfg: ViewGraphConfig) -> list[str]:
+    """The scene's warning when its pairs' short cycles close wider than their H claim by more than the checks assume
+    (κ > ``h_inflation``): the cycle tests widen with κ, so their confirmation is looser there."""
+    if kappa2 is None or not np.isfinite(kappa2) or np.sqrt(kappa2) <= cfg.h_inflation:
+        return []
+    return [f"the pairs' short cycles close {np.sqrt(kappa2):.1f}× wider than their two-view precisions (H) claim, "
+            f"beyond the {cfg.h_inflation:g}× the checks assume: their cycle tests widened with it (to at most "
+            f"{cfg.cycle_max_deg:g}°). Pairs biased alike (surfaces whose look changes with the view: light that moves "
+            "with the camera, highlights; or repeated structure) do this, and cycles of such pairs confirm little"]
+
+
+def _finite(a: np.ndarray | None, k: int) -> float | None:
+    """``a[k]`` rounded for JSON, None where undefined (no array, inf, NaN)."""
+    return round(float(a[k]), 4) if a is not None and np.isfinite(a[k]) else None
 
 
 def track_pairs(chk: GraphChecks) -> np.ndarray:
@@ -89,7 +106,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     name = "viewgraph"
     title = "view graph and its checks"
     config_cls = ViewGraphConfig
-    version = 5  # 4: pairs[].tracks; 5: the other components (OUT/component-k/)
+    version = 6  # 4: pairs[].tracks; 5: the other components (OUT/component-k/); 6: loosely confirmed cameras
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)
@@ -128,9 +145,10 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
         solved = np.zeros(vg_all.n_cameras, bool)
         solved[np.concatenate([info.kept, *others])] = True
         fl = graph_flags(vg_all.edges, vg_all.n_cameras, chk.kept, chk.confirmed, chk.inconsistent, vg_all.names,
-                         cameras=solved, cycles_checked=self.config.checks, bridged=chk.bridged)
+                         cameras=solved, cycles_checked=self.config.checks, bridged=chk.bridged,
+                         confirm_deg=chk.confirm_deg, confirm_max_deg=self.config.confirm_max_deg)
         flags = {vg_all.names[k]: v for k, v in sorted(fl.cameras.items())}
-        messages = list(fl.messages)
+        messages = list(fl.messages) + overconfidence_message(chk.info.get("kappa2"), self.config)
         self._log(vg_all, sub, chk, left_out, flags, messages)
         path = sub.save(self.folder / GRAPH)
         summary = {"n_images": vg_all.n_cameras, "n_cameras": sub.n_cameras, "n_edges": sub.n_edges,

@@ -204,3 +204,33 @@ def test_tracks_take_the_kept_pairs_and_those_rejected_only_as_weak_never_a_wron
     tracks = track_pairs(chk)
     assert tracks[weak] and not tracks[[thin, weak_thin, wrong]].any()
     assert np.array_equal(tracks & (np.arange(M) != weak), chk.kept)
+
+
+def test_how_closely_each_pair_is_confirmed_and_the_cameras_a_wide_ring_leaves_flagged():
+    # a 12-camera ring: no short cycle, so each pair is confirmed by the path round the ring, whose disagreement
+    # is the ring's closing angle for every pair
+    rng = np.random.default_rng(3)
+    n = 12
+    R = so3.random_rotations(n, rng)
+    E = np.array([[k, k + 1] for k in range(n - 1)] + [[0, n - 1]])
+    Rm = R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2)
+
+    def closing_deg(Rm):
+        P = np.eye(3)
+        for k in range(n - 1):
+            P = Rm[k] @ P
+        return np.degrees(so3.angle(Rm[n - 1].T @ P))
+
+    for turn_deg, flagged in ((1.5, False), (6.0, True)):
+        Rt = Rm.copy()
+        Rt[3] = so3.exp(np.deg2rad([0, 0, turn_deg])) @ Rt[3]
+        chk = check_view_graph(_vg(E, Rt, n))
+        assert chk.kept.all() and chk.confirmed.all()
+        assert np.allclose(chk.confirm_deg, closing_deg(Rt), atol=1e-6) and closing_deg(Rt) == pytest.approx(turn_deg)
+        fl = graph_flags(E, n, chk.kept, chk.confirmed, chk.inconsistent, [f"c{k:02d}" for k in range(n)],
+                         confirm_deg=chk.confirm_deg, confirm_max_deg=ViewGraphConfig().confirm_max_deg)
+        assert (len(fl.cameras) == n and all("confirmed only loosely" in v[0] for v in fl.cameras.values())) if flagged \
+            else not fl.cameras
+    # a pair no cycle confirms has no such figure
+    chk = check_view_graph(_vg(np.array([[0, 1], [1, 2]]), Rm[:2], 3))
+    assert not chk.confirmed.any() and np.all(np.isinf(chk.confirm_deg))

@@ -53,3 +53,46 @@ def test_rejected_pairs_and_the_cameras_considered():
     assert set(fl.cameras) == {1} and fl.n_cycles == 1
     fl = graph_flags(E, 5, kept, np.zeros(7, bool), rej, NAMES, cycles_checked=False)
     assert not any("unconfirmed" in w for v in fl.cameras.values() for w in v) and not fl.messages
+
+
+def test_a_camera_with_a_pair_confirmed_only_by_cycles_that_close_wide_is_flagged_naming_it():
+    # two triangles sharing camera 2: 0-1-2 confirmed at 0.4°, 2-3-4 only at 6.3° and 7.0°
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [2, 4]])
+    kept = np.ones(6, bool)
+    cd = np.array([0.4, 0.4, 0.4, 6.3, 7.0, 6.3])
+    fl = graph_flags(E, 5, kept, kept.copy(), np.zeros(6, bool), NAMES, confirm_deg=cd, confirm_max_deg=5.0)
+    assert set(fl.cameras) == {2, 3, 4}  # camera 2 too: two of its pairs are loose, though one of 0-1-2 is tight
+    assert fl.cameras[3] == ["2 of its pairs (c2, c3), (c3, c4) are confirmed only loosely (the tightest cycle "
+                             "through each closes at 6.3°, 7.0°, > 5°): such a pair may be degrees off and pull "
+                             "this rotation"]
+    assert fl.cameras[2][0].startswith("2 of its pairs (c2, c3), (c2, c4) are")
+    # at a wider tolerance, or without the figures, nothing is flagged; one loose pair is named alone
+    assert not graph_flags(E, 5, kept, kept.copy(), np.zeros(6, bool), NAMES, confirm_deg=cd,
+                           confirm_max_deg=7.5).cameras
+    assert not graph_flags(E, 5, kept, kept.copy(), np.zeros(6, bool), NAMES).cameras
+    fl = graph_flags(E, 5, kept, kept.copy(), np.zeros(6, bool), NAMES, confirm_deg=cd, confirm_max_deg=6.5)
+    assert set(fl.cameras) == {3, 4} and fl.cameras[4] == [
+        "its pair (c3, c4) is confirmed only loosely (the tightest cycle through it closes at 7.0°, > 6.5°): such a "
+        "pair may be degrees off and pull this rotation"]
+    # an unconfirmed pair is not "loosely confirmed": its cameras keep their own reason
+    conf = np.array([1, 1, 1, 0, 0, 0], bool)
+    fl = graph_flags(E, 5, kept, conf, np.zeros(6, bool), NAMES, confirm_deg=np.where(conf, cd, np.inf))
+    assert all("loosely" not in w for v in fl.cameras.values() for w in v)
+    assert all(any("unconfirmed" in w for w in fl.cameras[k]) for k in (3, 4))
+    # the pairs of the cameras asked about only: (3, 4) is not one, so camera 3 is flagged for its lone pair alone
+    fl = graph_flags(E, 5, kept, kept.copy(), np.zeros(6, bool), NAMES, cameras=np.array([1, 1, 1, 1, 0], bool),
+                     confirm_deg=cd, confirm_max_deg=6.5)
+    assert set(fl.cameras) == {3} and not any("loosely" in w for w in fl.cameras[3])
+
+
+def test_a_scene_whose_cycles_close_wider_than_its_pairs_claim_says_so():
+    from pipeline.graph.checks import ViewGraphConfig
+    from pipeline.graph.stage import overconfidence_message
+
+    cfg = ViewGraphConfig()  # h_inflation 3: κ up to 3 is what the checks assume
+    assert overconfidence_message(1.0, cfg) == overconfidence_message(9.0, cfg) == []
+    assert overconfidence_message(None, cfg) == overconfidence_message(float("nan"), cfg) == []
+    (msg,) = overconfidence_message(16.0, cfg)
+    assert msg.startswith("the pairs' short cycles close 4.0× wider than their two-view precisions (H) claim, beyond "
+                          "the 3× the checks assume") and "(to at most 10°)" in msg
+    assert overconfidence_message(16.0, ViewGraphConfig(h_inflation=4.5)) == []

@@ -200,3 +200,22 @@ def test_colocation_witnesses_from_4_cycles():
 def test_group_median():
     c, m = group_median(np.array([2, 0, 2, 2, 0]), np.array([5.0, 1.0, 1.0, 3.0, 2.0]), 4)
     assert c.tolist() == [2, 0, 3, 0] and m[0] == 1.5 and m[2] == 3.0 and np.isnan(m[[1, 3]]).all()
+
+
+def test_each_confirmed_edge_knows_its_tightest_consistent_cycle():
+    # K4 with exact rotations but edge (0, 1) turned 3°: every cycle through it closes at 3°, the triangle 1-2-3
+    # and the 4-cycles avoiding it close at 0; with a threshold above 3° all are consistent
+    R = so3.random_rotations(4, np.random.default_rng(5))
+    E = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
+    Rm = R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2)
+    Rm[0] = so3.exp(np.deg2rad([0, 3.0, 0])) @ Rm[0]
+    res = cycle_filter(E, Rm, 4, np.full(6, 2.0), max_len=3, calibrate=False)
+    assert res.kept.all() and res.confirmed.all()
+    by_angle = {tuple(sorted(e[e >= 0].tolist())): a for e, a in zip(res.cycles.edges, res.angles)}
+    for k in range(6):  # the definition: the smallest angle among the consistent cycles through the edge
+        assert res.confirm_deg[k] == pytest.approx(min(a for c, a in by_angle.items() if k in c), abs=1e-12)
+    assert res.confirm_deg[0] == pytest.approx(3.0, abs=1e-6)
+    assert np.all(res.confirm_deg[1:] < 1e-6)
+    # a tighter threshold: the cycles through (0, 1) are inconsistent; it is confirmed by none
+    res = cycle_filter(E, Rm, 4, np.full(6, 0.2), max_len=3, calibrate=False, min_deg=1.0, max_deg=2.0)
+    assert not res.confirmed[0] and res.confirm_deg[0] == np.inf
