@@ -9,11 +9,14 @@ adds the error-against-time curves, writes ``OUT/report.md`` (and its plots);
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from pipeline.averaging.convergence import error_vs_time_curves
 from pipeline.core.atomic import write_json
@@ -24,7 +27,7 @@ from pipeline.evaluation.flags import evidence_console, method_disagreement, run
 from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
 from pipeline.reference.types import Reference
 
-__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "OUR_PATH"]
+__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json", "OUR_PATH"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
 OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
@@ -79,6 +82,10 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
     intrinsics = _intrinsics(plan.work)
     metrics["evidence"] = _evidence(plan.out, intrinsics, metrics["methods"], results)
+    guessed = _guessed_focal(intrinsics)  # a note of report.md too: said before the report is written
+    if guessed:
+        plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
+                          "determined theirs (cameras.json: estimate); they are flagged")
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs, intrinsics)
@@ -146,14 +153,10 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
     metrics["intrinsics"] = ev.intrinsics
-    guessed = _guessed_focal(ev.intrinsics)
-    if guessed:
-        plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
-                          "determined theirs (cameras.json: estimate); they are flagged")
     metrics["pairs"] = pairs_section(plan.work)
     metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
-    path = write_json(plan.out / "metrics.json", metrics)
+    path = write_json(plan.out / "metrics.json", finite_json(metrics))
     unsolved = _unsolved_line(left_out)  # every run says it, a resumed one too (the stages that found it may not run)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
@@ -169,6 +172,20 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         lines = [ln for ln in evidence_console(metrics.get("evidence") or {}).splitlines() if not ln.startswith("†")]
         print("\n".join(lines + ([unsolved] if unsolved else []) + [f"metrics: {path}"]), file=sys.stderr, flush=True)
     return path
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float as None: metrics.json is strict JSON (NaN and Infinity are not JSON,
+    and most readers refuse them); null means "not defined" (an estimate made from no pair, an undefined bound)."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_json(obj.tolist())
+    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
+        return None
+    return obj
 
 
 def _unsolved_line(left_out: dict[str, str], limit: int = 5) -> str:

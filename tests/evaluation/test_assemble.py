@@ -1,0 +1,82 @@
+"""pipeline.evaluation.assemble: what report.md, metrics.json and the console say of one run agree with each other.
+
+Each test runs the evaluation, the report and metrics.json of a tiny run (4 cameras, rotation files written here,
+the stages before stubbed), in a fraction of a second.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.evaluation import assemble
+from pipeline.io.rotations import write_rotations
+from pipeline.reference import Reference
+
+NAMES = [f"v{k}.png" for k in range(4)]
+EDGES = np.array([[0, 1], [1, 2], [2, 3], [0, 3], [0, 2]])
+
+
+def _strict(text: str) -> dict:
+    """JSON as a strict reader reads it: NaN and Infinity are not JSON."""
+    def bad(token: str) -> None:
+        raise ValueError(f"{token} is not JSON")
+    return json.loads(text, parse_constant=bad)
+
+
+def _run(tmp_path: Path, monkeypatch, stats: dict[str, dict], intrinsics: dict | None = None, truth: bool = True,
+         quiet: bool = False) -> tuple[str, dict, Path]:
+    """Evaluate, report and write metrics.json for methods ``{label: stats}`` (each a small rotation error);
+    returns report.md's text, metrics.json (read strictly) and the output folder."""
+    rng = np.random.default_rng(1)
+    R = so3.exp(rng.normal(size=(4, 3)))
+    vg = ViewGraph.from_absolute(NAMES, R, EDGES)
+    results = {}
+    for k, (label, s) in enumerate(stats.items()):
+        noisy = so3.exp(np.deg2rad(0.1 * (k + 1)) * rng.normal(size=(4, 3))) @ R
+        path = write_rotations(tmp_path / "rotations" / f"{label}.txt", NAMES, noisy)
+        results[label] = {"rotations": path, "stats": dict(s)}
+    monkeypatch.setattr(assemble, "_intrinsics", lambda work: intrinsics or {})
+    monkeypatch.setattr("pipeline.frontend.feature_stage.load_manifest", lambda work: {"names": list(NAMES)})
+    plan = SimpleNamespace(out=tmp_path, work=tmp_path / "work", notes=["a note"], images=tmp_path / "images",
+                           gt=None, K=None, quiet=quiet, truth=Reference(NAMES, R, label="truth") if truth else None,
+                           run=SimpleNamespace(align="l2", plots=False, as_dict=lambda: {}))
+    runner = SimpleNamespace(times={"features": 1.0}, reused={})
+    ev = assemble.evaluate_run(plan, vg, results, None)
+    assemble.write_report_md(plan, ev, [], results, vg, runner)
+    path = assemble.write_metrics(plan, ev, vg, {}, runner, 0.0)
+    return (tmp_path / "report.md").read_text(), _strict(path.read_text()), tmp_path
+
+
+def _report_notes(text: str) -> list[str]:
+    notes = text.split("## Notes\n\n", 1)[1] if "## Notes" in text else ""
+    return [ln[2:] for ln in notes.splitlines() if ln.startswith("- ")]
+
+
+def test_metrics_json_is_strict_json_where_a_figure_is_not_a_number(tmp_path, monkeypatch) -> None:
+    """A certificate's undefined eigenvalue and an estimate made from no pair are NaN in the stages' records:
+    metrics.json writes them as null, which every JSON reader reads (NaN is not JSON)."""
+    intr = {"focal": [{"source": "default", "n_images": 4, "median_px": 768.0, "min_px": 768.0, "max_px": 768.0}],
+            "estimates": [{"n_images": 4, "focal": {"f": float("nan"), "sd_rel": float("inf"), "n_pairs": 0}}]}
+    _, m, out = _run(tmp_path, monkeypatch, {"irls": {"certificate": {"lambda_nontrivial": float("nan")}}}, intr)
+    assert m["methods"]["irls"]["certificate"]["lambda_nontrivial"] is None
+    assert m["intrinsics"]["estimates"][0]["focal"] == {"f": None, "sd_rel": None, "n_pairs": 0}
+    assert "NaN" not in (out / "metrics.json").read_text()
+
+
+def test_the_report_has_every_note_of_metrics_json(tmp_path, monkeypatch) -> None:
+    """The note that the focal lengths stayed the default guess was added after report.md was written: in
+    metrics.json only."""
+    per = {n: {"source": "default"} for n in NAMES}
+    intr = {"focal": [{"source": "default", "n_images": 4, "median_px": 768.0, "min_px": 768.0, "max_px": 768.0}],
+            "per_image": per}
+    text, m, _ = _run(tmp_path, monkeypatch, {"irls": {}}, intr)
+    assert any("default focal guess" in n for n in m["notes"])
+    assert _report_notes(text) == m["notes"]
