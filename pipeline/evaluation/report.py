@@ -239,21 +239,45 @@ def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
         if d["source"] != "none":
             lines.append(f"- distortion of {d['n_images']} image(s): {', '.join(d['models'])} "
                          f"{[list(p) for p in d['extra_params']]} ({d['source']})")
+    said: dict[tuple[str, str], list[int]] = {}  # one line per statement, with how many cameras (groups) it is of
     for g in intr.get("estimates", []):
         for key in ("focal", "radial"):
-            note = (g.get(key) or {}).get("note")
-            if note:
-                lines.append(f"- {key}: {note}")
+            text = _estimate_text(key, g.get(key) or {})
+            if text:
+                said.setdefault((key, text), []).append(int(g.get("n_images", 0)))
+    for (key, text), sizes in said.items():
+        lines.append(f"- {key} of {len(sizes)} camera{'s' if len(sizes) > 1 else ''} ({sum(sizes)} images): {text}")
     return lines + ([""] if lines[-1] else [])
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _estimate_text(key: str, e: dict[str, Any]) -> str:
+    """What the cameras stage's estimate of ``key`` (focal or radial) of one camera says: its value, how many pairs
+    and how well determined (the jackknife sd); "not estimated" when it made none."""
+    note = e.get("note") or ""
+    if key == "focal" and e:
+        if not _finite(e.get("f")):
+            return f"not estimated: {note}" if note else "not estimated"
+        sd = f", jackknife sd {100 * e['sd_rel']:.1f}%" if _finite(e.get("sd_rel")) else ""
+        return f"{e['f']:.1f} px from {e.get('n_pairs')} pairs{sd}" + (f": {note}" if note else "")
+    if not note:
+        return ""
+    return f"not estimated: {note}" if e.get("n_pairs") == 0 else note
 
 
 def intrinsics_console(intr: dict[str, Any]) -> str:
     """One console line: the focal used (its median and, where the images' differ, their range) and its source."""
     parts = [f"{f['median_px']:.1f} px" + ("" if f["min_px"] == f["max_px"] else f" ({f['min_px']:.1f}–{f['max_px']:.1f})")
              + f" ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
-    weak = [g["focal"] for g in intr.get("estimates", []) if (g.get("focal") or {}).get("determined") is False]
+    est = [g["focal"] for g in intr.get("estimates", []) if g.get("focal")]
+    weak = [e for e in est if e.get("determined") is False and _finite(e.get("f"))]
     sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" for w in weak)
     parts += [f"POORLY DETERMINED for {len(weak)} camera group(s) (jackknife sd {sds})"] if weak else []
+    none = sum(not _finite(e.get("f")) for e in est)  # an estimate made from no pair: the start value was kept
+    parts += [f"NOT ESTIMATED for {none} camera group(s) (their start focal kept)"] if none else []
     return "focal: " + "; ".join(parts) if parts else ""
 
 

@@ -110,3 +110,25 @@ def test_the_focal_line_gives_the_range_where_the_images_focal_lengths_differ():
     K[:, 0, 0] = 560.0
     one = [{"source": "file:K.txt"} | v for v in focal_summary(K, ["file:K.txt"] * 27).values()]
     assert intrinsics_console({"focal": one}) == "focal: 560.0 px (file:K.txt, 27 images)"
+
+
+def test_the_intrinsics_say_a_note_shared_by_several_cameras_once_with_a_count():
+    """Ten one-image cameras, none with a usable pair: the section said "- focal: 0 usable pairs < min_pairs=3" and
+    the same of the radial term ten times each."""
+    nan = float("nan")
+    one = {"n_images": 1, "focal": {"f": nan, "n_pairs": 0, "note": "0 usable pairs < min_pairs=3", "determined": True},
+           "radial": {"n_pairs": 0, "note": "0 usable pairs < min_pairs=3"}}
+    weak = {"n_images": 16, "focal": {"f": 1537.2, "n_pairs": 27, "sd_rel": 0.374, "determined": False,
+                                      "note": "focal poorly determined: leaving one image out moves it by 37.4%"},
+            "radial": {"n_pairs": 29, "note": ""}}
+    focal = [{"source": "default", "n_images": 10, "median_px": 1738.2, "min_px": 1311.6, "max_px": 2596.8}]
+    lines = intrinsics_lines({"focal": focal, "estimates": [dict(one) for _ in range(10)] + [weak]})
+    notes = [ln for ln in lines if ln.startswith("- ")]
+    assert notes == ["- focal of 10 cameras (10 images): not estimated: 0 usable pairs < min_pairs=3",
+                     "- radial of 10 cameras (10 images): not estimated: 0 usable pairs < min_pairs=3",
+                     "- focal of 1 camera (16 images): 1537.2 px from 27 pairs, jackknife sd 37.4%: focal poorly "
+                     "determined: leaving one image out moves it by 37.4%"]
+    # an estimate made from no pair is not "determined": the console says how many cameras kept their start value
+    line = intrinsics_console({"focal": focal, "estimates": [dict(one) for _ in range(10)] + [weak]})
+    assert line.endswith("POORLY DETERMINED for 1 camera group(s) (jackknife sd 37.4%); NOT ESTIMATED for 10 camera "
+                         "group(s) (their start focal kept)")
