@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "GUESSED_FOCAL", "method_disagreement", "run_evidence",
-           "evidence_markdown", "evidence_console"]
+           "evidence_markdown", "evidence_console", "certificate_cell", "certificate_statements"]
 
 #: Methods that disagree by more than this on a camera (degrees) flag it: at least one of them is wrong there by
 #: half as much or more, so the camera's rotation is not known to this accuracy. It is the accuracy an unflagged
@@ -117,7 +117,7 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
     for p in graph.get("pairs", []):
         key = p.get("status", "?") if p.get("status") == "kept" else f"rejected at {p.get('step', '?')}"
         counts[key] = counts.get(key, 0) + 1
-    certified = [k for k, m in methods.items() if "certified" in m or (m.get("evidence") or {}).get("verdict")]
+    certified = [k for k, m in methods.items() if certificate_cell(m)]
     return {"messages": list(graph.get("messages", [])), "flags": {n: flags[n] for n in sorted(flags)},
             "cameras": cameras, "n_flagged": len(flags), "n_cycles": graph.get("n_cycles"),
             "left_out": dict(graph.get("left_out") or {}), "pairs": counts,
@@ -164,5 +164,51 @@ def evidence_console(ev: dict[str, Any], limit: int = 10) -> str:
     msgs, items = _lines(ev, limit)
     out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {i}" for i in items]
     if ev.get("certificate_note"):
-        out.append(f"† {ev['certificate_note']}")
+        out.append(f"† {ev['certificate_note']} (for which cost and edges: report.md, \"Certificates\")")
     return "\n".join(out)
+
+
+def _edge_counts(m: dict[str, Any]) -> tuple[Any, Any]:
+    """The edges a method's certificate is about: (how many it used, of how many)."""
+    c = m.get("certificate") or {}
+    used = c.get("n_weighted_edges", c.get("n_kept"))
+    total = c.get("n_edges")
+    if total is None and used is not None and c.get("n_rejected") is not None:
+        total = used + c["n_rejected"]
+    return used, total if total is not None else m.get("n_edges")
+
+
+def certificate_cell(m: dict[str, Any], short: bool = False) -> str:
+    """A method's certificate in a table cell: its verdict and the edges it is about (``short``: for the console);
+    "" without one. Its cost is in its statement (:func:`certificate_statements`)."""
+    c = m.get("certificate") or {}
+    if "certified" in m:
+        verdict = "certified" if m["certified"] else "NOT certified"
+    elif c.get("verdict"):
+        verdict = str(c["verdict"])
+    else:
+        return ""
+    used, total = _edge_counts(m)
+    if used is not None and total is not None:
+        verdict += f" on {used}/{total} edges" if short else f" on {used} of {total} edges"
+    if short:
+        return verdict + " †"
+    extra = []
+    if "rank" in m or "rank" in c:
+        extra.append(f"rank {m.get('rank', c.get('rank'))}")
+    if isinstance(c.get("gap_vs_resolution"), (int, float)):  # what the verdict rests on (the relative gap is to
+        extra.append(f"gap {c['gap_vs_resolution']:.2g}× the cost's resolution")  # a constant offset of the cost)
+    elif isinstance(c.get("rel_gap_bound"), (int, float)):
+        extra.append(f"relative gap ≤ {c['rel_gap_bound']:.2g}")
+    return verdict + (f" ({', '.join(extra)})" if extra else "") + " †"
+
+
+def certificate_statements(methods: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """``{method: statement}``: what each method's certificate proves, for which cost on which edges (the
+    averaging stage's statement), for the methods that have one."""
+    out = {}
+    for label, m in methods.items():
+        st = (m.get("certificate") or {}).get("statement") or (m.get("evidence") or {}).get("statement")
+        if st and ("certificate" in m or "certified" in m):
+            out[label] = str(st)
+    return out

@@ -22,7 +22,7 @@ from pipeline.core.names import rows_by_name
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
 from pipeline.evaluation.compare import subset_prefix
-from pipeline.evaluation.flags import CERTIFICATE_NOTE, evidence_markdown
+from pipeline.evaluation.flags import CERTIFICATE_NOTE, certificate_cell, certificate_statements, evidence_markdown
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
@@ -32,7 +32,8 @@ __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summar
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
-METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg")
+METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg",
+                 "certificate", "n_edges")
 #: The report's row of each pycolmap peer (by its label in the metrics).
 PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 
@@ -61,6 +62,7 @@ class ReportData:
         stages: ``{stage: seconds}``.
         evidence: the "Evidence" section (markdown lines, :func:`pipeline.evaluation.flags.evidence_markdown`):
             graph messages, flagged cameras with the reason, what a certificate proves.
+        certificates: ``{method: statement}``: what each certificate proves, for which cost on which edges.
         title: report title.
     """
 
@@ -76,6 +78,7 @@ class ReportData:
     sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
     evidence: list[str] = field(default_factory=list)
+    certificates: dict[str, str] = field(default_factory=dict)
     title: str = "Rotation averaging report"
     intrinsics: dict[str, Any] = field(default_factory=dict)
 
@@ -99,10 +102,7 @@ def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
-        cert = ""
-        if "certified" in m:  # † : what it proves and what it does not, under the table and in "Evidence"
-            cert = ("certified" if m["certified"] else "NOT certified") + (
-                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "") + " †"
+        cert = certificate_cell(m)  # † : for which cost (section "Certificates") and what it does not prove
         if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
@@ -147,7 +147,8 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
         metrics=table, camera_errors=camera_errors, edge_errors=edge_errors, histories=histories,
         vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
         notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages,
-        evidence=evidence_markdown(metrics.get("evidence") or {}), title=title)
+        evidence=evidence_markdown(metrics.get("evidence") or {}),
+        certificates=certificate_statements(metrics["methods"]), title=title)
     if not plots_on:
         data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
     return data
@@ -194,10 +195,13 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
         lines += [f"| **total** | {total:.2f} |", ""]
     lines += data.evidence
+    if data.certificates:
+        lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
+        lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
         lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
-        if any("certified" in m for m in rows.values()):
-            lines += [f"† {CERTIFICATE_NOTE} (see \"Evidence\").", ""]
+        if any(certificate_cell(m) for m in rows.values()):
+            lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)
         if errs:
             p = plots.plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)
@@ -293,9 +297,7 @@ def summary_table(metrics: dict[str, Any]) -> str:
     """The final console table of a run: one row per method and reference, and each pycolmap peer's own."""
     rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
     for label, m in metrics["methods"].items():
-        note = ""
-        if "certified" in m:  # † : optimal for its cost, not a check of the pairs (printed under the table)
-            note = "certified †" if m["certified"] else "NOT certified †"
+        note = certificate_cell(m, short=True)  # † : optimal for its cost, not a check of the pairs (under the table)
         if m.get("method") == "refine":
             note = f"refine {m['status']}"
         for rname, s in m.get("references", {}).items():

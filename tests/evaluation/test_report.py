@@ -132,3 +132,40 @@ def test_the_intrinsics_say_a_note_shared_by_several_cameras_once_with_a_count()
     line = intrinsics_console({"focal": focal, "estimates": [dict(one) for _ in range(10)] + [weak]})
     assert line.endswith("POORLY DETERMINED for 1 camera group(s) (jackknife sd 37.4%); NOT ESTIMATED for 10 camera "
                          "group(s) (their start focal kept)")
+
+
+SDP_CERT = {"certified": True, "rank": 3, "gap": 5.4e-08, "gap_vs_resolution": 0.009, "kappa": 0.01, "n_kept": 13,
+            "n_rejected": 0, "statement": "globally optimal for the anisotropic cost with irls-h's final precisions on "
+                                          "13 of 13 edges; it proves optimality for that cost on that edge set, not "
+                                          "accuracy"}
+IRLS_CERT = {"verdict": "verified", "n_edges": 50, "n_weighted_edges": 48, "rel_gap_bound": 0.003,
+             "statement": "verified: globally optimal for the final reweighted least-squares cost of IRLS-l0.5 on 48 "
+                          "of 50 edges; it proves optimality for that cost on that edge set, not accuracy"}
+
+
+def test_a_certificate_says_on_which_edges_and_its_statement_names_the_cost():
+    """The cell said "certified (rank 3, gap 5.4e-08)": no edge set, no cost, and a gap relative to a constant offset
+    of the cost (1.7e6 on castle) where the verdict rests on 0.009× the cost's resolution; IRLS's verified
+    certificates were not shown at all."""
+    rows = {"sdp-cso3": _summary(0.1, certified=True, rank=3, gap=5.4e-08, certificate=SDP_CERT),
+            "irls-l0.5": _summary(0.1, certificate=IRLS_CERT), "colmap-ra": _summary(0.2)}
+    cells = {ln.split(" | ")[0][2:]: ln.split(" | ")[-1] for ln in metrics_table(rows)[2:]}
+    assert cells["sdp-cso3"] == "certified on 13 of 13 edges (rank 3, gap 0.009× the cost's resolution) † |"
+    assert cells["irls-l0.5"] == "verified on 48 of 50 edges (relative gap ≤ 0.003) † |"
+    assert cells["colmap-ra"] == " |"
+    data = ReportData(metrics={"truth": rows},
+                      certificates={"sdp-cso3": SDP_CERT["statement"], "irls-l0.5": IRLS_CERT["statement"]})
+    text = write_report_text(data)
+    sec = text.split("## Certificates\n", 1)[1].split("\n## ", 1)[0]
+    assert f"| sdp-cso3 | {SDP_CERT['statement']} |" in sec and f"| irls-l0.5 | {IRLS_CERT['statement']} |" in sec
+    from pipeline.evaluation.report import summary_table
+    table = summary_table({"methods": {k: {**v, "references": {"truth": v}} for k, v in rows.items()}})
+    assert "certified on 13/13 edges †" in table and "verified on 48/50 edges †" in table
+
+
+def write_report_text(data: ReportData) -> str:
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        return write_report(Path(d), data).read_text()
