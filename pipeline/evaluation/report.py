@@ -98,7 +98,7 @@ def _fmt(v: Any, f: str) -> str:
 
 def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
     """Markdown table lines of ``{method: summary}``."""
-    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "σ pred °", "certificate / status"]
+    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "BA σ ° ‡", "certificate / status"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
@@ -110,6 +110,17 @@ def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
                  cert]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+def sigma_note(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """The ‡ line under a table with a predicted σ: what it is, and how the measured median error compares."""
+    have = {k: m for k, m in rows.items() if _finite(m.get("sigma_median_deg")) and m["sigma_median_deg"] > 0}
+    if not have:
+        return []
+    ratios = [f"{m['median_deg'] / m['sigma_median_deg']:.2g}× it" + (f" ({k})" if len(have) > 1 else "")
+              for k, m in have.items() if _finite(m.get("median_deg"))]
+    return ["‡ BA σ: a precision under pycolmap's model, not an accuracy"
+            + (f"; measured median error {', '.join(ratios)}." if ratios else ".") + " (\"Refinement\")", ""]
 
 
 def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: dict, edge_errors: dict,
@@ -175,10 +186,18 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
                  "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge).", "",
                  f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | not refined: why |",
                  "|---|---|---|---|---|"]
+        over, n = 0, 0
         for k, nm in enumerate(sigma):
             e = errs[k] if errs is not None and k < len(errs) else None
-            lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sigma[nm], '{:.4f}')} | "
+            sd = None if nm in kept else sigma[nm]  # the model's σ is not that of a rotation it did not refine
+            if _finite(e) and _finite(sd):
+                n, over = n + 1, over + int(e > 3 * sd)
+            lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sd, '{:.4f}')} | "
                          f"{_fmt(change.get(nm), '{:.4f}')} | {kept.get(nm, '')} |")
+        if n:
+            lines += ["", f"Measured: {over} of {n} refined cameras are more than 3σ off against {ref}: σ is how "
+                      "precise the rotations are if the model (K, matches, kept pairs) is right, not how accurate "
+                      "they are."]
         out[f"Refinement ({label})"] = lines + [""]
     return out
 
@@ -199,7 +218,7 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
-        lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
+        lines += [f"## Against {ref}", "", *metrics_table(rows), "", *sigma_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
             lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)

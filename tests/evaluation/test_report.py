@@ -169,3 +169,29 @@ def write_report_text(data: ReportData) -> str:
 
     with tempfile.TemporaryDirectory() as d:
         return write_report(Path(d), data).read_text()
+
+
+def test_a_predicted_sigma_is_not_shown_as_an_accuracy():
+    """fountain: the refined row's "σ pred °" 0.0022 beside a measured median error of 0.027° (12×); castle: a camera
+    not refined (its rotation chained from a neighbour) showed the model's σ as if it were its own."""
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.report import report_data
+    from pipeline.reference import Reference
+
+    names = [f"v{k}.png" for k in range(4)]
+    R = np.broadcast_to(np.eye(3), (4, 3, 3))
+    vg = ViewGraph.from_absolute(names, R, np.array([[0, 1], [1, 2], [2, 3], [0, 3]]))
+    s = _summary(0.027)
+    refine = {**s, "method": "refine", "status": "partial", "n_refined": 3, "n_cameras": 4, "sigma_median_deg": 0.0022,
+              "uncertainty_deg": {"v0.png": 0.002, "v1.png": 0.0022, "v2.png": 0.0025, "v3.png": 0.0021},
+              "kept_averaged": {"v3.png": "chained from refined neighbours"}, "references": {"truth": s}}
+    metrics = {"methods": {"x+refine": refine}}
+    errs = {"truth": {"x+refine": np.array([0.027, 0.001, 0.03, 2.0])}}
+    d = report_data(metrics, [Reference(names, R, label="truth")], errs, {}, {}, vg, [], {}, "t", plots_on=False)
+    text = write_report_text(d)
+    table = text.split("## Against truth", 1)[1].split("\n## ", 1)[0]
+    assert "σ pred" not in table and "| BA σ ° ‡ |" in table.splitlines()[2]
+    assert "‡ BA σ: a precision under pycolmap's model, not an accuracy; measured median error 12× it." in table
+    sec = text.split("## Refinement (x+refine)", 1)[1]
+    assert "| v3.png | 2.0000 | – | – | chained from refined neighbours |" in sec
+    assert "2 of 3 refined cameras are more than 3σ off against truth" in sec
