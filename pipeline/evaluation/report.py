@@ -194,6 +194,10 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
                 n, over = n + 1, over + int(e > 3 * sd)
             lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sd, '{:.4f}')} | "
                          f"{_fmt(change.get(nm), '{:.4f}')} | {kept.get(nm, '')} |")
+        said = {f"{nm}: {why}" for nm, why in kept.items()}  # in the camera's row
+        warns = [w for w in m.get("warnings") or [] if w not in said]
+        if warns:
+            lines += ["", "Warnings of the refinement:", "", *[f"- {w}" for w in warns]]
         if n:
             lines += ["", f"Measured: {over} of {n} refined cameras are more than 3σ off against {ref}: σ is how "
                       "precise the rotations are if the model (K, matches, kept pairs) is right, not how accurate "

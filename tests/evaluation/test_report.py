@@ -195,3 +195,18 @@ def test_a_predicted_sigma_is_not_shown_as_an_accuracy():
     sec = text.split("## Refinement (x+refine)", 1)[1]
     assert "| v3.png | 2.0000 | – | – | chained from refined neighbours |" in sec
     assert "2 of 3 refined cameras are more than 3σ off against truth" in sec
+
+
+def test_the_refinement_section_gives_the_refinements_warnings():
+    """castle (internet): "0027.jpg: refined rotation 13.73° from the averaged one ...", "the focal length of 3
+    camera(s) is weakly determined" and "1 of 13 pairs ... not used" were in metrics.json only."""
+    from pipeline.evaluation.report import _refine_sections
+
+    warns = ["1 of 13 pairs disagree with the averaged rotations by more than 5.0° and are not used",
+             "0027.jpg: refined rotation 13.73° from the averaged one (> max_change_deg = 5.0°)",
+             "0026.jpg: 0 3D points in the final model (< 20)"]
+    m = {"method": "refine", "status": "partial", "uncertainty_deg": {"0026.jpg": 0.25, "0027.jpg": 1.2},
+         "kept_averaged": {"0026.jpg": "0 3D points in the final model (< 20)"}, "warnings": warns}
+    sec = _refine_sections({"methods": {"x+refine": m}}, [], {})["Refinement (x+refine)"]
+    assert f"- {warns[0]}" in sec and f"- {warns[1]}" in sec
+    assert not any(ln.startswith("- 0026.jpg") for ln in sec)  # said in its row ("not refined: why")
