@@ -119,7 +119,19 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     data = report_data(metrics, refs, ev.camera_errors, ev.edge_errors, histories, vg, plan.notes, stages,
                        f"Rotations of {plan.images}", plan.run.plots)
     data.intrinsics = ev.intrinsics
+    data.n_images = _n_images(plan.work)
     return write_report(plan.out, data)
+
+
+def _n_images(work: Path) -> int | None:
+    """The run's images: those the features stage read and those it skipped (None without its manifest)."""
+    from pipeline.frontend.feature_stage import load_manifest  # noqa: PLC0415
+
+    try:
+        m = load_manifest(work)
+    except (PipelineError, OSError):
+        return None
+    return len(m["names"]) + len(m.get("skipped") or [])
 
 
 def pairs_section(work: Path) -> dict[str, Any]:

@@ -63,6 +63,7 @@ class ReportData:
         evidence: the "Evidence" section (markdown lines, :func:`pipeline.evaluation.flags.evidence_markdown`):
             graph messages, flagged cameras with the reason, what a certificate proves.
         certificates: ``{method: statement}``: what each certificate proves, for which cost on which edges.
+        n_images: the run's images (the tables' cameras are counted of these), or None.
         title: report title.
     """
 
@@ -79,6 +80,7 @@ class ReportData:
     stages: dict[str, float] = field(default_factory=dict)
     evidence: list[str] = field(default_factory=list)
     certificates: dict[str, str] = field(default_factory=dict)
+    n_images: int | None = None
     title: str = "Rotation averaging report"
     intrinsics: dict[str, Any] = field(default_factory=dict)
 
@@ -96,9 +98,11 @@ def _fmt(v: Any, f: str) -> str:
         return str(v)
 
 
-def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
-    """Markdown table lines of ``{method: summary}``."""
-    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "BA σ ° ‡", "certificate / status"]
+def metrics_table(rows: dict[str, dict[str, Any]], n_images: int | None = None) -> list[str]:
+    """Markdown table lines of ``{method: summary}``; ``n_images``: the run's images (the cameras column says of
+    how many)."""
+    keys = [h if k != "n_evaluated" or not n_images else f"{h} of {n_images}" for k, h, _ in TABLE_KEYS]
+    head = ["method", *keys, "≤1°", "≤5°", "time s", "BA σ ° ‡", "certificate / status"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
@@ -222,7 +226,7 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
-        lines += [f"## Against {ref}", "", *metrics_table(rows), "", *sigma_note(rows)]
+        lines += [f"## Against {ref}", "", *metrics_table(rows, data.n_images), "", *sigma_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
             lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)
@@ -318,7 +322,9 @@ def _f(v: Any, nd: int = 3) -> str:
 
 def summary_table(metrics: dict[str, Any]) -> str:
     """The final console table of a run: one row per method and reference, and each pycolmap peer's own."""
-    rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
+    inp = metrics.get("input") or {}  # every image of the folder: those the features stage skipped too
+    n = inp["n_images"] + (inp.get("n_skipped") or 0) if inp.get("n_images") else None
+    rows = [("method", "reference", f"cams/{n}" if n else "cams", "median°", "mean°", "max°", "time s", "note")]
     for label, m in metrics["methods"].items():
         note = certificate_cell(m, short=True)  # † : optimal for its cost, not a check of the pairs (under the table)
         if m.get("method") == "refine":

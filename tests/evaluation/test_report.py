@@ -210,3 +210,19 @@ def test_the_refinement_section_gives_the_refinements_warnings():
     sec = _refine_sections({"methods": {"x+refine": m}}, [], {})["Refinement (x+refine)"]
     assert f"- {warns[0]}" in sec and f"- {warns[1]}" in sec
     assert not any(ln.startswith("- 0026.jpg") for ln in sec)  # said in its row ("not refined: why")
+
+
+def test_the_camera_counts_say_of_how_many_images():
+    """castle (internet), 10 images: our methods scored 8 (the view graph's largest component), pycolmap 9, GLOMAP
+    10; "cams 8" beside "cams 10" did not say that two images were not solved at all."""
+    from pipeline.evaluation.report import summary_table
+
+    rows = {"irls-l0.5": _summary(10.5) | {"n_evaluated": 8}, "pycolmap (global, GLOMAP)": _summary(14.2) | {
+        "n_evaluated": 10}}
+    text = write_report_text(ReportData(metrics={"truth": rows}, n_images=10))
+    head = text.split("## Against truth", 1)[1].split("\n")[2]
+    assert head.startswith("| method | cams of 10 |")
+    s = _summary(10.5) | {"n_evaluated": 8}
+    table = summary_table({"methods": {"irls-l0.5": {**s, "references": {"truth": s}}}, "input": {"n_images": 10}})
+    assert table.splitlines()[0].split()[:3] == ["method", "reference", "cams/10"]
+    assert table.splitlines()[2].split()[:3] == ["irls-l0.5", "truth", "8"]
