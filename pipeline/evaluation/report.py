@@ -36,6 +36,8 @@ METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_re
                  "certificate", "n_edges")
 #: The report's row of each pycolmap peer (by its label in the metrics).
 PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
+#: The table's key (and title) in a run with no reference: the methods without errors.
+NO_REFERENCE = "Methods (no reference: no errors)"
 
 
 @dataclass
@@ -106,6 +108,7 @@ def metrics_table(rows: dict[str, dict[str, Any]], n_images: int | None = None) 
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
+        m = m if "n_evaluated" in m else m | {"n_evaluated": m.get("n_cameras")}  # no reference: the cameras solved
         cert = certificate_cell(m)  # † : for which cost (section "Certificates") and what it does not prove
         if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
@@ -140,6 +143,9 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     """
     table = {r.label: {k: m["references"][r.label] | {kk: m.get(kk) for kk in METHOD_EXTRAS if kk in m}
                        for k, m in metrics["methods"].items()} for r in refs}
+    if not refs:  # no errors, but the methods still: their cameras, time, certificate, the refinement's status
+        table = {NO_REFERENCE: {k: {kk: m.get(kk) for kk in (*METHOD_EXTRAS, "n_cameras") if kk in m}
+                                for k, m in metrics["methods"].items()}}
     for label, p in _peers(metrics).items():
         row = PEER_ROWS.get(label, f"pycolmap ({label})")
         if "median_deg" in p:  # against the truth: on all its images, and on the subset of its images
@@ -187,7 +193,8 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
         errs = camera_errors.get(ref, {}).get(label) if ref else None
         change, kept = m.get("change_from_averaged_deg") or {}, m.get("kept_averaged") or {}
         lines = [f"Start: {m.get('start_why', m.get('start'))}; status **{m.get('status')}**; "
-                 "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge).", "",
+                 "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge): how precise a rotation is "
+                 "if the model (K, matches, kept pairs) is right, not an accuracy.", "",
                  f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | not refined: why |",
                  "|---|---|---|---|---|"]
         over, n = 0, 0
@@ -226,7 +233,8 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
-        lines += [f"## Against {ref}", "", *metrics_table(rows, data.n_images), "", *sigma_note(rows)]
+        lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", "", *metrics_table(rows, data.n_images),
+                  "", *sigma_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
             lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)

@@ -226,3 +226,23 @@ def test_the_camera_counts_say_of_how_many_images():
     table = summary_table({"methods": {"irls-l0.5": {**s, "references": {"truth": s}}}, "input": {"n_images": 10}})
     assert table.splitlines()[0].split()[:3] == ["method", "reference", "cams/10"]
     assert table.splitlines()[2].split()[:3] == ["irls-l0.5", "truth", "8"]
+
+
+def test_without_a_reference_the_report_still_lists_the_methods():
+    """A run with no truth and no pycolmap peer: report.md had no table of the methods at all (their cameras, time,
+    certificate, the refinement's status were on the console only), and the refinement's σ stood alone."""
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.report import report_data
+
+    names = [f"v{k}.png" for k in range(4)]
+    vg = ViewGraph.from_absolute(names, np.broadcast_to(np.eye(3), (4, 3, 3)), np.array([[0, 1], [1, 2], [2, 3],
+                                                                                         [0, 3]]))
+    refine = {"method": "refine", "status": "ok", "n_refined": 4, "n_cameras": 4, "time_s": 0.72,
+              "sigma_median_deg": 0.009, "uncertainty_deg": {n: 0.009 for n in names}, "references": {}}
+    metrics = {"methods": {"sdp-cso3": {"n_cameras": 4, "time_s": 0.07, "certified": True, "certificate": SDP_CERT,
+                                        "references": {}}, "x+refine": refine}}
+    text = write_report_text(report_data(metrics, [], {}, {}, {}, vg, [], {}, "t", plots_on=False))
+    table = text.split("## Methods (no reference: no errors)", 1)[1].split("\n## ", 1)[0]
+    assert "| sdp-cso3 | 4 | – |" in table and "certified on 13 of 13 edges" in table and "0.07" in table
+    assert "| x+refine | 4 | – |" in table and "refine ok (4/4 refined)" in table
+    assert "not an accuracy" in text.split("## Refinement (x+refine)", 1)[1]
