@@ -105,7 +105,21 @@ def _evidence(out: Path, intrinsics: dict[str, Any], methods: dict[str, Any], re
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
     placed = {n: f"{why} ({label})" for label, r in results.items()
               for n, why in ((r.get("stats") or {}).get("placed") or {}).items()}
-    return run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics), placed)
+    ev = run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics), placed)
+    ev["messages"] += _weak_focal_messages(intrinsics)
+    return ev
+
+
+def _weak_focal_messages(intrinsics: dict[str, Any]) -> list[str]:
+    """One message per camera group whose estimated focal length is poorly determined (its jackknife sd)."""
+    out = []
+    for g in intrinsics.get("estimates", []):
+        f = g.get("focal") or {}
+        if f.get("determined") is False and isinstance(f.get("f"), float) and math.isfinite(f["f"]):
+            sd = f", jackknife sd {100 * f['sd_rel']:.1f}%" if isinstance(f.get("sd_rel"), float) else ""
+            out.append(f"the focal length of {g.get('n_images')} image(s) is poorly determined ({f['f']:.1f} px{sd}): "
+                       "the averaged rotations rest on it and may be off by degrees with no inconsistency to show it")
+    return out
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,

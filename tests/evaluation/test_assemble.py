@@ -80,3 +80,20 @@ def test_the_report_has_every_note_of_metrics_json(tmp_path, monkeypatch) -> Non
     text, m, _ = _run(tmp_path, monkeypatch, {"irls": {}}, intr)
     assert any("default focal guess" in n for n in m["notes"])
     assert _report_notes(text) == m["notes"]
+
+
+def test_a_poorly_determined_focal_is_evidence_against_the_rotations(tmp_path, monkeypatch) -> None:
+    """temple without K: the focal estimated from the view graph had a jackknife sd of 37%; the intrinsics said so,
+    but "Evidence" flagged only cameras with other reasons and, had there been none, would have said every
+    rotation is checked."""
+    graph = {"names": NAMES, "flags": {}, "messages": [], "left_out": {}, "pairs": [], "n_cycles": 2}
+    monkeypatch.setattr("pipeline.graph.stage.load_graph_summary", lambda out: graph)
+    intr = {"focal": [{"source": "estimated:profile+rotcons", "n_images": 4, "median_px": 1537.2, "min_px": 1537.2,
+                       "max_px": 1537.2}],
+            "estimates": [{"n_images": 4, "focal": {"f": 1537.2, "sd_rel": 0.374, "determined": False, "n_pairs": 5}}]}
+    text, m, _ = _run(tmp_path, monkeypatch, {"irls": {}}, intr)
+    msg = ("the focal length of 4 image(s) is poorly determined (1537.2 px, jackknife sd 37.4%): the averaged "
+           "rotations rest on it and may be off by degrees with no inconsistency to show it")
+    assert m["evidence"]["messages"] == [msg]
+    ev = text.split("## Evidence behind the rotations", 1)[1].split("\n## ", 1)[0]
+    assert f"**{msg}.**" in ev and "Every camera's rotation is checked" not in ev
