@@ -124,13 +124,22 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
             "certificate_note": CERTIFICATE_NOTE if certified else ""}
 
 
-def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[str]]:
+def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[tuple[str, str]]]:
+    """The messages, and ``(cameras, why)`` items: a reason shared by several cameras once, with their names and
+    count, then each camera's own reasons."""
     msgs = list(ev.get("messages", []))
     if ev.get("n_flagged"):
         msgs.append(f"{ev['n_flagged']} camera(s) flagged: unconfirmed or disputed evidence (below)")
-    items = [f"{n}: {'; '.join(w)}" for n, w in ev.get("flags", {}).items()]
+    flags = ev.get("flags", {})
+    who: dict[str, list[str]] = {}
+    for n, ws in flags.items():
+        for w in ws:
+            who.setdefault(w, []).append(n)
+    shared = {w: ns for w, ns in who.items() if len(ns) > 1}
+    items = [(f"{', '.join(ns)} ({len(ns)})", w) for w, ns in shared.items()]
+    items += [(n, "; ".join(own)) for n, ws in flags.items() if (own := [w for w in ws if w not in shared])]
     if limit is not None and len(items) > limit:
-        items = items[:limit] + [f"... and {len(items) - limit} more (metrics.json: evidence.flags)"]
+        items = items[:limit] + [("...", f"and {len(items) - limit} more (metrics.json: evidence.flags)")]
     return msgs, items
 
 
@@ -147,7 +156,7 @@ def evidence_markdown(ev: dict[str, Any]) -> list[str]:
                 "with its reason).", ""]
     if items:
         out += ["| camera | why it is flagged |", "|---|---|"]
-        out += [f"| {i.split(': ', 1)[0]} | {i.split(': ', 1)[1]} |" for i in items]
+        out += [f"| {n} | {w} |" for n, w in items]
         out.append("")
     elif not msgs:
         out += ["Every camera's rotation is checked by a cycle of consistent pairs.", ""]
@@ -162,7 +171,7 @@ def evidence_console(ev: dict[str, Any], limit: int = 10) -> str:
     if not ev:
         return ""
     msgs, items = _lines(ev, limit)
-    out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {i}" for i in items]
+    out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {n}: {w}" for n, w in items]
     if ev.get("certificate_note"):
         out.append(f"† {ev['certificate_note']} (for which cost and edges: report.md, \"Certificates\")")
     return "\n".join(out)
