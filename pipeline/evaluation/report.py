@@ -227,7 +227,9 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         total = sum(data.stages.values())
         lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
         lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
-        lines += [f"| **total** | {total:.2f} |", ""]
+        lines += [f"| **sum of the stages above** | {total:.2f} |", "",
+                  "(The report's own stage and the start are not in it: the whole run's wall time is metrics.json's "
+                  "total_s.)", ""]
     lines += data.evidence
     if data.certificates:
         lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]

@@ -46,7 +46,7 @@ def test_write_report_writes_tables_and_plots(tmp_path, data):
         p = tmp_path / png
         assert p.is_file() and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", png
         assert f"]({png})" in text
-    assert "| **total** | 1.50 |" in text
+    assert "| **sum of the stages above** | 1.50 |" in text
 
 
 def test_no_histories_no_convergence_plot(tmp_path, data):
@@ -246,3 +246,11 @@ def test_without_a_reference_the_report_still_lists_the_methods():
     assert "| sdp-cso3 | 4 | – |" in table and "certified on 13 of 13 edges" in table and "0.07" in table
     assert "| x+refine | 4 | – |" in table and "refine ok (4/4 refined)" in table
     assert "not an accuracy" in text.split("## Refinement (x+refine)", 1)[1]
+
+
+def test_the_stages_sum_is_not_called_the_runs_total(tmp_path, data):
+    """temple: the table's "total" 28.60 s was the sum of the stages before the report, while metrics.json's
+    total_s (37.67 s) is the whole run's wall time."""
+    text = write_report(tmp_path, data).read_text()
+    assert "**total**" not in text
+    assert "the whole run's wall time is metrics.json's total_s" in text.split("## Stages", 1)[1].split("\n## ", 1)[0]
