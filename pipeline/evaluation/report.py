@@ -119,6 +119,18 @@ def metrics_table(rows: dict[str, dict[str, Any]], n_images: int | None = None) 
     return lines
 
 
+def peer_time_note(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """A line under a table with pycolmap rows: what their time counts (extraction, matching, mapping)."""
+    parts = []
+    for name, m in rows.items():
+        t = m.get("times") if name.startswith("pycolmap") else None
+        if isinstance(t, dict) and t:
+            steps = [f"{t[k]:.2f} s {w}" for k, w in (("extract_s", "extraction"), ("match_s", "matching"),
+                                                      ("map_s", "mapping")) if _finite(t.get(k))]
+            parts.append(f"{name} {' + '.join(steps)}")
+    return [f"time s of a pycolmap row, from the images: {'; '.join(parts)}.", ""] if parts else []
+
+
 def sigma_note(rows: dict[str, dict[str, Any]]) -> list[str]:
     """The ‡ line under a table with a predicted σ: what it is, and how the measured median error compares."""
     have = {k: m for k, m in rows.items() if _finite(m.get("sigma_median_deg")) and m["sigma_median_deg"] > 0}
@@ -154,7 +166,7 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
                     table[r.label][row] = p
         for other, s in (p.get("references") or {}).items():  # against the other peers, on the images both register
             if other in table and s.get("n_evaluated"):
-                table[other][row] = s | {"time_s": p.get("time_s")}
+                table[other][row] = s | {"time_s": p.get("time_s"), "times": p.get("times")}
     edge_vals: dict[str, np.ndarray] = {}
     if refs and refs[0].label in edge_errors and "ba" in edge_errors[refs[0].label]:
         edge_vals[f"error_vs_{refs[0].label}"] = edge_errors[refs[0].label]["ba"]
@@ -236,7 +248,7 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
         lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", "", *metrics_table(rows, data.n_images),
-                  "", *sigma_note(rows)]
+                  "", *sigma_note(rows), *peer_time_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
             lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)

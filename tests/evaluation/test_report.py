@@ -254,3 +254,23 @@ def test_the_stages_sum_is_not_called_the_runs_total(tmp_path, data):
     text = write_report(tmp_path, data).read_text()
     assert "**total**" not in text
     assert "the whole run's wall time is metrics.json's total_s" in text.split("## Stages", 1)[1].split("\n## ", 1)[0]
+
+
+def test_a_peers_time_says_what_it_counts():
+    """fountain: GLOMAP's row said 62.81 s and the stages table 22.87 s: the row counts pycolmap's extraction and
+    matching (40 s, the incremental peer's database) too, which the report did not say."""
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.report import report_data
+    from pipeline.reference import Reference
+
+    names = [f"v{k}.png" for k in range(4)]
+    R = np.broadcast_to(np.eye(3), (4, 3, 3))
+    vg = ViewGraph.from_absolute(names, R, np.array([[0, 1], [1, 2], [2, 3], [0, 3]]))
+    s = _summary(0.03)
+    times = {"extract_s": 31.25, "match_s": 8.75, "map_s": 22.82, "total_s": 62.82}
+    metrics = {"methods": {"irls-l0.5": {**s, "time_s": 0.1, "references": {"truth": s}}},
+               "peers": {"glomap": {**s, "time_s": 62.82, "times": times, "n_registered": 4, "n_images": 4}}}
+    d = report_data(metrics, [Reference(names, R, label="truth")], {}, {}, {}, vg, [], {}, "t", plots_on=False)
+    table = write_report_text(d).split("## Against truth", 1)[1].split("\n## ", 1)[0]
+    assert ("time s of a pycolmap row, from the images: pycolmap (global, GLOMAP) 31.25 s extraction + 8.75 s "
+            "matching + 22.82 s mapping") in table
