@@ -207,8 +207,6 @@ def certificate_cell(m: dict[str, Any], short: bool = False) -> str:
         extra.append(f"rank {m.get('rank', c.get('rank'))}")
     if isinstance(c.get("gap_vs_resolution"), (int, float)):  # what the verdict rests on (the relative gap is to
         extra.append(f"gap {c['gap_vs_resolution']:.2g}× the cost's resolution")  # a constant offset of the cost)
-    elif isinstance(c.get("rel_gap_bound"), (int, float)):
-        extra.append(f"relative gap ≤ {c['rel_gap_bound']:.2g}")
     return verdict + (f" ({', '.join(extra)})" if extra else "") + " †"
 
 
