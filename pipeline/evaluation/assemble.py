@@ -34,6 +34,23 @@ OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_
             "refine")
 
 
+#: metrics.json's ``units``: what the figures whose key carries no unit are in (a key ending in _deg is in degrees,
+#: _s in seconds, _px in pixels; n_... is a count). A method's own stats (methods.<m> beyond its summary) are those
+#: of rotations/<m>.json, their certificate worded by its statement.
+UNITS = {
+    "_deg": "degrees", "_s": "seconds", "_px": "pixels", "n_": "a count",
+    "stages": "seconds of wall time per stage (a reused stage: the time to check and load its result)",
+    "pct_below": "percent of the evaluated cameras whose error is under that many degrees",
+    "pct_above": "percent of the evaluated pairs whose relative-rotation error is above that many degrees",
+    "frobenius": "√Σ‖R_i − R_i*‖²_F after the best alignment, dimensionless (rotation matrices)",
+    "mahalanobis": "paper 2's eq. C.13, dimensionless (rotation errors in radians weighed by the precisions H)",
+    "methods": "each method's summary against each reference (the keys here) beside the averaging stage's own "
+    "stats of it (rotations/<method>.json; its certificate in words: certificate.statement)",
+    "pairs": "counts of image pairs", "gap": "relative to the cost's magnitude (its statement gives the "
+    "gap against the cost's resolution, what the verdict rests on)", "rank": "of the SDP solution",
+}
+
+
 def _intrinsics(work: Path) -> dict[str, Any]:
     """The cameras stage's summary (focal used, its source, distortion); empty if the stage has not run."""
     from pipeline.frontend.camera_stage import intrinsics_summary, load_cameras  # noqa: PLC0415
@@ -182,6 +199,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     metrics["pairs"] = pairs_section(plan.work)
     metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
+    metrics["units"] = UNITS
     path = write_json(plan.out / "metrics.json", finite_json(metrics))
     unsolved = _unsolved_line(left_out)  # every run says it, a resumed one too (the stages that found it may not run)
     if not plan.quiet:

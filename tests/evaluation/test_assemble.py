@@ -97,3 +97,26 @@ def test_a_poorly_determined_focal_is_evidence_against_the_rotations(tmp_path, m
     assert m["evidence"]["messages"] == [msg]
     ev = text.split("## Evidence behind the rotations", 1)[1].split("\n## ", 1)[0]
     assert f"**{msg}.**" in ev and "Every camera's rotation is checked" not in ev
+
+
+def test_every_figure_of_metrics_json_has_its_unit_in_its_key_or_in_units(tmp_path, monkeypatch) -> None:
+    """stages {"features": 4.13}, pct_below {"1": 62.5}, frobenius, mahalanobis: figures without a unit in their key,
+    and no place in metrics.json that says it."""
+    _, m, _ = _run(tmp_path, monkeypatch, {"irls": {}, "sdp": {}})
+    units = m["units"]
+    missing = set()
+
+    def walk(o, key: str, parent: str) -> None:
+        if isinstance(o, dict):
+            for k, v in o.items():
+                walk(v, str(k), key)
+        elif isinstance(o, list):
+            for v in o:
+                walk(v, key, parent)
+        elif isinstance(o, (int, float)) and not isinstance(o, bool) and parent != "units":
+            if not (re.search(r"(_deg|_s|_px)$", key) or key.startswith("n_") or key in units or parent in units):
+                missing.add(f"{parent}.{key}")
+
+    walk({k: v for k, v in m.items() if k != "input"}, "", "")
+    assert not missing
+    assert {"stages", "pct_below", "pct_above", "frobenius", "mahalanobis"} <= set(units)
