@@ -33,7 +33,7 @@ __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summar
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
 METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg",
-                 "certificate", "n_edges")
+                 "certificate", "n_edges", "n_dropped", "dropped_names")
 #: The report's row of each pycolmap peer (by its label in the metrics).
 PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 #: The table's key (and title) in a run with no reference: the methods without errors.
@@ -112,6 +112,7 @@ def metrics_table(rows: dict[str, dict[str, Any]], n_images: int | None = None) 
         cert = certificate_cell(m)  # † : for which cost (section "Certificates") and what it does not prove
         if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
+        cert = "; ".join(x for x in (cert, *_fewer(m)) if x)
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
                  _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), _fmt(m.get("sigma_median_deg"), "{:.4f}"),
                  cert]
@@ -129,6 +130,19 @@ def peer_time_note(rows: dict[str, dict[str, Any]]) -> list[str]:
                                                       ("map_s", "mapping")) if _finite(t.get(k))]
             parts.append(f"{name} {' + '.join(steps)}")
     return [f"time s of a pycolmap row, from the images: {'; '.join(parts)}.", ""] if parts else []
+
+
+def _fewer(m: dict[str, Any]) -> list[str]:
+    """Why a row scored fewer cameras: those outside the method's solved component, those the reference lacks."""
+    def few(names: list[str]) -> str:
+        return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+    out = []
+    if m.get("n_dropped"):
+        out.append(f"{m['n_dropped']} camera(s) outside its solved component ({few(m.get('dropped_names') or [])})")
+    if m.get("not_in_reference"):
+        out.append(f"{len(m['not_in_reference'])} not in the reference ({few(m['not_in_reference'])})")
+    return out
 
 
 def sigma_note(rows: dict[str, dict[str, Any]]) -> list[str]:

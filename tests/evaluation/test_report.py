@@ -274,3 +274,12 @@ def test_a_peers_time_says_what_it_counts():
     table = write_report_text(d).split("## Against truth", 1)[1].split("\n## ", 1)[0]
     assert ("time s of a pycolmap row, from the images: pycolmap (global, GLOMAP) 31.25 s extraction + 8.75 s "
             "matching + 22.82 s mapping") in table
+
+
+def test_a_row_that_scored_fewer_cameras_says_why():
+    """A method that solved fewer cameras than the view graph's (its solved component) and cameras the reference
+    lacks: the row showed the smaller count and no reason."""
+    rows = {"irls-l0.5": _summary(0.1) | {"n_evaluated": 5, "n_cameras": 6, "n_dropped": 2,
+                                          "dropped_names": ["a.png", "b.png"], "not_in_reference": ["c.png"]}}
+    cell = metrics_table(rows, 8)[2].split(" | ")[-1]
+    assert cell == "2 camera(s) outside its solved component (a.png, b.png); 1 not in the reference (c.png) |"
