@@ -24,7 +24,8 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
 from pipeline.evaluation.flags import evidence_console, method_disagreement, run_evidence
-from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
+from pipeline.evaluation.console import intrinsics_console, summary_table
+from pipeline.evaluation.report import report_data, write_report
 from pipeline.reference.types import Reference
 
 __all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json", "OUR_PATH"]
