@@ -83,7 +83,8 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
             stats): flagged with why, after the graph's reason for leaving them out.
     Returns:
         ``{"messages", "flags": {name: [reasons]}, "cameras": {name: {"status", "flags"}}, "n_flagged",
-        "n_cycles", "left_out", "pairs": counts by status and step, "certificate_note"}``.
+        "n_cycles", "left_out", "pairs": counts by status and step, "n_confirmed_cameras" (cameras with a kept pair
+        a consistent cycle confirms), "n_cameras", "certificate_note"}``.
     """
     flags: dict[str, list[str]] = {n: list(v) for n, v in (graph.get("flags") or {}).items()}
     support: dict[tuple[str, str], list[str]] = {}
@@ -117,10 +118,13 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
     for p in graph.get("pairs", []):
         key = p.get("status", "?") if p.get("status") == "kept" else f"rejected at {p.get('step', '?')}"
         counts[key] = counts.get(key, 0) + 1
+    confirmed = {n for p in graph.get("pairs", []) if p.get("status") == "kept" and p.get("confirmed")
+                 for n in p.get("pair", [])} & set(graph.get("names", []))
     certified = [k for k, m in methods.items() if certificate_cell(m)]
     return {"messages": list(graph.get("messages", [])), "flags": {n: flags[n] for n in sorted(flags)},
             "cameras": cameras, "n_flagged": len(flags), "n_cycles": graph.get("n_cycles"),
             "left_out": dict(graph.get("left_out") or {}), "pairs": counts,
+            "n_confirmed_cameras": len(confirmed), "n_cameras": len(graph.get("names", [])),
             "certificate_note": CERTIFICATE_NOTE if certified else ""}
 
 
@@ -158,8 +162,11 @@ def evidence_markdown(ev: dict[str, Any]) -> list[str]:
         out += ["| camera | why it is flagged |", "|---|---|"]
         out += [f"| {n} | {w} |" for n, w in items]
         out.append("")
-    elif not msgs:
+    elif not msgs and ev.get("n_confirmed_cameras", ev.get("n_cameras")) == ev.get("n_cameras"):
         out += ["Every camera's rotation is checked by a cycle of consistent pairs.", ""]
+    elif not msgs:
+        out += [f"No camera is flagged, but {ev.get('n_confirmed_cameras')} of {ev.get('n_cameras')} cameras have a "
+                "pair that a consistent cycle confirms.", ""]
     if ev.get("certificate_note"):
         out += [f"† {ev['certificate_note'][0].upper()}{ev['certificate_note'][1:]}; the flags above are what "
                 "vouches, or fails to vouch, for the input.", ""]

@@ -84,3 +84,19 @@ def test_a_reason_shared_by_several_cameras_is_said_once() -> None:
     assert "| c1.jpg | the methods disagree by 3.8° on it (a vs b): at least one is wrong there |" in md
     assert ev["flags"]["c1.jpg"] == ["the methods disagree by 3.8° on it (a vs b): at least one is wrong there",
                                      GUESSED_FOCAL]  # metrics.json keeps every camera's every reason
+
+
+def test_the_report_says_every_rotation_is_checked_only_when_every_camera_has_a_confirmed_pair() -> None:
+    """With no flag and no message, "Every camera's rotation is checked by a cycle of consistent pairs" was said
+    whatever viewgraph.json says of the pairs (a graph whose cycles were not tested confirms none)."""
+    from pipeline.evaluation.flags import evidence_markdown
+
+    names = ["a", "b", "c"]
+    pairs = [{"pair": [x, y], "status": "kept", "confirmed": False} for x, y in (("a", "b"), ("b", "c"), ("a", "c"))]
+    md = "\n".join(evidence_markdown(run_evidence(dict(_graph(names), pairs=pairs), {})))
+    assert "Every camera's rotation is checked" not in md
+    assert "0 of 3 cameras have a pair that a consistent cycle confirms" in md
+    for p in pairs:
+        p["confirmed"] = True
+    md = "\n".join(evidence_markdown(run_evidence(dict(_graph(names), pairs=pairs), {})))
+    assert "Every camera's rotation is checked by a cycle of consistent pairs." in md
