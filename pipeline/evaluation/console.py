@@ -32,8 +32,8 @@ def intrinsics_console(intr: dict[str, Any]) -> str:
     weak = [e for e in est if e.get("determined") is False and _finite(e.get("f"))]
     sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" for w in weak)
     parts += [f"POORLY DETERMINED for {len(weak)} camera group(s) (jackknife sd {sds})"] if weak else []
-    none = sum(not _finite(e.get("f")) for e in est)  # an estimate made from no pair: the start value was kept
-    parts += [f"NOT ESTIMATED for {none} camera group(s) (their start focal kept)"] if none else []
+    none = sum(f["n_images"] for f in intr.get("focal", []) if f["source"] == "default")  # nothing replaced the guess
+    parts += [f"NOT ESTIMATED for {none} image(s) (the default guess 1.2·max(w, h) kept)"] if none else []
     return "focal: " + "; ".join(parts) if parts else ""
 
 

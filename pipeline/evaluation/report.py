@@ -317,6 +317,8 @@ def _estimate_text(key: str, e: dict[str, Any]) -> str:
     and how well determined (the jackknife sd); "not estimated" when it made none."""
     note = e.get("note") or ""
     if key == "focal" and e:
+        if not _finite(e.get("f")) and e.get("group_note"):  # another estimate replaced this one (its note says)
+            return f"{note} (each camera's own estimate: {e['group_note']})"
         if not _finite(e.get("f")):
             return f"not estimated: {note}" if note else "not estimated"
         sd = f", jackknife sd {100 * e['sd_rel']:.1f}%" if _finite(e.get("sd_rel")) else ""

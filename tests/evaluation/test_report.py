@@ -130,8 +130,22 @@ def test_the_intrinsics_say_a_note_shared_by_several_cameras_once_with_a_count()
                      "determined: leaving one image out moves it by 37.4%"]
     # an estimate made from no pair is not "determined": the console says how many cameras kept their start value
     line = intrinsics_console({"focal": focal, "estimates": [dict(one) for _ in range(10)] + [weak]})
-    assert line.endswith("POORLY DETERMINED for 1 camera group(s) (jackknife sd 37.4%); NOT ESTIMATED for 10 camera "
-                         "group(s) (their start focal kept)")
+    assert line.endswith("POORLY DETERMINED for 1 camera group(s) (jackknife sd 37.4%); NOT ESTIMATED for 10 "
+                         "image(s) (the default guess 1.2·max(w, h) kept)")
+
+
+def test_a_focal_superseded_by_the_view_graph_calibration_is_not_called_unestimated():
+    """fountain (internet): each one-image camera's own estimate had no pair, and pycolmap's view-graph calibration
+    gave every image its focal (source estimated:view-graph); "not estimated" and "start focal kept" were false."""
+    sup = ("superseded by per-image focal lengths (pycolmap's view-graph calibration): the pairs' rotations are "
+           "significantly more consistent with them")
+    one = {"n_images": 1, "focal": {"f": None, "n_pairs": 0, "note": sup, "group_note": "0 usable pairs < min_pairs=3"}}
+    intr = {"focal": [{"source": "estimated:view-graph", "n_images": 10, "median_px": 1579.3, "min_px": 960.8,
+                       "max_px": 2448.0}], "estimates": [dict(one) for _ in range(10)]}
+    notes = [ln for ln in intrinsics_lines(intr) if ln.startswith("- ")]
+    assert notes == [f"- focal of 10 cameras (10 images): {sup} (each camera's own estimate: 0 usable pairs < "
+                     "min_pairs=3)"]
+    assert intrinsics_console(intr) == "focal: 1579.3 px (960.8–2448.0) (estimated:view-graph, 10 images)"
 
 
 SDP_CERT = {"certified": True, "rank": 3, "gap": 5.4e-08, "gap_vs_resolution": 0.009, "kappa": 0.01, "n_kept": 13,
