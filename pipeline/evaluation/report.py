@@ -253,13 +253,14 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
                   "total_s.)", ""]
     lines += data.evidence
     if data.certificates:
-        lines += ["## Certificates", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
+        lines += ["## Certificates", "", f"{CERTIFICATE_NOTE[0].upper()}{CERTIFICATE_NOTE[1:]}: each below says for "
+                  "which cost on which edges.", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
         lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", "", *metrics_table(rows, data.n_images),
                   "", *sigma_note(rows), *peer_time_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
-            lines += [f"† {CERTIFICATE_NOTE}; for which cost and edges: \"Certificates\".", ""]
+            lines += ["† for which cost and edges, and what it does not prove: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)
         if errs:
             p = plots.plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)

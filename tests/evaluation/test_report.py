@@ -297,3 +297,16 @@ def test_a_row_that_scored_fewer_cameras_says_why():
                                           "dropped_names": ["a.png", "b.png"], "not_in_reference": ["c.png"]}}
     cell = metrics_table(rows, 8)[2].split(" | ")[-1]
     assert cell == "2 camera(s) outside its solved component (a.png, b.png); 1 not in the reference (c.png) |"
+
+
+def test_what_a_certificate_proves_is_said_once_not_under_every_table():
+    """temple with the peers: the two-line certificate note was printed under each of the four tables."""
+    from pipeline.evaluation.flags import CERTIFICATE_NOTE
+
+    rows = {"sdp-cso3": _summary(0.1, certified=True, rank=3, certificate=SDP_CERT)}
+    data = ReportData(metrics={"truth": rows, "pycolmap": rows, "glomap": rows},
+                      certificates={"sdp-cso3": SDP_CERT["statement"]})
+    text = write_report_text(data)
+    low = text.lower()
+    assert low.count(CERTIFICATE_NOTE) == 1 and CERTIFICATE_NOTE in low.split("## certificates", 1)[1]
+    assert text.count('† for which cost and edges, and what it does not prove: "Certificates".') == 3
