@@ -187,6 +187,9 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     skipped = {str(d["name"]): f"skipped by the features stage: it {d['reason']}" for d in manifest.get("skipped") or []
                if isinstance(d, dict) and "name" in d}
     left_out = {**skipped, **left_out}
+    placed = {n: f"{why} ({label})" for label, m in metrics["methods"].items()  # solved after all, by a refinement
+              for n, why in (m.get("placed") or {}).items() if n in left_out}
+    left_out = {n: f"{w}; {placed[n]}" if n in placed else w for n, w in left_out.items()}
     metrics["stages"] = dict(runner.times)
     metrics["stages_reused"] = dict(runner.reused)
     metrics["total_s"] = time.perf_counter() - t_start
@@ -202,7 +205,9 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     metrics["notes"] = plan.notes
     metrics["units"] = UNITS
     path = write_json(plan.out / "metrics.json", finite_json(metrics))
-    unsolved = _unsolved_line(left_out)  # every run says it, a resumed one too (the stages that found it may not run)
+    # every run says it, a resumed one too (the stages that found it may not run)
+    unsolved = "\n".join(x for x in (_unsolved_line({n: w for n, w in left_out.items() if n not in placed}),
+                                      _placed_line(placed)) if x)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
         if metrics["intrinsics"]:
@@ -231,6 +236,14 @@ def finite_json(obj: Any) -> Any:
     if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
         return None
     return obj
+
+
+def _placed_line(placed: dict[str, str]) -> str:
+    """One console line naming the images outside the view graph that a refinement alone placed ("" when none)."""
+    if not placed:
+        return ""
+    return (f"WARNING: {len(placed)} image(s) outside the view graph placed by a refinement alone (flagged): "
+            + "; ".join(f"{n}: {w}" for n, w in placed.items()))
 
 
 def _unsolved_line(left_out: dict[str, str], limit: int = 5) -> str:

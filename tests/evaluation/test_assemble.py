@@ -32,7 +32,7 @@ def _strict(text: str) -> dict:
 
 
 def _run(tmp_path: Path, monkeypatch, stats: dict[str, dict], intrinsics: dict | None = None, truth: bool = True,
-         quiet: bool = False) -> tuple[str, dict, Path]:
+         quiet: bool = False, left_out: dict[str, str] | None = None) -> tuple[str, dict, Path]:
     """Evaluate, report and write metrics.json for methods ``{label: stats}`` (each a small rotation error);
     returns report.md's text, metrics.json (read strictly) and the output folder."""
     rng = np.random.default_rng(1)
@@ -51,7 +51,7 @@ def _run(tmp_path: Path, monkeypatch, stats: dict[str, dict], intrinsics: dict |
     runner = SimpleNamespace(times={"features": 1.0}, reused={})
     ev = assemble.evaluate_run(plan, vg, results, None)
     assemble.write_report_md(plan, ev, [], results, vg, runner)
-    path = assemble.write_metrics(plan, ev, vg, {}, runner, 0.0)
+    path = assemble.write_metrics(plan, ev, vg, dict(left_out or {}), runner, 0.0)
     return (tmp_path / "report.md").read_text(), _strict(path.read_text()), tmp_path
 
 
@@ -120,3 +120,16 @@ def test_every_figure_of_metrics_json_has_its_unit_in_its_key_or_in_units(tmp_pa
     walk({k: v for k, v in m.items() if k != "input"}, "", "")
     assert not missing
     assert {"stages", "pct_below", "pct_above", "frobenius", "mahalanobis"} <= set(units)
+
+
+def test_an_image_the_refinement_placed_is_not_called_unsolved(tmp_path, monkeypatch, capsys) -> None:
+    """An image the view graph left out and the refinement placed: the console said it was not solved in this
+    frame, and metrics.json's left_out_why gave only the view graph's reason, while the refined row scored it."""
+    why = "placed by the refinement alone, from its 2 pair(s) the refined rotation confirms it"
+    left = {"v9.png": "no accepted image pair", "v8.png": "no accepted image pair"}
+    _, m, _ = _run(tmp_path, monkeypatch, {"x+refine": {"placed": {"v9.png": why}}}, left_out=left)
+    out = capsys.readouterr().out
+    (line,) = [ln for ln in out.splitlines() if "not solved" in ln]
+    assert line.startswith("WARNING: 1 image(s) not solved in this frame: v8.png ")
+    assert "v9.png" not in line and f"v9.png: {why} (x+refine)" in out
+    assert m["input"]["left_out_why"]["v9.png"] == f"no accepted image pair; {why} (x+refine)"
