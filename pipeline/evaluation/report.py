@@ -68,6 +68,7 @@ class ReportData:
             graph messages, flagged cameras with the reason, what a certificate proves.
         certificates: ``{method: statement}``: what each certificate proves, for which cost on which edges.
         n_images: the run's images (the tables' cameras are counted of these), or None.
+        ref_notes: ``{reference: line}`` under its table's title (a peer's own error against the truth).
         title: report title.
     """
 
@@ -85,6 +86,7 @@ class ReportData:
     evidence: list[str] = field(default_factory=list)
     certificates: dict[str, str] = field(default_factory=dict)
     n_images: int | None = None
+    ref_notes: dict[str, str] = field(default_factory=dict)
     title: str = "Rotation averaging report"
     intrinsics: dict[str, Any] = field(default_factory=dict)
 
@@ -174,8 +176,12 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     if not refs:  # no errors, but the methods still: their cameras, time, certificate, the refinement's status
         table = {NO_REFERENCE: {k: {kk: m.get(kk) for kk in (*METHOD_EXTRAS, "n_cameras") if kk in m}
                                 for k, m in metrics["methods"].items()}}
+    ref_notes = {}
     for label, p in _peers(metrics).items():
         row = PEER_ROWS.get(label, f"pycolmap ({label})")
+        if label in table and _finite(p.get("median_deg")):  # a peer as a reference: how far it is from the truth
+            ref_notes[label] = (f"A reference, not the truth: {row} is itself {p['median_deg']:.3f}° (median) from "
+                                f"the truth on its {p.get('n_evaluated')} images.")
         if "median_deg" in p:  # against the truth: on all its images, and on the subset of its images
             for r in refs:
                 if r.label == "truth" or r.label.startswith(subset_prefix(label)):
@@ -197,7 +203,7 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
         vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
         notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages,
         evidence=evidence_markdown(metrics.get("evidence") or {}),
-        certificates=certificate_statements(metrics["methods"]), title=title)
+        certificates=certificate_statements(metrics["methods"]), ref_notes=ref_notes, title=title)
     if not plots_on:
         data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
     return data
@@ -257,7 +263,9 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
                   "which cost on which edges.", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
         lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
     for ref, rows in data.metrics.items():
-        lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", "", *metrics_table(rows, data.n_images),
+        lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", ""]
+        lines += [data.ref_notes[ref], ""] if ref in data.ref_notes else []
+        lines += [*metrics_table(rows, data.n_images),
                   "", *sigma_note(rows), *peer_time_note(rows)]
         if any(certificate_cell(m) for m in rows.values()):
             lines += ["† for which cost and edges, and what it does not prove: \"Certificates\".", ""]
