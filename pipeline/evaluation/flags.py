@@ -128,9 +128,14 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
             "certificate_note": CERTIFICATE_NOTE if certified else ""}
 
 
+#: A flag reason shared by this many cameras or more is said once, with their names (two cameras' alike reasons,
+#: such as "1 of its 5 pairs disagree", stay in each camera's row).
+SHARED_BY = 3
+
+
 def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[tuple[str, str]]]:
-    """The messages, and ``(cameras, why)`` items: a reason shared by several cameras once, with their names and
-    count, then each camera's own reasons."""
+    """The messages, and ``(cameras, why)`` items: a reason shared by :data:`SHARED_BY` cameras or more once, with
+    their names and count, then each camera's other reasons."""
     msgs = list(ev.get("messages", []))
     if ev.get("n_flagged"):
         msgs.append(f"{ev['n_flagged']} camera(s) flagged: unconfirmed or disputed evidence (below)")
@@ -139,7 +144,7 @@ def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[tuple
     for n, ws in flags.items():
         for w in ws:
             who.setdefault(w, []).append(n)
-    shared = {w: ns for w, ns in who.items() if len(ns) > 1}
+    shared = {w: ns for w, ns in who.items() if len(ns) >= SHARED_BY}
     items = [(f"{', '.join(ns)} ({len(ns)})", w) for w, ns in shared.items()]
     items += [(n, "; ".join(own)) for n, ws in flags.items() if (own := [w for w in ws if w not in shared])]
     if limit is not None and len(items) > limit:

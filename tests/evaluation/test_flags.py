@@ -84,6 +84,8 @@ def test_a_reason_shared_by_several_cameras_is_said_once() -> None:
     assert "| c1.jpg | the methods disagree by 3.8° on it (a vs b): at least one is wrong there |" in md
     assert ev["flags"]["c1.jpg"] == ["the methods disagree by 3.8° on it (a vs b): at least one is wrong there",
                                      GUESSED_FOCAL]  # metrics.json keeps every camera's every reason
+    two = run_evidence(_graph(names), {}, {"c1.jpg": (3.8, "a vs b"), "c2.jpg": (3.8, "a vs b")})
+    assert "| c1.jpg | the methods disagree by 3.8°" in "\n".join(evidence_markdown(two))  # two alike: each its row
 
 
 def test_the_report_says_every_rotation_is_checked_only_when_every_camera_has_a_confirmed_pair() -> None:
