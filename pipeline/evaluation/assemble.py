@@ -28,7 +28,8 @@ from pipeline.evaluation.console import intrinsics_console, summary_table
 from pipeline.evaluation.report import report_data, write_report
 from pipeline.reference.types import Reference
 
-__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json", "OUR_PATH"]
+__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json",
+           "OUR_PATH", "UNITS"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
 OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",

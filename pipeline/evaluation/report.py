@@ -23,7 +23,8 @@ from pipeline.core.names import rows_by_name
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
 from pipeline.evaluation.compare import subset_prefix
-from pipeline.evaluation.console import _finite, _peers, console_table, edge_rows, intrinsics_console, summary_rows, summary_table  # noqa: F401 (re-exported)
+from pipeline.evaluation.console import (  # noqa: F401 (the console's, re-exported)
+    _finite, _peers, console_table, edge_rows, intrinsics_console, summary_rows, summary_table)
 from pipeline.evaluation.flags import CERTIFICATE_NOTE, certificate_cell, certificate_statements, evidence_markdown
 from pipeline.reference.types import Reference
 
