@@ -48,6 +48,8 @@ UNITS = {
     "mahalanobis": "paper 2's eq. C.13, dimensionless (rotation errors in radians weighed by the precisions H)",
     "methods": "each method's summary against each reference (the keys here) beside the averaging stage's own "
     "stats of it (rotations/<method>.json; its certificate in words: certificate.statement)",
+    "sigma_median_deg": "degrees predicted by pycolmap's BA covariance (√tr Σ, median over the cameras; per "
+    "camera: uncertainty_deg): a precision under the model, not an accuracy",
     "pairs": "counts of image pairs", "gap": "relative to the cost's magnitude (its statement gives the "
     "gap against the cost's resolution, what the verdict rests on)", "rank": "of the SDP solution",
 }

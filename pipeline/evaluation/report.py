@@ -238,9 +238,7 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
         if warns:
             lines += ["", "Warnings of the refinement:", "", *[f"- {w}" for w in warns]]
         if n:
-            lines += ["", f"Measured: {over} of {n} refined cameras are more than 3σ off against {ref}: σ is how "
-                      "precise the rotations are if the model (K, matches, kept pairs) is right, not how accurate "
-                      "they are."]
+            lines += ["", f"Measured: {over} of {n} refined cameras are more than 3σ off against {ref}."]
         out[f"Refinement ({label})"] = lines + [""]
     return out
 

@@ -120,6 +120,7 @@ def test_every_figure_of_metrics_json_has_its_unit_in_its_key_or_in_units(tmp_pa
     walk({k: v for k, v in m.items() if k != "input"}, "", "")
     assert not missing
     assert {"stages", "pct_below", "pct_above", "frobenius", "mahalanobis"} <= set(units)
+    assert "not an accuracy" in units["sigma_median_deg"]  # a predicted σ: said what it is where its unit is
 
 
 def test_an_image_the_refinement_placed_is_not_called_unsolved(tmp_path, monkeypatch, capsys) -> None:
