@@ -317,6 +317,10 @@ def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
                 said.setdefault((key, text), []).append(int(g.get("n_images", 0)))
     for (key, text), sizes in said.items():
         lines.append(f"- {key} of {len(sizes)} camera{'s' if len(sizes) > 1 else ''} ({sum(sizes)} images): {text}")
+    for f in intr["focal"]:  # how well determined: the view-graph calibration gives no uncertainty
+        if f["source"] == "estimated:view-graph":
+            lines.append(f"- focal of {f['n_images']} images from the view-graph calibration: no uncertainty is "
+                         "estimated for it")
     return lines + ([""] if lines[-1] else [])
 
 
