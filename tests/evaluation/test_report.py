@@ -333,3 +333,12 @@ def test_a_table_against_a_peer_says_how_far_the_peer_itself_is_from_the_truth()
     sec = text.split("## Against pycolmap", 1)[1]
     assert sec.startswith("\n\nA reference, not the truth: pycolmap (incremental) is itself 8.832° (median) from the "
                           "truth on its 3 images.\n")
+
+
+def test_a_peers_time_is_explained_once():
+    """temple with the peers: the same line of the peers' times was printed under each of the four tables."""
+    times = {"extract_s": 7.3, "match_s": 2.59, "map_s": 1.34}
+    row = _summary(0.25) | {"time_s": 11.23, "times": times}
+    data = ReportData(metrics={r: {"irls-l0.5": _summary(0.5), "pycolmap (incremental)": row}
+                               for r in ("truth", "truth, pycolmap's 13 images", "glomap")})
+    assert write_report_text(data).count("time s of a pycolmap row") == 1
