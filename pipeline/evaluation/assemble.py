@@ -9,11 +9,14 @@ adds the error-against-time curves, writes ``OUT/report.md`` (and its plots);
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from pipeline.averaging.convergence import error_vs_time_curves
 from pipeline.core.atomic import write_json
@@ -21,14 +24,35 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
 from pipeline.evaluation.flags import evidence_console, method_disagreement, run_evidence
-from pipeline.evaluation.report import intrinsics_console, report_data, summary_table, write_report
+from pipeline.evaluation.console import intrinsics_console, summary_table
+from pipeline.evaluation.report import report_data, write_report
 from pipeline.reference.types import Reference
 
-__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "OUR_PATH"]
+__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json",
+           "OUR_PATH", "UNITS"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
 OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
             "refine")
+
+
+#: metrics.json's ``units``: what the figures whose key carries no unit are in (a key ending in _deg is in degrees,
+#: _s in seconds, _px in pixels; n_... is a count). A method's own stats (methods.<m> beyond its summary) are those
+#: of rotations/<m>.json, their certificate worded by its statement.
+UNITS = {
+    "_deg": "degrees", "_s": "seconds", "_px": "pixels", "n_": "a count",
+    "stages": "seconds of wall time per stage (a reused stage: the time to check and load its result)",
+    "pct_below": "percent of the evaluated cameras whose error is under that many degrees",
+    "pct_above": "percent of the evaluated pairs whose relative-rotation error is above that many degrees",
+    "frobenius": "√Σ‖R_i − R_i*‖²_F after the best alignment, dimensionless (rotation matrices)",
+    "mahalanobis": "paper 2's eq. C.13, dimensionless (rotation errors in radians weighed by the precisions H)",
+    "methods": "each method's summary against each reference (the keys here) beside the averaging stage's own "
+    "stats of it (rotations/<method>.json; its certificate in words: certificate.statement)",
+    "sigma_median_deg": "degrees predicted by pycolmap's BA covariance (√tr Σ, median over the cameras; per "
+    "camera: uncertainty_deg): a precision under the model, not an accuracy",
+    "pairs": "counts of image pairs", "gap": "relative to the cost's magnitude (its statement gives the "
+    "gap against the cost's resolution, what the verdict rests on)", "rank": "of the SDP solution",
+}
 
 
 def _intrinsics(work: Path) -> dict[str, Any]:
@@ -79,6 +103,10 @@ def evaluate_run(plan: Any, vg: ViewGraph, results: dict[str, dict], peer: Refer
     metrics, cam_err, edge_err = evaluate_all(vg, ransac_vg, results, refs, peers, plan.run.align)
     intrinsics = _intrinsics(plan.work)
     metrics["evidence"] = _evidence(plan.out, intrinsics, metrics["methods"], results)
+    guessed = _guessed_focal(intrinsics)  # a note of report.md too: said before the report is written
+    if guessed:
+        plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
+                          "determined theirs (cameras.json: estimate); they are flagged")
     if not refs:
         plan.notes.append("no reference: pass --gt REF or enable the pycolmap reference to get errors")
     return RunEvaluation(metrics, cam_err, edge_err, refs, intrinsics)
@@ -98,7 +126,21 @@ def _evidence(out: Path, intrinsics: dict[str, Any], methods: dict[str, Any], re
     rots = {label: read_rotations(r["rotations"]) for label, r in results.items()}
     placed = {n: f"{why} ({label})" for label, r in results.items()
               for n, why in ((r.get("stats") or {}).get("placed") or {}).items()}
-    return run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics), placed)
+    ev = run_evidence(graph, methods, method_disagreement(rots), _guessed_focal(intrinsics), placed)
+    ev["messages"] += _weak_focal_messages(intrinsics)
+    return ev
+
+
+def _weak_focal_messages(intrinsics: dict[str, Any]) -> list[str]:
+    """One message per camera group whose estimated focal length is poorly determined (its jackknife sd)."""
+    out = []
+    for g in intrinsics.get("estimates", []):
+        f = g.get("focal") or {}
+        if f.get("determined") is False and isinstance(f.get("f"), float) and math.isfinite(f["f"]):
+            sd = f", jackknife sd {100 * f['sd_rel']:.1f}%" if isinstance(f.get("sd_rel"), float) else ""
+            out.append(f"the focal length of {g.get('n_images')} image(s) is poorly determined ({f['f']:.1f} px{sd}): "
+                       "the averaged rotations rest on it and may be off by degrees with no inconsistency to show it")
+    return out
 
 
 def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dict[str, dict], vg: ViewGraph,
@@ -112,7 +154,19 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
     data = report_data(metrics, refs, ev.camera_errors, ev.edge_errors, histories, vg, plan.notes, stages,
                        f"Rotations of {plan.images}", plan.run.plots)
     data.intrinsics = ev.intrinsics
+    data.n_images = _n_images(plan.work)
     return write_report(plan.out, data)
+
+
+def _n_images(work: Path) -> int | None:
+    """The run's images: those the features stage read and those it skipped (None without its manifest)."""
+    from pipeline.frontend.feature_stage import load_manifest  # noqa: PLC0415
+
+    try:
+        m = load_manifest(work)
+    except (PipelineError, OSError):
+        return None
+    return len(m["names"]) + len(m.get("skipped") or [])
 
 
 def pairs_section(work: Path) -> dict[str, Any]:
@@ -136,6 +190,9 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     skipped = {str(d["name"]): f"skipped by the features stage: it {d['reason']}" for d in manifest.get("skipped") or []
                if isinstance(d, dict) and "name" in d}
     left_out = {**skipped, **left_out}
+    placed = {n: f"{why} ({label})" for label, m in metrics["methods"].items()  # solved after all, by a refinement
+              for n, why in (m.get("placed") or {}).items() if n in left_out}
+    left_out = {n: f"{w}; {placed[n]}" if n in placed else w for n, w in left_out.items()}
     metrics["stages"] = dict(runner.times)
     metrics["stages_reused"] = dict(runner.reused)
     metrics["total_s"] = time.perf_counter() - t_start
@@ -146,15 +203,14 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
                         "gt": None if plan.gt is None else str(plan.gt), "K": None if plan.K is None else str(plan.K),
                         "config": plan.run.as_dict()}
     metrics["intrinsics"] = ev.intrinsics
-    guessed = _guessed_focal(ev.intrinsics)
-    if guessed:
-        plan.notes.append(f"{len(guessed)} image(s) kept the default focal guess 1.2·max(w, h): nothing "
-                          "determined theirs (cameras.json: estimate); they are flagged")
     metrics["pairs"] = pairs_section(plan.work)
     metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
-    path = write_json(plan.out / "metrics.json", metrics)
-    unsolved = _unsolved_line(left_out)  # every run says it, a resumed one too (the stages that found it may not run)
+    metrics["units"] = UNITS
+    path = write_json(plan.out / "metrics.json", finite_json(metrics))
+    # every run says it, a resumed one too (the stages that found it may not run)
+    unsolved = "\n".join(x for x in (_unsolved_line({n: w for n, w in left_out.items() if n not in placed}),
+                                      _placed_line(placed)) if x)
     if not plan.quiet:
         print(summary_table(metrics), flush=True)
         if metrics["intrinsics"]:
@@ -169,6 +225,28 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         lines = [ln for ln in evidence_console(metrics.get("evidence") or {}).splitlines() if not ln.startswith("†")]
         print("\n".join(lines + ([unsolved] if unsolved else []) + [f"metrics: {path}"]), file=sys.stderr, flush=True)
     return path
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float as None: metrics.json is strict JSON (NaN and Infinity are not JSON,
+    and most readers refuse them); null means "not defined" (an estimate made from no pair, an undefined bound)."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_json(obj.tolist())
+    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
+        return None
+    return obj
+
+
+def _placed_line(placed: dict[str, str]) -> str:
+    """One console line naming the images outside the view graph that a refinement alone placed ("" when none)."""
+    if not placed:
+        return ""
+    return (f"WARNING: {len(placed)} image(s) outside the view graph placed by a refinement alone (flagged): "
+            + "; ".join(f"{n}: {w}" for n, w in placed.items()))
 
 
 def _unsolved_line(left_out: dict[str, str], limit: int = 5) -> str:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "GUESSED_FOCAL", "method_disagreement", "run_evidence",
-           "evidence_markdown", "evidence_console"]
+           "evidence_markdown", "evidence_console", "certificate_cell", "certificate_statements"]
 
 #: Methods that disagree by more than this on a camera (degrees) flag it: at least one of them is wrong there by
 #: half as much or more, so the camera's rotation is not known to this accuracy. It is the accuracy an unflagged
@@ -83,7 +83,8 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
             stats): flagged with why, after the graph's reason for leaving them out.
     Returns:
         ``{"messages", "flags": {name: [reasons]}, "cameras": {name: {"status", "flags"}}, "n_flagged",
-        "n_cycles", "left_out", "pairs": counts by status and step, "certificate_note"}``.
+        "n_cycles", "left_out", "pairs": counts by status and step, "n_confirmed_cameras" (cameras with a kept pair
+        a consistent cycle confirms), "n_cameras", "certificate_note"}``.
     """
     flags: dict[str, list[str]] = {n: list(v) for n, v in (graph.get("flags") or {}).items()}
     support: dict[tuple[str, str], list[str]] = {}
@@ -117,20 +118,37 @@ def run_evidence(graph: dict[str, Any], methods: dict[str, dict[str, Any]],
     for p in graph.get("pairs", []):
         key = p.get("status", "?") if p.get("status") == "kept" else f"rejected at {p.get('step', '?')}"
         counts[key] = counts.get(key, 0) + 1
-    certified = [k for k, m in methods.items() if "certified" in m or (m.get("evidence") or {}).get("verdict")]
+    confirmed = {n for p in graph.get("pairs", []) if p.get("status") == "kept" and p.get("confirmed")
+                 for n in p.get("pair", [])} & set(graph.get("names", []))
+    certified = [k for k, m in methods.items() if certificate_cell(m)]
     return {"messages": list(graph.get("messages", [])), "flags": {n: flags[n] for n in sorted(flags)},
             "cameras": cameras, "n_flagged": len(flags), "n_cycles": graph.get("n_cycles"),
             "left_out": dict(graph.get("left_out") or {}), "pairs": counts,
+            "n_confirmed_cameras": len(confirmed), "n_cameras": len(graph.get("names", [])),
             "certificate_note": CERTIFICATE_NOTE if certified else ""}
 
 
-def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[str]]:
+#: A flag reason shared by this many cameras or more is said once, with their names (two cameras' alike reasons,
+#: such as "1 of its 5 pairs disagree", stay in each camera's row).
+SHARED_BY = 3
+
+
+def _lines(ev: dict[str, Any], limit: int | None) -> tuple[list[str], list[tuple[str, str]]]:
+    """The messages, and ``(cameras, why)`` items: a reason shared by :data:`SHARED_BY` cameras or more once, with
+    their names and count, then each camera's other reasons."""
     msgs = list(ev.get("messages", []))
     if ev.get("n_flagged"):
         msgs.append(f"{ev['n_flagged']} camera(s) flagged: unconfirmed or disputed evidence (below)")
-    items = [f"{n}: {'; '.join(w)}" for n, w in ev.get("flags", {}).items()]
+    flags = ev.get("flags", {})
+    who: dict[str, list[str]] = {}
+    for n, ws in flags.items():
+        for w in ws:
+            who.setdefault(w, []).append(n)
+    shared = {w: ns for w, ns in who.items() if len(ns) >= SHARED_BY}
+    items = [(f"{', '.join(ns)} ({len(ns)})", w) for w, ns in shared.items()]
+    items += [(n, "; ".join(own)) for n, ws in flags.items() if (own := [w for w in ws if w not in shared])]
     if limit is not None and len(items) > limit:
-        items = items[:limit] + [f"... and {len(items) - limit} more (metrics.json: evidence.flags)"]
+        items = items[:limit] + [("...", f"and {len(items) - limit} more (metrics.json: evidence.flags)")]
     return msgs, items
 
 
@@ -147,10 +165,13 @@ def evidence_markdown(ev: dict[str, Any]) -> list[str]:
                 "with its reason).", ""]
     if items:
         out += ["| camera | why it is flagged |", "|---|---|"]
-        out += [f"| {i.split(': ', 1)[0]} | {i.split(': ', 1)[1]} |" for i in items]
+        out += [f"| {n} | {w} |" for n, w in items]
         out.append("")
-    elif not msgs:
+    elif not msgs and ev.get("n_confirmed_cameras", ev.get("n_cameras")) == ev.get("n_cameras"):
         out += ["Every camera's rotation is checked by a cycle of consistent pairs.", ""]
+    elif not msgs:
+        out += [f"No camera is flagged, but {ev.get('n_confirmed_cameras')} of {ev.get('n_cameras')} cameras have a "
+                "pair that a consistent cycle confirms.", ""]
     if ev.get("certificate_note"):
         out += [f"† {ev['certificate_note'][0].upper()}{ev['certificate_note'][1:]}; the flags above are what "
                 "vouches, or fails to vouch, for the input.", ""]
@@ -162,7 +183,51 @@ def evidence_console(ev: dict[str, Any], limit: int = 10) -> str:
     if not ev:
         return ""
     msgs, items = _lines(ev, limit)
-    out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {i}" for i in items]
+    out = [f"WARNING: {m}" for m in msgs] + [f"  flagged {n}: {w}" for n, w in items]
     if ev.get("certificate_note"):
-        out.append(f"† {ev['certificate_note']}")
+        out.append(f"† {ev['certificate_note']} (for which cost and edges: report.md, \"Certificates\")")
     return "\n".join(out)
+
+
+def _edge_counts(m: dict[str, Any]) -> tuple[Any, Any]:
+    """The edges a method's certificate is about: (how many it used, of how many)."""
+    c = m.get("certificate") or {}
+    used = c.get("n_weighted_edges", c.get("n_kept"))
+    total = c.get("n_edges")
+    if total is None and used is not None and c.get("n_rejected") is not None:
+        total = used + c["n_rejected"]
+    return used, total if total is not None else m.get("n_edges")
+
+
+def certificate_cell(m: dict[str, Any], short: bool = False) -> str:
+    """A method's certificate in a table cell: its verdict and the edges it is about (``short``: for the console);
+    "" without one. Its cost is in its statement (:func:`certificate_statements`)."""
+    c = m.get("certificate") or {}
+    if "certified" in m:
+        verdict = "certified" if m["certified"] else "NOT certified"
+    elif c.get("verdict"):
+        verdict = str(c["verdict"])
+    else:
+        return ""
+    used, total = _edge_counts(m)
+    if used is not None and total is not None:
+        verdict += f" on {used}/{total} edges" if short else f" on {used} of {total} edges"
+    if short:
+        return verdict + " †"
+    extra = []
+    if "rank" in m or "rank" in c:
+        extra.append(f"rank {m.get('rank', c.get('rank'))}")
+    if isinstance(c.get("gap_vs_resolution"), (int, float)):  # what the verdict rests on (the relative gap is to
+        extra.append(f"gap {c['gap_vs_resolution']:.2g}× the cost's resolution")  # a constant offset of the cost)
+    return verdict + (f" ({', '.join(extra)})" if extra else "") + " †"
+
+
+def certificate_statements(methods: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """``{method: statement}``: what each method's certificate proves, for which cost on which edges (the
+    averaging stage's statement), for the methods that have one."""
+    out = {}
+    for label, m in methods.items():
+        st = (m.get("certificate") or {}).get("statement") or (m.get("evidence") or {}).get("statement")
+        if st and ("certificate" in m or "certified" in m):
+            out[label] = str(st)
+    return out

@@ -1,4 +1,5 @@
-"""The run report (``OUT/report.md`` with one table per reference, and PNG plots) and the console tables.
+"""The run report (``OUT/report.md`` with one table per reference, and PNG plots); the console tables are
+:mod:`pipeline.evaluation.console` (re-exported here).
 
 :func:`write_report` takes plain arrays and dicts (:class:`ReportData`) so that
 anything (run.py, a benchmark, a notebook) can call it; :func:`report_data`
@@ -22,7 +23,9 @@ from pipeline.core.names import rows_by_name
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
 from pipeline.evaluation.compare import subset_prefix
-from pipeline.evaluation.flags import CERTIFICATE_NOTE, evidence_markdown
+from pipeline.evaluation.console import (  # noqa: F401 (the console's, re-exported)
+    _finite, _peers, console_table, edge_rows, intrinsics_console, summary_rows, summary_table)
+from pipeline.evaluation.flags import CERTIFICATE_NOTE, certificate_cell, certificate_statements, evidence_markdown
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
@@ -32,9 +35,12 @@ __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summar
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
-METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg")
+METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg",
+                 "certificate", "n_edges", "n_dropped", "dropped_names")
 #: The report's row of each pycolmap peer (by its label in the metrics).
 PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
+#: The table's key (and title) in a run with no reference: the methods without errors.
+NO_REFERENCE = "Methods (no reference: no errors)"
 
 
 @dataclass
@@ -61,6 +67,9 @@ class ReportData:
         stages: ``{stage: seconds}``.
         evidence: the "Evidence" section (markdown lines, :func:`pipeline.evaluation.flags.evidence_markdown`):
             graph messages, flagged cameras with the reason, what a certificate proves.
+        certificates: ``{method: statement}``: what each certificate proves, for which cost on which edges.
+        n_images: the run's images (the tables' cameras are counted of these), or None.
+        ref_notes: ``{reference: line}`` under its table's title (a peer's own error against the truth).
         title: report title.
     """
 
@@ -76,6 +85,9 @@ class ReportData:
     sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
     evidence: list[str] = field(default_factory=list)
+    certificates: dict[str, str] = field(default_factory=dict)
+    n_images: int | None = None
+    ref_notes: dict[str, str] = field(default_factory=dict)
     title: str = "Rotation averaging report"
     intrinsics: dict[str, Any] = field(default_factory=dict)
 
@@ -93,23 +105,60 @@ def _fmt(v: Any, f: str) -> str:
         return str(v)
 
 
-def metrics_table(rows: dict[str, dict[str, Any]]) -> list[str]:
-    """Markdown table lines of ``{method: summary}``."""
-    head = ["method", *[h for _, h, _ in TABLE_KEYS], "≤1°", "≤5°", "time s", "σ pred °", "certificate / status"]
+def metrics_table(rows: dict[str, dict[str, Any]], n_images: int | None = None) -> list[str]:
+    """Markdown table lines of ``{method: summary}``; ``n_images``: the run's images (the cameras column says of
+    how many)."""
+    keys = [h if k != "n_evaluated" or not n_images else f"{h} of {n_images}" for k, h, _ in TABLE_KEYS]
+    head = ["method", *keys, "≤1°", "≤5°", "time s", "BA σ ° ‡", "certificate / status"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, m in rows.items():
         pct = m.get("pct_below", {}) or {}
-        cert = ""
-        if "certified" in m:  # † : what it proves and what it does not, under the table and in "Evidence"
-            cert = ("certified" if m["certified"] else "NOT certified") + (
-                f" (rank {m.get('rank')}, gap {_fmt(m.get('gap'), '{:.1e}')})" if "rank" in m else "") + " †"
+        m = m if "n_evaluated" in m else m | {"n_evaluated": m.get("n_cameras")}  # no reference: the cameras solved
+        cert = certificate_cell(m)  # † : for which cost (section "Certificates") and what it does not prove
         if m.get("method") == "refine":  # ok, partial (some cameras kept averaged) or failed (all kept)
             cert = f"refine {m['status']} ({m.get('n_refined')}/{m.get('n_cameras')} refined)"
+        cert = "; ".join(x for x in (cert, *_fewer(m)) if x)
         cells = [name, *[_fmt(m.get(k), f) for k, _, f in TABLE_KEYS], _fmt(pct.get("1"), "{:.0f}%"),
                  _fmt(pct.get("5"), "{:.0f}%"), _fmt(m.get("time_s"), "{:.2f}"), _fmt(m.get("sigma_median_deg"), "{:.4f}"),
                  cert]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
+
+
+def peer_time_note(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """A line under a table with pycolmap rows: what their time counts (extraction, matching, mapping)."""
+    parts = []
+    for name, m in rows.items():
+        t = m.get("times") if name.startswith("pycolmap") else None
+        if isinstance(t, dict) and t:
+            steps = [f"{t[k]:.2f} s {w}" for k, w in (("extract_s", "extraction"), ("match_s", "matching"),
+                                                      ("map_s", "mapping")) if _finite(t.get(k))]
+            parts.append(f"{name} {' + '.join(steps)}")
+    return [f"time s of a pycolmap row, from the images: {'; '.join(parts)}.", ""] if parts else []
+
+
+def _fewer(m: dict[str, Any]) -> list[str]:
+    """Why a row scored fewer cameras: those outside the method's solved component, those the reference lacks."""
+    def few(names: list[str]) -> str:
+        return ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+
+    out = []
+    if m.get("n_dropped"):
+        out.append(f"{m['n_dropped']} camera(s) outside its solved component ({few(m.get('dropped_names') or [])})")
+    if m.get("not_in_reference"):
+        out.append(f"{len(m['not_in_reference'])} not in the reference ({few(m['not_in_reference'])})")
+    return out
+
+
+def sigma_note(rows: dict[str, dict[str, Any]]) -> list[str]:
+    """The ‡ line under a table with a predicted σ: what it is, and how the measured median error compares."""
+    have = {k: m for k, m in rows.items() if _finite(m.get("sigma_median_deg")) and m["sigma_median_deg"] > 0}
+    if not have:
+        return []
+    ratios = [f"{m['median_deg'] / m['sigma_median_deg']:.2g}× it" + (f" ({k})" if len(have) > 1 else "")
+              for k, m in have.items() if _finite(m.get("median_deg"))]
+    return ["‡ BA σ: a precision under pycolmap's model, not an accuracy"
+            + (f"; measured median error {', '.join(ratios)}." if ratios else ".") + " (\"Refinement\")", ""]
 
 
 def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: dict, edge_errors: dict,
@@ -125,15 +174,22 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
     """
     table = {r.label: {k: m["references"][r.label] | {kk: m.get(kk) for kk in METHOD_EXTRAS if kk in m}
                        for k, m in metrics["methods"].items()} for r in refs}
+    if not refs:  # no errors, but the methods still: their cameras, time, certificate, the refinement's status
+        table = {NO_REFERENCE: {k: {kk: m.get(kk) for kk in (*METHOD_EXTRAS, "n_cameras") if kk in m}
+                                for k, m in metrics["methods"].items()}}
+    ref_notes = {}
     for label, p in _peers(metrics).items():
         row = PEER_ROWS.get(label, f"pycolmap ({label})")
+        if label in table and _finite(p.get("median_deg")):  # a peer as a reference: how far it is from the truth
+            ref_notes[label] = (f"A reference, not the truth: {row} is itself {p['median_deg']:.3f}° (median) from "
+                                f"the truth on its {p.get('n_evaluated')} images.")
         if "median_deg" in p:  # against the truth: on all its images, and on the subset of its images
             for r in refs:
                 if r.label == "truth" or r.label.startswith(subset_prefix(label)):
                     table[r.label][row] = p
         for other, s in (p.get("references") or {}).items():  # against the other peers, on the images both register
             if other in table and s.get("n_evaluated"):
-                table[other][row] = s | {"time_s": p.get("time_s")}
+                table[other][row] = s | {"time_s": p.get("time_s"), "times": p.get("times")}
     edge_vals: dict[str, np.ndarray] = {}
     if refs and refs[0].label in edge_errors and "ba" in edge_errors[refs[0].label]:
         edge_vals[f"error_vs_{refs[0].label}"] = edge_errors[refs[0].label]["ba"]
@@ -147,17 +203,11 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
         metrics=table, camera_errors=camera_errors, edge_errors=edge_errors, histories=histories,
         vg_edges=vg.edges, vg_names=list(vg.names), edge_values=edge_vals if plots_on else {}, positions=pos,
         notes=notes, sections=_refine_sections(metrics, refs, camera_errors), stages=stages,
-        evidence=evidence_markdown(metrics.get("evidence") or {}), title=title)
+        evidence=evidence_markdown(metrics.get("evidence") or {}),
+        certificates=certificate_statements(metrics["methods"]), ref_notes=ref_notes, title=title)
     if not plots_on:
         data.camera_errors, data.edge_errors, data.histories, data.vg_edges = {}, {}, {}, None
     return data
-
-
-def _peers(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """The pycolmap peers' metrics by label (older metrics: the incremental one only)."""
-    if metrics.get("peers"):
-        return metrics["peers"]
-    return {"pycolmap": metrics["pycolmap"]} if metrics.get("pycolmap") else {}
 
 
 def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_errors: dict) -> dict[str, list[str]]:
@@ -171,13 +221,24 @@ def _refine_sections(metrics: dict[str, Any], refs: list[Reference], camera_erro
         errs = camera_errors.get(ref, {}).get(label) if ref else None
         change, kept = m.get("change_from_averaged_deg") or {}, m.get("kept_averaged") or {}
         lines = [f"Start: {m.get('start_why', m.get('start'))}; status **{m.get('status')}**; "
-                 "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge).", "",
+                 "predicted σ = √tr Σ from pycolmap's BA covariance (minimum-norm gauge): how precise a rotation is "
+                 "if the model (K, matches, kept pairs) is right, not an accuracy.", "",
                  f"| camera | error vs {ref or '–'} ° | predicted σ ° | change from averaged ° | not refined: why |",
                  "|---|---|---|---|---|"]
+        over, n = 0, 0
         for k, nm in enumerate(sigma):
             e = errs[k] if errs is not None and k < len(errs) else None
-            lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sigma[nm], '{:.4f}')} | "
+            sd = None if nm in kept else sigma[nm]  # the model's σ is not that of a rotation it did not refine
+            if _finite(e) and _finite(sd):
+                n, over = n + 1, over + int(e > 3 * sd)
+            lines.append(f"| {nm} | {_fmt(e, '{:.4f}')} | {_fmt(sd, '{:.4f}')} | "
                          f"{_fmt(change.get(nm), '{:.4f}')} | {kept.get(nm, '')} |")
+        said = {f"{nm}: {why}" for nm, why in kept.items()}  # in the camera's row
+        warns = [w for w in m.get("warnings") or [] if w not in said]
+        if warns:
+            lines += ["", "Warnings of the refinement:", "", *[f"- {w}" for w in warns]]
+        if n:
+            lines += ["", f"Measured: {over} of {n} refined cameras are more than 3σ off against {ref}."]
         out[f"Refinement ({label})"] = lines + [""]
     return out
 
@@ -192,12 +253,24 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         total = sum(data.stages.values())
         lines += ["## Stages", "", "| stage | wall time (s) |", "|---|---|"]
         lines += [f"| {k} | {v:.2f} |" for k, v in data.stages.items()]
-        lines += [f"| **total** | {total:.2f} |", ""]
+        lines += [f"| **sum of the stages above** | {total:.2f} |", "",
+                  "(The report's own stage and the start are not in it: the whole run's wall time is metrics.json's "
+                  "total_s.)", ""]
     lines += data.evidence
+    if data.certificates:
+        lines += ["## Certificates", "", f"{CERTIFICATE_NOTE[0].upper()}{CERTIFICATE_NOTE[1:]}: each below says for "
+                  "which cost on which edges.", "", "| method | what its certificate proves (cost, edges) |", "|---|---|"]
+        lines += [f"| {k} | {v} |" for k, v in data.certificates.items()] + [""]
+    timed: set[str] = set()
     for ref, rows in data.metrics.items():
-        lines += [f"## Against {ref}", "", *metrics_table(rows), ""]
-        if any("certified" in m for m in rows.values()):
-            lines += [f"† {CERTIFICATE_NOTE} (see \"Evidence\").", ""]
+        lines += [f"## {ref}" if ref == NO_REFERENCE else f"## Against {ref}", ""]
+        lines += [data.ref_notes[ref], ""] if ref in data.ref_notes else []
+        lines += [*metrics_table(rows, data.n_images),
+                  "", *sigma_note(rows)]
+        lines += peer_time_note({k: m for k, m in rows.items() if k not in timed})  # each peer's once
+        timed |= set(rows)
+        if any(certificate_cell(m) for m in rows.values()):
+            lines += ["† for which cost and edges, and what it does not prove: \"Certificates\".", ""]
         errs = data.camera_errors.get(ref)
         if errs:
             p = plots.plot_error_distribution(errs, out / f"errors_{_slug(ref)}.png", ref)
@@ -239,94 +312,32 @@ def intrinsics_lines(intr: dict[str, Any]) -> list[str]:
         if d["source"] != "none":
             lines.append(f"- distortion of {d['n_images']} image(s): {', '.join(d['models'])} "
                          f"{[list(p) for p in d['extra_params']]} ({d['source']})")
+    said: dict[tuple[str, str], list[int]] = {}  # one line per statement, with how many cameras (groups) it is of
     for g in intr.get("estimates", []):
         for key in ("focal", "radial"):
-            note = (g.get(key) or {}).get("note")
-            if note:
-                lines.append(f"- {key}: {note}")
+            text = _estimate_text(key, g.get(key) or {})
+            if text:
+                said.setdefault((key, text), []).append(int(g.get("n_images", 0)))
+    for (key, text), sizes in said.items():
+        lines.append(f"- {key} of {len(sizes)} camera{'s' if len(sizes) > 1 else ''} ({sum(sizes)} images): {text}")
+    for f in intr["focal"]:  # how well determined: the view-graph calibration gives no uncertainty
+        if f["source"] == "estimated:view-graph":
+            lines.append(f"- focal of {f['n_images']} images from the view-graph calibration: no uncertainty is "
+                         "estimated for it")
     return lines + ([""] if lines[-1] else [])
 
 
-def intrinsics_console(intr: dict[str, Any]) -> str:
-    """One console line: the focal used (its median and, where the images' differ, their range) and its source."""
-    parts = [f"{f['median_px']:.1f} px" + ("" if f["min_px"] == f["max_px"] else f" ({f['min_px']:.1f}–{f['max_px']:.1f})")
-             + f" ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
-    weak = [g["focal"] for g in intr.get("estimates", []) if (g.get("focal") or {}).get("determined") is False]
-    sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" for w in weak)
-    parts += [f"POORLY DETERMINED for {len(weak)} camera group(s) (jackknife sd {sds})"] if weak else []
-    return "focal: " + "; ".join(parts) if parts else ""
-
-
-# ------------------------------------------------------------------ console
-def _f(v: Any, nd: int = 3) -> str:
-    try:
-        return f"{float(v):.{nd}f}"
-    except (TypeError, ValueError):
-        return "–"
-
-
-def summary_table(metrics: dict[str, Any]) -> str:
-    """The final console table of a run: one row per method and reference, and each pycolmap peer's own."""
-    rows = [("method", "reference", "cams", "median°", "mean°", "max°", "time s", "note")]
-    for label, m in metrics["methods"].items():
-        note = ""
-        if "certified" in m:  # † : optimal for its cost, not a check of the pairs (printed under the table)
-            note = "certified †" if m["certified"] else "NOT certified †"
-        if m.get("method") == "refine":
-            note = f"refine {m['status']}"
-        for rname, s in m.get("references", {}).items():
-            rows.append((label, rname, f"{s.get('n_evaluated', 0)}", _f(s.get("median_deg")), _f(s.get("mean_deg")),
-                         _f(s.get("max_deg")), _f(m.get("time_s"), 2), note))
-        if not m.get("references"):
-            rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
-    for label, p in _peers(metrics).items():
-        if "median_deg" in p:
-            name = "pycolmap" if label == "pycolmap" else f"pycolmap-{label}"
-            rows.append((name, "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
-                         _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
-    w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
-    lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
-    lines.insert(1, "  ".join("-" * x for x in w))
-    return "\n".join(lines)
-
-
-def console_table(title: str, rows: list[tuple[str, Any]]) -> str:
-    """A two-column ``name  value`` table under ``title`` (floats with 4 significant digits)."""
-    width = max(len(k) for k, _ in rows)
-    lines = [title, "-" * max(len(title), width + 14)]
-    for k, v in rows:
-        if isinstance(v, float):
-            v = f"{v:.4g}"
-        lines.append(f"{k:<{width}}  {v}")
-    return "\n".join(lines)
-
-
-def summary_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
-    """Rows of a :func:`pipeline.evaluation.metrics.summarize` dict for :func:`console_table`."""
-    rows: list[tuple[str, Any]] = [
-        ("cameras", s["n_cameras"]),
-        ("evaluated", s["n_evaluated"]),
-        ("alignment", s["align"]),
-        ("median error (deg)", s["median_deg"]),
-        ("mean error (deg)", s["mean_deg"]),
-        ("RMS error (deg)", s["rms_deg"]),
-        ("max error (deg)", s["max_deg"]),
-        ("sqrt(sum ||R-R*||_F^2)", s["frobenius"]),
-    ]
-    rows += [(f"% under {t} deg", v) for t, v in s["pct_below"].items()]
-    if "mahalanobis" in s:
-        rows.append(("Mahalanobis (C.13)", s["mahalanobis"]))
-    return rows
-
-
-def edge_rows(s: dict[str, Any]) -> list[tuple[str, Any]]:
-    """Rows of a :func:`pipeline.evaluation.metrics.edge_stats` dict for :func:`console_table`."""
-    rows: list[tuple[str, Any]] = [
-        ("edges", s["n_edges"]),
-        ("evaluated", s["n_evaluated"]),
-        ("mean error (deg)", s["mean_deg"]),
-        ("median error (deg)", s["median_deg"]),
-        ("RMS error (deg)", s["rms_deg"]),
-    ]
-    rows += [(f"% above {t} deg", v) for t, v in s["pct_above"].items()]
-    return rows
+def _estimate_text(key: str, e: dict[str, Any]) -> str:
+    """What the cameras stage's estimate of ``key`` (focal or radial) of one camera says: its value, how many pairs
+    and how well determined (the jackknife sd); "not estimated" when it made none."""
+    note = e.get("note") or ""
+    if key == "focal" and e:
+        if not _finite(e.get("f")) and e.get("group_note"):  # another estimate replaced this one (its note says)
+            return f"{note} (each camera's own estimate: {e['group_note']})"
+        if not _finite(e.get("f")):
+            return f"not estimated: {note}" if note else "not estimated"
+        sd = f", jackknife sd {100 * e['sd_rel']:.1f}%" if _finite(e.get("sd_rel")) else ""
+        return f"{e['f']:.1f} px from {e.get('n_pairs')} pairs{sd}" + (f": {note}" if note else "")
+    if not note:
+        return ""
+    return f"not estimated: {note}" if e.get("n_pairs") == 0 else note
