@@ -41,6 +41,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions
 
 __all__ = ["G2oData", "write_g2o", "read_g2o", "INFO_CONVENTIONS"]
@@ -201,6 +202,11 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         raise InputFileError(f"{path} holds no EDGE_SE3:QUAT or EDGE_SO3:QUAT line (2D graphs are not rotation graphs "
                              "of this project)")
     e_ij = np.array(e_ij, dtype=np.int64)
+    rep = repeated_pair(e_ij)
+    if rep is not None:  # named by the file's vertex ids and lines
+        a, b = rep
+        raise InputFileError(f"{path}:{e_lines[b]}: vertices {e_ij[b, 0]} and {e_ij[b, 1]} already have an edge on line "
+                             f"{e_lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
     if v_ids:
         uniq, n_decl = np.unique(np.asarray(v_ids, dtype=np.int64), return_counts=True)
         if np.any(n_decl > 1):

@@ -31,6 +31,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions
 
 __all__ = ["write_glomap_rotations", "read_glomap_rotations", "write_glomap_relpose", "read_glomap_relpose"]
@@ -176,6 +177,11 @@ def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_R
     except NearRotationError as exc:
         raise InputFileError(str(exc)) from None
     edges = np.array([(index[a], index[b]) for _, a, b in pairs], dtype=np.int64)
+    rep = repeated_pair(edges)
+    if rep is not None:  # named by the file's image names and lines
+        a, b = rep
+        raise InputFileError(f"{path}:{pairs[b][0]}: images {pairs[b][1]} and {pairs[b][2]} already have a relative pose on "
+                             f"line {pairs[a][0]}; each pair may appear once, in either orientation: delete one of the lines")
     if np.any(edges[:, 0] == edges[:, 1]):
         k = int(np.flatnonzero(edges[:, 0] == edges[:, 1])[0])
         raise InputFileError(f"{path}:{pairs[k][0]}: a pair of an image with itself")

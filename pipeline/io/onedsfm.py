@@ -39,6 +39,7 @@ import numpy as np
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
 
 __all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
@@ -261,6 +262,11 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
                        info["n_egs_outside_cc"], ij.shape[0])
     ij, R_file, t_file = ij[keep], R_file[keep], t_file[keep]
     lines = [ln for ln, k in zip(eg_lines, keep) if k]
+    rep = repeated_pair(ij)
+    if rep is not None:  # named as the file names it: list.txt indices and line numbers
+        a, b = rep
+        raise InputFileError(f"{folder / 'EGs.txt'}:{lines[b]}: images {ij[b, 0]} and {ij[b, 1]} already have an EG on "
+                             f"line {lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
     R_file = projected_or_input_error(R_file, rotation_tol, what="EG rotation", source=str(folder / "EGs.txt"),
                                       labels=[f"on line {ln}" for ln in lines])
     F = BUNDLER_TO_CV

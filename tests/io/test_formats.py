@@ -285,7 +285,7 @@ def test_g2o_gtsam_reads_our_file_and_solves_our_anisotropic_problem(tmp_path):
     ("EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1 1 2 3\n", "needs 30 values"),
     ("EDGE_SO3:QUAT 0 1 0 0 0 1 -1 0 0 1 0 1\n", "not positive definite"),
     ("EDGE_SO3:QUAT 0 1 0 0 0 3 1 0 0 1 0 1\n", "norm 3"),
-    ("EDGE_SO3:QUAT 0 1 0 0 0 1 1 0 0 1 0 1\nEDGE_SO3:QUAT 1 0 0 0 0 1 1 0 0 1 0 1\n", "duplicate edge"),
+    ("EDGE_SO3:QUAT 0 1 0 0 0 1 1 0 0 1 0 1\nEDGE_SO3:QUAT 1 0 0 0 0 1 1 0 0 1 0 1\n", "already have an edge on line 1"),
     ("EDGE_SO3:QUAT a 1 0 0 0 1 1 0 0 1 0 1\n", "integers"),
     ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n", "no EDGE_SE3"),
     ("EDGE_SO3:QUAT 2 2 0 0 0 1 1 0 0 1 0 1\n", "itself"),

@@ -1,0 +1,68 @@
+"""Files users bring, as other tools write them: the cases a reader or command got wrong (audit of the formats)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core import so3
+from pipeline.core.errors import InputFileError
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.g2o import read_g2o, write_g2o
+from pipeline.io.glomap import read_glomap_relpose, write_glomap_relpose
+from pipeline.io.onedsfm import read_1dsfm
+from pipeline.synthetic.files import make_synthetic_1dsfm
+
+
+def _one_line(exc_info, path) -> str:
+    msg = str(exc_info.value)
+    assert "\n" not in msg and str(path) in msg, msg
+    return msg
+
+
+def _graph(names, edges, seed=0):
+    R = so3.random_rotations(len(names), np.random.default_rng(seed))
+    edges = np.asarray(edges)
+    return ViewGraph(list(names), edges, so3.relative(R, edges)), R
+
+
+# ----------------------------------------------------------------------------- a pair given twice
+def test_1dsfm_pair_given_twice_is_named_by_its_list_indices_and_lines(tmp_path):
+    make_synthetic_1dsfm(tmp_path / "ds", n=8, p=0.6, seed=4, n_extra_images=2)
+    egs = tmp_path / "ds" / "EGs.txt"
+    lines = egs.read_text().splitlines()
+    cc = [int(x) for x in (tmp_path / "ds" / "cc.txt").read_text().split()]
+    k, first = next((k, ln.split()) for k, ln in enumerate(lines, 1)
+                    if set(map(int, ln.split()[:2])) <= set(cc) and int(ln.split()[0]) != cc.index(int(ln.split()[0])))
+    egs.write_text("\n".join(lines + [" ".join([first[1], first[0]] + first[2:])]) + "\n")
+    with pytest.raises(InputFileError) as ei:
+        read_1dsfm(tmp_path / "ds")
+    msg = _one_line(ei, egs)
+    # the file's own indices (list.txt lines), not the cc.txt renumbering, and both lines
+    assert f"images {first[1]} and {first[0]}" in msg and f":{len(lines) + 1}:" in msg and f"line {k}" in msg, msg
+
+
+def test_g2o_pair_given_twice_is_named_by_its_vertex_ids_and_lines(tmp_path):
+    vg, _ = _graph(["a", "b", "c"], [(0, 1), (1, 2), (0, 2)])
+    p = tmp_path / "g.g2o"
+    write_g2o(p, vg, ids=np.array([10, 11, 12]))
+    lines = p.read_text().splitlines()
+    e = next(ln.split() for ln in lines if ln.startswith("EDGE") and ln.split()[1:3] == ["11", "12"])
+    p.write_text("\n".join(lines + [" ".join([e[0], e[2], e[1]] + e[3:])]) + "\n")
+    with pytest.raises(InputFileError) as ei:
+        read_g2o(p)
+    msg = _one_line(ei, p)
+    assert "vertices 12 and 11" in msg and f":{len(lines) + 1}:" in msg, msg
+
+
+def test_glomap_pair_given_twice_is_named_by_its_image_names(tmp_path):
+    vg, _ = _graph(["x.jpg", "y.jpg", "z.jpg"], [(0, 1), (1, 2), (0, 2)])
+    p = tmp_path / "rel.txt"
+    write_glomap_relpose(p, vg)
+    lines = p.read_text().splitlines()
+    f = lines[1].split()
+    p.write_text("\n".join(lines + [" ".join([f[1], f[0]] + f[2:])]) + "\n")
+    with pytest.raises(InputFileError) as ei:
+        read_glomap_relpose(p)
+    msg = _one_line(ei, p)
+    assert f"images {f[1]} and {f[0]}" in msg and ":4:" in msg and "line 2" in msg, msg
