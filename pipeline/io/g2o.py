@@ -143,7 +143,7 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
     if not path.is_file():
         raise InputFileError(f"g2o file {path} does not exist")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
     counts: Counter[str] = Counter()

@@ -50,7 +50,7 @@ def _lines(path: Path, n_fields: int, layout: str):
     if not path.is_file():
         raise InputFileError(f"GLOMAP file {path} does not exist")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
     for lineno, line in enumerate(text.splitlines(), 1):

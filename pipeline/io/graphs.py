@@ -41,7 +41,7 @@ GraphData = MatData
 def _data_fields(path: Path) -> int:
     """Fields on the first non-comment line of a text file (0 if none); -1 if not text."""
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:
             for line in f:
                 parts = line.split("#", 1)[0].split()
                 if parts:

@@ -78,7 +78,7 @@ def _read_text(path: Path, what: str) -> list[str]:
     if not path.is_file():
         raise InputFileError(f"1DSfM {what} file {path} does not exist")
     try:
-        return path.read_text(encoding="utf-8").splitlines()
+        return path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
 

@@ -65,7 +65,7 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
     names: list[str] = []
     rows: list[list[float]] = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path} is not a rotations text file (not UTF-8: {exc.reason} at byte {exc.start})"
                              ) from None

@@ -66,3 +66,33 @@ def test_glomap_pair_given_twice_is_named_by_its_image_names(tmp_path):
         read_glomap_relpose(p)
     msg = _one_line(ei, p)
     assert f"images {f[1]} and {f[0]}" in msg and ":4:" in msg and "line 2" in msg, msg
+
+
+# ----------------------------------------------------------------------------- a UTF-8 byte-order mark (Windows editors)
+def _with_bom(path) -> None:
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+
+
+def test_text_files_saved_with_a_byte_order_mark_read_as_without(tmp_path):
+    from pipeline.io.glomap import read_glomap_rotations, write_glomap_rotations
+    from pipeline.io.rotations import read_rotations, write_rotations
+
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=5, n_extra_images=1)
+    plain = read_1dsfm(tmp_path / "ds")
+    for name in ("list.txt", "cc.txt", "EGs.txt", "gt_bundle.out"):
+        _with_bom(tmp_path / "ds" / name)
+    bom = read_1dsfm(tmp_path / "ds")
+    assert bom.vg.names == plain.vg.names and np.array_equal(bom.vg.edges, plain.vg.edges)
+    assert np.array_equal(bom.gt_mask, plain.gt_mask)
+
+    vg, R = _graph(["x.jpg", "y.jpg", "z.jpg"], [(0, 1), (1, 2), (0, 2)])
+    readers = [(write_glomap_relpose, (vg,), lambda p: read_glomap_relpose(p).names),
+               (write_g2o, (vg,), lambda p: read_g2o(p).vg.names),
+               (write_glomap_rotations, (vg.names, R), lambda p: read_glomap_rotations(p)[0]),
+               (write_rotations, (vg.names, R), lambda p: read_rotations(p)[0])]
+    for k, (write, args, names_of) in enumerate(readers):
+        p = tmp_path / f"f{k}{'.g2o' if write is write_g2o else '.txt'}"
+        write(p, *args)
+        expected = names_of(p)
+        _with_bom(p)
+        assert names_of(p) == expected, write.__name__
