@@ -196,11 +196,15 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         e_t.append(t)
         e_lines.append(lineno)
     ignored = {k: c for k, c in counts.items() if k not in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "EDGE_SO3:QUAT")}
+    if not e_ij:
+        flat = sorted(k for k in ignored if "SE2" in k)  # VERTEX_SE2, EDGE_SE2, EDGE_SE2_XY, ...
+        if flat:  # one line, without the warning about the skipped lines
+            raise InputFileError(f"{path} is a 2D pose graph ({', '.join(flat)} lines); this project averages 3D "
+                                 "rotations: give a 3D graph (EDGE_SE3:QUAT edges)")
+        raise InputFileError(f"{path} holds no EDGE_SE3:QUAT or EDGE_SO3:QUAT line; nothing to average (give a 3D "
+                             "pose graph)")
     if ignored:
         logger.warning("%s: skipped %s", path, ", ".join(f"{c} {k} line(s)" for k, c in sorted(ignored.items())))
-    if not e_ij:
-        raise InputFileError(f"{path} holds no EDGE_SE3:QUAT or EDGE_SO3:QUAT line (2D graphs are not rotation graphs "
-                             "of this project)")
     e_ij = np.array(e_ij, dtype=np.int64)
     rep = repeated_pair(e_ij)
     if rep is not None:  # named by the file's vertex ids and lines

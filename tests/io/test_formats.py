@@ -287,7 +287,7 @@ def test_g2o_gtsam_reads_our_file_and_solves_our_anisotropic_problem(tmp_path):
     ("EDGE_SO3:QUAT 0 1 0 0 0 3 1 0 0 1 0 1\n", "norm 3"),
     ("EDGE_SO3:QUAT 0 1 0 0 0 1 1 0 0 1 0 1\nEDGE_SO3:QUAT 1 0 0 0 0 1 1 0 0 1 0 1\n", "already have an edge on line 1"),
     ("EDGE_SO3:QUAT a 1 0 0 0 1 1 0 0 1 0 1\n", "integers"),
-    ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n", "no EDGE_SE3"),
+    ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n", "2D pose graph"),
     ("EDGE_SO3:QUAT 2 2 0 0 0 1 1 0 0 1 0 1\n", "itself"),
 ])
 def test_g2o_malformed(tmp_path, content, match):

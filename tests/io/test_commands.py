@@ -1,0 +1,39 @@
+"""``python -m pipeline.average`` and ``python -m pipeline.convert`` on the inputs and outputs users give them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.averaging.cli import main_cli as average_cli
+from pipeline.core import so3
+from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.convert import main_cli as convert_cli
+from pipeline.io.onedsfm import read_1dsfm
+from pipeline.synthetic.files import make_synthetic_1dsfm
+
+
+def _err_line(capsys) -> str:
+    """The command's stderr, which must be exactly one 'error:' line."""
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def _npz(tmp_path, name="g.npz"):
+    R = so3.random_rotations(4, np.random.default_rng(0))
+    vg = ViewGraph.from_absolute(["a", "b", "c", "d"], R, [[0, 1], [1, 2], [2, 3], [0, 3]])
+    return vg.save(tmp_path / name)
+
+
+# ----------------------------------------------------------------------------- inputs
+def test_a_2d_g2o_file_is_refused_in_one_line_that_says_so(tmp_path, capsys):
+    p = tmp_path / "m.g2o"
+    p.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    assert average_cli([str(p), "--out", str(tmp_path / "r.txt")]) == 2
+    line = _err_line(capsys)
+    assert "2D" in line and "EDGE_SE2" in line and "EDGE_SE3:QUAT" in line, line
+    p.write_text("")
+    assert average_cli([str(p), "--out", str(tmp_path / "r.txt")]) == 2
+    line = _err_line(capsys)
+    assert "2D" not in line and "no EDGE_SE3:QUAT" in line, line
