@@ -34,7 +34,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
-from pipeline.io.graphs import FORMATS
+from pipeline.io.graphs import FORMATS, check_input
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["main", "main_cli", "build_parser"]
@@ -62,8 +62,7 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
         ``out_path``.
     """
     input_path, out_path = Path(input_path), Path(out_path)
-    if not input_path.exists():
-        raise InputFileError(f"input view graph {input_path} does not exist")
+    check_input(input_path)  # a missing input, a plain folder: one line, before the stage fingerprints it
     if not (rotation_tol >= 0 and rotation_tol < 1):
         raise ConfigError(f"--rotation-tol {rotation_tol!r}; expected a distance from SO(3) in [0, 1), e.g. 1e-3")
     if out_path.suffix.lower() == ".json":

@@ -29,13 +29,16 @@ from pipeline.io.mat import MatData, read_mat
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm
 
-__all__ = ["read_input_graph", "input_files", "GraphData", "FORMATS"]
+__all__ = ["read_input_graph", "check_input", "input_files", "GraphData", "FORMATS"]
 
 #: One line per supported input, for messages and ``--help``.
 FORMATS = ("a view-graph .npz (ViewGraph.save), a .mat (LU Sphinx or ℓ1 layout), a 1DSfM folder (EGs.txt, "
            "list.txt, cc.txt, gt_bundle.out), a .g2o file, or GLOMAP relative poses (NAME1 NAME2 QW QX QY QZ TX TY TZ)")
 
 GraphData = MatData
+
+#: The other files of a published 1DSfM folder: given alone, they are not a view graph.
+_ONEDSFM_COMPANIONS = ("list.txt", "cc.txt", "gt_bundle.out", "coords.txt", "tracks.txt")
 
 
 def _data_fields(path: Path) -> int:
@@ -56,6 +59,21 @@ def _folder_of(path: Path) -> Path | None:
     if path.name == "EGs.txt" and is_1dsfm_folder(path.parent):
         return path.parent
     return path if is_1dsfm_folder(path) else None
+
+
+def check_input(path: str | os.PathLike) -> None:
+    """Refuse, in one line and before any work, an input that cannot be a view graph (missing, a plain folder, a
+    companion file of a 1DSfM folder); :func:`read_input_graph` judges the content."""
+    p = Path(path)
+    if _folder_of(p) is not None:
+        return
+    if p.is_dir():
+        raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
+    if not p.exists():
+        raise InputFileError(f"input view graph {p} does not exist")
+    if p.name in _ONEDSFM_COMPANIONS and is_1dsfm_folder(p.parent):
+        raise InputFileError(f"{p} is one file of the 1DSfM dataset in {p.parent}; give the folder {p.parent} (or its "
+                             "EGs.txt)")
 
 
 def input_files(path: str | os.PathLike) -> list[Path]:
@@ -82,10 +100,7 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
     if folder is not None:
         d = read_1dsfm(folder, rotation_tol)
         return GraphData(d.vg, d.R_gt, d.gt_mask)
-    if p.is_dir():
-        raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
-    if not p.is_file():
-        raise InputFileError(f"input view graph {p} does not exist")
+    check_input(p)
     suffix = p.suffix.lower()
     if suffix == ".npz":
         return GraphData(ViewGraph.load(p, allow_isolated=True), None, None)

@@ -37,3 +37,20 @@ def test_a_2d_g2o_file_is_refused_in_one_line_that_says_so(tmp_path, capsys):
     assert average_cli([str(p), "--out", str(tmp_path / "r.txt")]) == 2
     line = _err_line(capsys)
     assert "2D" not in line and "no EDGE_SE3:QUAT" in line, line
+
+
+def test_a_folder_that_is_not_a_1dsfm_dataset_says_what_inputs_are(tmp_path, capsys):
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "graph.mat").mkdir()
+    for folder in ("photos", "graph.mat"):
+        assert average_cli([str(tmp_path / folder), "--out", str(tmp_path / "r.txt")]) == 2
+        line = _err_line(capsys)
+        assert "is a folder but not a 1DSfM dataset" in line, line
+
+
+def test_a_file_of_a_1dsfm_folder_other_than_egs_points_to_the_folder(tmp_path, capsys):
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    for name in ("list.txt", "cc.txt", "gt_bundle.out"):
+        assert average_cli([str(tmp_path / "ds" / name), "--out", str(tmp_path / "r.txt")]) == 2
+        line = _err_line(capsys)
+        assert f"give the folder {tmp_path / 'ds'}" in line, line
