@@ -48,6 +48,24 @@ def _is_rotations(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() not in (".npz", ".mat", ".g2o") and _data_fields(path) in (5, 10)
 
 
+_SUFFIX = {"npz": ".npz", "mat": ".mat", "g2o": ".g2o"}
+
+
+def _check_output(src: Path, out: Path, fmt: str) -> None:
+    """Refuse, before reading the input, an output that is the input or a folder where a file goes (and back)."""
+    from pipeline.io.graphs import _folder_of  # noqa: PLC0415
+
+    if out.resolve() in (src.resolve(), (_folder_of(src) or src).resolve()):
+        raise ConfigError(f"OUTPUT {out} is the input; write the conversion to another path")
+    if fmt == "1dsfm":
+        from pipeline.io.onedsfm import check_1dsfm_target  # noqa: PLC0415
+
+        check_1dsfm_target(out)
+    elif out.is_dir():
+        raise InputFileError(f"{out} is a folder; --to {fmt} writes a file: pass a file name in it (e.g. "
+                             f"{out / ('graph' + _SUFFIX.get(fmt, '.txt'))})")
+
+
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
          rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
     """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
@@ -55,6 +73,7 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     fmt = to or _BY_SUFFIX.get(out.suffix.lower())
     if fmt not in TARGETS:
         raise ConfigError(f"cannot tell the format of {out} from its name; give --to with one of {list(TARGETS)}")
+    _check_output(src, out, fmt)
     if _is_rotations(src):
         from pipeline.io.glomap import write_glomap_rotations  # noqa: PLC0415
         from pipeline.io.rotations import read_rotations, write_rotations  # noqa: PLC0415

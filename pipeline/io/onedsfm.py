@@ -36,14 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.atomic import atomic_open
+from pipeline.core.atomic import TMP_TAG, atomic_dir, atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
 
 __all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
-           "BUNDLER_TO_CV"]
+           "check_1dsfm_target", "BUNDLER_TO_CV"]
 
 logger = logging.getLogger(__name__)
 
@@ -302,10 +302,11 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
                 index: np.ndarray | None = None, focal: np.ndarray | None = None,
                 R_gt: np.ndarray | None = None, t_gt: np.ndarray | None = None, gt_mask: np.ndarray | None = None
                 ) -> Path:
-    """Write a view graph as a 1DSfM folder (inverse of :func:`read_1dsfm`).
+    """Write a view graph as a 1DSfM folder (inverse of :func:`read_1dsfm`), atomically as a whole.
 
     Args:
-        folder: created if needed.
+        folder: created if needed; an existing one may hold only files this function writes (it is
+            replaced whole, so no gt_bundle.out of an earlier dataset stays); else InputFileError.
         vg: the view graph; ``stats["t_ij"]`` written as the EG translations (0 if absent).
         list_names: all images of list.txt (default: ``vg.names``); may include images not in vg.
         index: (N,) list.txt index of each camera of vg (default: position of its name).
@@ -313,7 +314,29 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
         R_gt, t_gt, gt_mask: (len(list_names), ...) truth for gt_bundle.out (optional).
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    check_1dsfm_target(folder)
+    with atomic_dir(folder) as tmp:  # the folder is replaced whole: no file of an earlier dataset stays beside
+        _write_1dsfm_files(tmp, vg, list_names, index, focal, R_gt, t_gt, gt_mask)
+    return folder
+
+
+#: What :func:`write_1dsfm` writes (a folder holding only these, or nothing, may be replaced).
+_WRITTEN = ("list.txt", "cc.txt", "EGs.txt", "gt_bundle.out")
+
+
+def check_1dsfm_target(folder: str | os.PathLike) -> None:
+    """Refuse (one line) a target that :func:`write_1dsfm` would mix up: a file, or a folder with other files."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputFileError(f"{folder} is a file; a 1DSfM dataset is a folder: give a folder name")
+    if folder.is_dir():
+        other = sorted(f.name for f in folder.iterdir() if f.name not in _WRITTEN and TMP_TAG not in f.name)
+        if other:
+            raise InputFileError(f"{folder} holds {', '.join(other[:3])}{' ...' if len(other) > 3 else ''}, which a "
+                                 "1DSfM folder written there would not replace; give a new or empty folder")
+
+
+def _write_1dsfm_files(folder: Path, vg: ViewGraph, list_names, index, focal, R_gt, t_gt, gt_mask) -> None:
     list_names = list(vg.names) if list_names is None else list(list_names)
     pos = {n: k for k, n in enumerate(list_names)}
     index = np.array([pos[n] for n in vg.names]) if index is None else np.asarray(index)
@@ -334,7 +357,6 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
         t_gt = np.zeros((K, 3)) if t_gt is None else t_gt
         f_out = np.where(np.isfinite(focal), focal, 1000.0)
         write_bundler(folder / "gt_bundle.out", R_gt, t_gt, f_out, gt_mask)
-    return folder
 
 
 def is_1dsfm_folder(path: str | os.PathLike) -> bool:

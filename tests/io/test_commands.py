@@ -54,3 +54,44 @@ def test_a_file_of_a_1dsfm_folder_other_than_egs_points_to_the_folder(tmp_path, 
         assert average_cli([str(tmp_path / "ds" / name), "--out", str(tmp_path / "r.txt")]) == 2
         line = _err_line(capsys)
         assert f"give the folder {tmp_path / 'ds'}" in line, line
+
+
+# ----------------------------------------------------------------------------- outputs of convert
+def test_convert_onto_an_existing_folder_is_refused_before_reading(tmp_path, capsys):
+    (tmp_path / "out").mkdir()
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("EDGE_SE3:QUAT 0 1 nonsense\n")  # never read: the output is checked first
+    for fmt in ("npz", "mat", "g2o", "glomap-relpose"):
+        assert convert_cli([str(bad), str(tmp_path / "out"), "--to", fmt]) == 2
+        line = _err_line(capsys)
+        assert "out is a folder" in line and "Errno" not in line, line
+
+
+def test_convert_refuses_to_write_over_its_input(tmp_path, capsys):
+    p = _npz(tmp_path)
+    before = p.read_bytes()
+    assert convert_cli([str(p), str(p)]) == 2
+    assert "is the input" in _err_line(capsys)
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    assert convert_cli([str(tmp_path / "ds"), str(tmp_path / "ds"), "--to", "1dsfm"]) == 2
+    assert "is the input" in _err_line(capsys)
+    assert p.read_bytes() == before
+
+
+def test_convert_to_1dsfm_replaces_its_own_folder_whole_and_spares_others(tmp_path, capsys):
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    out = tmp_path / "out"
+    assert convert_cli([str(tmp_path / "ds"), str(out), "--to", "1dsfm", "-q"]) == 0
+    assert (out / "gt_bundle.out").is_file()
+    # a graph without truth into the same folder: the first graph's gt_bundle.out must not stay as its truth
+    assert convert_cli([str(_npz(tmp_path)), str(out), "--to", "1dsfm", "-q"]) == 0
+    d = read_1dsfm(out)
+    assert d.vg.names == ["a", "b", "c", "d"] and d.R_gt is None and not (out / "gt_bundle.out").exists()
+    # a folder with files this writer does not write (a published dataset's coords.txt, tracks.txt) is left alone
+    (out / "coords.txt").write_text("#index = 0\n")
+    before = {f.name: f.read_bytes() for f in out.iterdir()}
+    capsys.readouterr()
+    assert convert_cli([str(tmp_path / "ds"), str(out), "--to", "1dsfm"]) == 2
+    line = _err_line(capsys)
+    assert "coords.txt" in line and "new or empty folder" in line, line
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
