@@ -34,7 +34,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
-from pipeline.io.graphs import FORMATS, check_input
+from pipeline.io.graphs import FORMATS, check_input, input_files
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["main", "main_cli", "build_parser"]
@@ -72,6 +72,10 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
         if path is not None and Path(path).is_dir():
             raise InputFileError(f"{flag} {path} is a folder; pass a file name in it (e.g. {Path(path) / 'x'}"
                                  f"{'.txt' if flag == '--out' else '.json'})")
+    inputs = {f.resolve() for f in input_files(input_path)}
+    for flag, path in (("--out", out_path), ("--json", json_path)):  # read first, then replaced: lost
+        if path is not None and Path(path).resolve() in inputs:
+            raise InputFileError(f"{flag} {path} would overwrite the input {input_path}; write it to another file")
     init_file = None
     if init is not None and str(init) in _START_KINDS:
         options["init"] = str(init)

@@ -95,3 +95,20 @@ def test_convert_to_1dsfm_replaces_its_own_folder_whole_and_spares_others(tmp_pa
     line = _err_line(capsys)
     assert "coords.txt" in line and "new or empty folder" in line, line
     assert {f.name: f.read_bytes() for f in out.iterdir()} == before
+
+
+# ----------------------------------------------------------------------------- outputs of average
+def test_average_refuses_outputs_that_would_overwrite_its_input(tmp_path, capsys):
+    from pipeline.io.glomap import write_glomap_relpose
+
+    vg = ViewGraph.from_absolute(["a", "b", "c"], so3.random_rotations(3, np.random.default_rng(1)), [[0, 1], [1, 2]])
+    rel = write_glomap_relpose(tmp_path / "rel.txt", vg)
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    egs = tmp_path / "ds" / "EGs.txt"
+    kept = {p: p.read_bytes() for p in (rel, egs)}
+    for args in ([rel, "--out", rel], [rel, "--out", tmp_path / "r.txt", "--json", rel],
+                 [tmp_path / "ds", "--out", egs], [tmp_path / "ds", "--out", tmp_path / "ds" / "cc.txt"]):
+        assert average_cli([str(a) for a in args]) == 2
+        line = _err_line(capsys)
+        assert "would overwrite the input" in line, line
+    assert {p: p.read_bytes() for p in kept} == kept
