@@ -22,7 +22,8 @@ Camera names are the 0-based indices as strings (``"0"``, ``"1"``, …).
 **ℓ1 layout** (public ℓ1 / IRLS rotation-averaging code):
 
 - ``RR`` (3, 3, M): ``RR[:, :, k] ≈ R_j R_iᵀ`` for ``(i, j) = I[:, k]``.
-- ``I`` (2, M): 1-based camera indices, either orientation.
+- ``I`` (2, M): 1-based camera indices, either orientation of each pair; an ``I`` stored M×2
+  (one edge a row) is read as its transpose when M ≠ 2 matches RR.
 - ``Rgt`` (3, 3, N, optional): cam_from_world truth; an all-zero block marks a
   camera without ground truth.
 - ``H`` (3, 3, M, optional): precisions, an addition of this project written by
@@ -254,10 +255,12 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
     RR = _stack3(path, _numeric(path, data, "RR"), "RR")
     I = _numeric(path, data, "I")
+    if I.ndim == 2 and I.shape == (RR.shape[0], 2) and I.shape[0] != 2:  # stored M×2 (one edge a row): unambiguous
+        logger.info("%s: I is stored %d×2 (one edge a row); read as its transpose", path, I.shape[0])
+        I = I.T
     if I.ndim != 2 or I.shape[0] != 2:
-        if I.ndim == 2 and I.shape[1] == 2 and I.shape[0] != 2:
-            raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M); transpose it")
-        raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
+        raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M) (or (M, 2)) for the {RR.shape[0]} blocks "
+                             "of RR")
     if I.shape[1] != RR.shape[0]:
         raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
     if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):

@@ -96,3 +96,19 @@ def test_text_files_saved_with_a_byte_order_mark_read_as_without(tmp_path):
         expected = names_of(p)
         _with_bom(p)
         assert names_of(p) == expected, write.__name__
+
+
+# ----------------------------------------------------------------------------- the ℓ1 .mat layout
+def test_l1_mat_with_I_stored_M_by_2_reads_as_2_by_M(tmp_path):
+    import scipy.io as sio
+
+    from pipeline.io.mat import read_l1_mat
+
+    vg, R = _graph([str(k) for k in range(5)], [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4)])
+    RR = np.moveaxis(vg.R_rel, 0, 2)
+    I = (vg.edges + 1).T
+    sio.savemat(tmp_path / "a.mat", {"RR": RR, "I": I.astype(float), "Rgt": np.moveaxis(R, 0, 2)})
+    sio.savemat(tmp_path / "b.mat", {"RR": RR, "I": I.T.astype(np.uint32), "Rgt": np.moveaxis(R, 0, 2)})
+    a, b = read_l1_mat(tmp_path / "a.mat"), read_l1_mat(tmp_path / "b.mat")
+    assert np.array_equal(a.vg.edges, b.vg.edges) and np.allclose(a.vg.R_rel, b.vg.R_rel, atol=0)
+    assert np.allclose(a.vg.R_rel, so3.relative(R, a.vg.edges), atol=1e-12)
