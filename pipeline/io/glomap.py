@@ -16,7 +16,8 @@ same file after the merge into COLMAP, ``colmap/colmap`` ``src/glomap/io/pose_io
 * ``ReadGravity``: ``IMAGE_NAME GX GY GZ`` (not handled here).
 
 Lines are parsed on any whitespace here (a superset of GLOMAP's single-space split);
-``#`` comments and blank lines are skipped (GLOMAP itself writes none).
+blank lines and lines starting with ``#`` are skipped (GLOMAP itself writes none); a ``#``
+within a line is part of an image name (``IMG#12.jpg``), as GLOMAP writes it.
 """
 
 from __future__ import annotations
@@ -54,10 +55,9 @@ def _lines(path: Path, n_fields: int, layout: str):
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
     for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
         parts = line.split()
+        if not parts or parts[0].startswith("#"):  # a comment line; '#' within a line is part of a name
+            continue
         if len(parts) != n_fields:
             raise InputFileError(f"{path}:{lineno}: expected '{layout}' ({n_fields} fields), got {len(parts)}")
         yield lineno, parts

@@ -24,6 +24,7 @@ import os
 from pathlib import Path
 
 from pipeline.core.errors import InputFileError
+from pipeline.core.names import split_fields
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.mat import MatData, read_mat
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
@@ -42,13 +43,22 @@ _ONEDSFM_COMPANIONS = ("list.txt", "cc.txt", "gt_bundle.out", "coords.txt", "tra
 
 
 def _data_fields(path: Path) -> int:
-    """Fields on the first non-comment line of a text file (0 if none); -1 if not text."""
+    """Fields on the first non-comment line of a text file (0 if none); -1 if not text.
+
+    Counted as our files write them (``"…"`` one name, ``#`` a comment) and, when that is no known
+    layout (5, 9 or 10 fields), as GLOMAP writes them (whitespace only: ``IMG#12.jpg`` is a name).
+    """
     try:
         with open(path, encoding="utf-8-sig") as f:
             for line in f:
-                parts = line.split("#", 1)[0].split()
-                if parts:
-                    return len(parts)
+                raw = line.split()
+                if not raw or raw[0].startswith("#"):
+                    continue
+                try:
+                    ours = len(split_fields(line))
+                except InputFileError:
+                    ours = -1
+                return ours if ours in (5, 9, 10) or '"' in line else len(raw)
     except (OSError, UnicodeDecodeError):
         return -1
     return 0

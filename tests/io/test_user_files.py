@@ -112,3 +112,29 @@ def test_l1_mat_with_I_stored_M_by_2_reads_as_2_by_M(tmp_path):
     a, b = read_l1_mat(tmp_path / "a.mat"), read_l1_mat(tmp_path / "b.mat")
     assert np.array_equal(a.vg.edges, b.vg.edges) and np.allclose(a.vg.R_rel, b.vg.R_rel, atol=0)
     assert np.allclose(a.vg.R_rel, so3.relative(R, a.vg.edges), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- names with '#' or spaces
+def test_glomap_files_keep_image_names_with_a_hash(tmp_path):
+    """GLOMAP writes names as they are (no comments in its files): 'IMG#12.jpg' is one name, not a comment."""
+    from pipeline.io.graphs import read_input_graph
+    from pipeline.io.glomap import read_glomap_rotations, write_glomap_rotations
+    from pipeline.io.rotations import read_rotations
+
+    vg, R = _graph(["IMG#1.jpg", "b.jpg", "c#.jpg"], [(0, 1), (1, 2), (0, 2)])
+    rel = write_glomap_relpose(tmp_path / "rel.txt", vg)
+    assert read_glomap_relpose(rel).names == vg.names and read_input_graph(rel).vg.names == vg.names
+    rot = write_glomap_rotations(tmp_path / "rot.txt", vg.names, R)
+    assert read_glomap_rotations(rot)[0] == vg.names and read_rotations(rot)[0] == vg.names
+
+
+def test_convert_recognises_our_rotations_file_with_quoted_names(tmp_path, capsys):
+    from pipeline.io.convert import main_cli as convert_cli
+    from pipeline.io.rotations import read_rotations, write_rotations
+
+    names = ["IMG 1.jpg", "b#2.jpg", "c.jpg"]
+    R = so3.random_rotations(3, np.random.default_rng(2))
+    src = write_rotations(tmp_path / "r.txt", names, R)
+    assert convert_cli([str(src), str(tmp_path / "copy.txt"), "--to", "rotations"]) == 0, capsys.readouterr().err
+    n2, R2 = read_rotations(tmp_path / "copy.txt")
+    assert n2 == names and np.allclose(R2, R, atol=1e-15)
