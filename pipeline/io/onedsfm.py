@@ -19,8 +19,10 @@ Layout and conventions, established from public sources (facts, no code copied):
   direction of camera j's centre in camera i's OpenCV frame).
 * ``gt_bundle.out``: a Bundler v0.3 file (``# Bundle file v0.3``; ``<num_cameras>
   <num_points>``; per camera ``f k1 k2`` then 3 rows of R then t; then the points). R is
-  world-to-camera in Bundler's frame; a camera with f = 0 and an all-zero R is not
-  registered. Camera k is image k of ``list.txt``. Truth in our convention: ``F R``.
+  world-to-camera in Bundler's frame; a camera with f <= 0 or an all-zero R is not
+  registered (Bundler's rule, also Theia's ``ReadBundlerFiles``: a camera with f <= 0 was not
+  reconstructed; a zero R gives no rotation either). Camera k is image k of ``list.txt``; a
+  bundle with more cameras than list.txt has images is refused. Truth in our convention: ``F R``.
 
 Reading restricts to ``cc.txt`` (when present) and drops EGs with an endpoint outside it
 (counted in ``info``); the rotations go through the near-rotation projection (the files
@@ -159,7 +161,7 @@ def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
 
     Returns:
         R: (K, 3, 3) ``F R_bundler`` (identity where unregistered), t: (K, 3) ``F t_bundler``,
-        f: (K,) focal lengths, registered: (K,) bool (False for f = 0 and all-zero R).
+        f: (K,) focal lengths, registered: (K,) bool (False for f <= 0 or an all-zero R).
 
     Raises:
         InputFileError: missing file, bad header or counts, truncated camera block, a
@@ -188,7 +190,7 @@ def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     f = a[:, 0]
     Rb = a[:, 3:12].reshape(n_cam, 3, 3)
     tb = a[:, 12:15]
-    registered = ~((f == 0) & (np.abs(Rb).sum(axis=(1, 2)) == 0))
+    registered = (f > 0) & (np.abs(Rb).sum(axis=(1, 2)) > 0)  # Bundler (and Theia's reader): f <= 0 = not reconstructed
     R = np.broadcast_to(np.eye(3), (n_cam, 3, 3)).copy()
     if registered.any():
         P = projected_or_input_error(Rb[registered], rotation_tol, what="camera rotation", source=str(path),
@@ -221,6 +223,12 @@ def write_bundler(path: str | os.PathLike, R: np.ndarray, t: np.ndarray, f: np.n
                 fh.write(" ".join(f"{x:.17g}" for x in row) + "\n")
             fh.write(" ".join(f"{x:.17g}" for x in tb) + "\n")
     return path
+
+
+def _check_camera_count(bundle: Path, n_cam: int, list_path: Path, n_img: int) -> None:
+    if n_cam > n_img:  # camera k is image k: the files are not of one dataset
+        raise InputFileError(f"{bundle} has {n_cam} cameras but {list_path} lists {n_img} images; camera k is image k "
+                             "of list.txt: check that both files are of this dataset")
 
 
 # ----------------------------------------------------------------------------- read / write
@@ -286,6 +294,7 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     gt_path = folder / "gt_bundle.out"
     if read_truth and gt_path.is_file():
         Rb, _, _, reg = read_bundler(gt_path, rotation_tol)
+        _check_camera_count(gt_path, Rb.shape[0], folder / "list.txt", n_img)
         if Rb.shape[0] < n_img:
             logger.warning("%s has %d cameras for %d listed images; the rest count as unregistered",
                            gt_path, Rb.shape[0], n_img)
@@ -386,5 +395,6 @@ def read_1dsfm_reference(path: str | os.PathLike, rotation_tol: float = DEFAULT_
                              f"is image k of list.txt); none in {folder}")
     names, _ = _read_list(folder / "list.txt")
     R, _, _, registered = read_bundler(bundle, rotation_tol)
-    k = np.flatnonzero(registered[: len(names)])
+    _check_camera_count(bundle, R.shape[0], folder / "list.txt", len(names))
+    k = np.flatnonzero(registered)
     return [names[i] for i in k], R[k]

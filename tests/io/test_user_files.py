@@ -10,7 +10,7 @@ from pipeline.core.errors import InputFileError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.g2o import read_g2o, write_g2o
 from pipeline.io.glomap import read_glomap_relpose, write_glomap_relpose
-from pipeline.io.onedsfm import read_1dsfm
+from pipeline.io.onedsfm import read_1dsfm, read_1dsfm_reference
 from pipeline.synthetic.files import make_synthetic_1dsfm
 
 
@@ -138,3 +138,38 @@ def test_convert_recognises_our_rotations_file_with_quoted_names(tmp_path, capsy
     assert convert_cli([str(src), str(tmp_path / "copy.txt"), "--to", "rotations"]) == 0, capsys.readouterr().err
     n2, R2 = read_rotations(tmp_path / "copy.txt")
     assert n2 == names and np.allclose(R2, R, atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- Bundler's gt_bundle.out
+def _bundle(path, cams) -> None:
+    """cams: (f, R (3, 3), t (3,)) per camera, written as Bundler v0.3 with no points."""
+    rows = ["# Bundle file v0.3", f"{len(cams)} 0"]
+    for f, R, t in cams:
+        rows += [f"{f} 0 0"] + [" ".join(map(str, r)) for r in np.asarray(R)] + [" ".join(map(str, t))]
+    path.write_text("\n".join(rows) + "\n")
+
+
+def test_bundler_camera_with_focal_zero_is_unregistered_whatever_its_rotation(tmp_path):
+    """Bundler (and Theia's reader) register a camera by its focal length: f <= 0 is not reconstructed."""
+    from pipeline.io.onedsfm import read_bundler
+
+    R = so3.random_rotations(2, np.random.default_rng(3))
+    _bundle(tmp_path / "b.out", [(900.0, R[0], [0, 0, 1]), (0, np.eye(3), [0, 0, 0]), (-1.0, R[1], [1, 0, 0]),
+                                 (0, np.zeros((3, 3)), [0, 0, 0])])
+    _, _, _, registered = read_bundler(tmp_path / "b.out")
+    assert registered.tolist() == [True, False, False, False]
+
+
+def test_a_bundle_file_with_more_cameras_than_list_txt_is_refused(tmp_path):
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    gt = tmp_path / "ds" / "gt_bundle.out"
+    lines = gt.read_text().splitlines()
+    assert lines[1] == "7 0"  # 6 cameras in cc.txt and 1 extra image, no points
+    gt.write_text("\n".join([lines[0], "8 0"] + lines[2:] + ["0 0 0"] + ["0 0 0"] * 4) + "\n")  # one camera more
+    with pytest.raises(InputFileError) as ei:
+        read_1dsfm(tmp_path / "ds")
+    msg = _one_line(ei, gt)
+    assert "8 cameras" in msg and "7 images" in msg, msg
+    with pytest.raises(InputFileError) as ei:  # the same file as the evaluator's reference
+        read_1dsfm_reference(gt)
+    assert "8 cameras" in _one_line(ei, gt)
