@@ -130,11 +130,11 @@ def write_glomap_relpose(path: str | os.PathLike, vg: ViewGraph, t: np.ndarray |
     Args:
         path: output file.
         vg: the view graph (edges i < j, ``R_ij = R_j R_iᵀ``).
-        t: (M, 3) translations of cam2_from_cam1 (default ``vg.stats["t_ij"]`` if present, else 0).
+        t: (M, 3) translations of cam2_from_cam1 (default ``vg.stats["t"]``, the pipeline's, if present, else 0).
     """
     _check_names(vg.names)
     if t is None:
-        t = vg.stats.get("t_ij", np.zeros((vg.n_edges, 3)))
+        t = vg.stats.get("t", np.zeros((vg.n_edges, 3)))
     t = np.asarray(t, dtype=np.float64).reshape(vg.n_edges, 3)
     q = so3.quat_from_matrix(vg.R_rel)
     path = Path(path)
@@ -146,7 +146,7 @@ def write_glomap_relpose(path: str | os.PathLike, vg: ViewGraph, t: np.ndarray |
 
 def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
                         names: list[str] | None = None) -> ViewGraph:
-    """Read GLOMAP relative poses into a ViewGraph (translations in ``stats["t_ij"]``).
+    """Read GLOMAP relative poses into a ViewGraph (cam2_from_cam1 translations in ``stats["t"]``, as the pipeline's).
 
     Args:
         path: the file.
@@ -191,7 +191,7 @@ def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_R
     flip = edges[:, 0] > edges[:, 1]
     t = np.where(flip[:, None], -np.einsum("mba,mb->ma", R, t), t)
     try:
-        vg = ViewGraph.from_edges(names, edges, R, stats={"t_ij": t}, allow_isolated=True)
+        vg = ViewGraph.from_edges(names, edges, R, stats={"t": t}, allow_isolated=True)
     except ViewGraphError as exc:
         raise InputFileError(f"{path}: {exc}") from None
     return vg

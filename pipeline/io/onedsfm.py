@@ -15,8 +15,9 @@ Layout and conventions, established from public sources (facts, no code copied):
   1DSfM reader (``theia/io/read_1dsfm.cc``) does exactly this to the EGs: it reads R
   transposed and applies ``bundler_to_theia · Rᵀ · bundler_to_theia`` with
   ``bundler_to_theia = diag(1, −1, −1)``, and ``position ← bundler_to_theia · position``.
-  Hence, for an EG line (i, j, R, t):  ``R_ij(ours) = F Rᵀ F``,  ``t_ij(ours) = F t`` (the
-  direction of camera j's centre in camera i's OpenCV frame).
+  Hence, for an EG line (i, j, R, t):  ``R_ij(ours) = F Rᵀ F``, and ``F t`` is the direction of
+  camera j's centre in camera i's OpenCV frame; the pipeline's translation (``x_j = R_ij x_i + t``,
+  ``stats["t"]``, GLOMAP's cam2_from_cam1) is ``−R_ij F t``.
 * ``gt_bundle.out``: a Bundler v0.3 file (``# Bundle file v0.3``; ``<num_cameras>
   <num_points>``; per camera ``f k1 k2`` then 3 rows of R then t; then the points). R is
   world-to-camera in Bundler's frame; a camera with f <= 0 or an all-zero R is not
@@ -59,7 +60,8 @@ class OneDSfMData:
 
     Attributes:
         vg: view graph over the cameras of ``cc.txt`` (names: image paths from list.txt),
-            ``stats["t_ij"]``: (M, 3) unit direction of camera j's centre in camera i's frame.
+            ``stats["t"]``: (M, 3) unit translation of cam2_from_cam1 (``x_j = R_ij x_i + t``, the
+            pipeline's convention), from the EGs' camera positions.
         index: (N,) list.txt index of each camera of ``vg``.
         focal: (N,) focal length from list.txt (NaN when absent).
         R_gt: (N, 3, 3) cam_from_world truth from gt_bundle.out (identity where missing) or None.
@@ -279,15 +281,16 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
                                       labels=[f"on line {ln}" for ln in lines])
     F = BUNDLER_TO_CV
     R_rel = F @ np.swapaxes(R_file, 1, 2) @ F         # our R_j R_iᵀ for the file's (i, j)
-    t_rel = t_file @ F.T
+    # the file's t is camera j's centre in camera i's frame; the pipeline's t (x_j = R_ij x_i + t) is −R_ij of it
+    t_rel = -np.einsum("mab,mb->ma", R_rel, t_file @ F.T)
     nrm = np.linalg.norm(t_rel, axis=1, keepdims=True)
     t_rel = np.where(nrm > 0, t_rel / np.where(nrm > 0, nrm, 1.0), 0.0)
     e = old_to_new[ij]
     flip = e[:, 0] > e[:, 1]
-    # an EG written with i > j is stored as (j, i): camera i's centre in j's frame is t_ji = −R_ij t_ij
-    t_rel = np.where(flip[:, None], -np.einsum("mab,mb->ma", R_rel, t_rel), t_rel)
+    # an EG written with i > j is stored as (j, i): the inverse rigid transform, t_ji = −R_ijᵀ t_ij
+    t_rel = np.where(flip[:, None], -np.einsum("mba,mb->ma", R_rel, t_rel), t_rel)
     try:
-        vg = ViewGraph.from_edges([names[k] for k in cams], e, R_rel, stats={"t_ij": t_rel}, allow_isolated=True)
+        vg = ViewGraph.from_edges([names[k] for k in cams], e, R_rel, stats={"t": t_rel}, allow_isolated=True)
     except ViewGraphError as exc:
         raise InputFileError(f"{folder / 'EGs.txt'}: {exc}") from None
     R_gt = gt_mask = None
@@ -316,7 +319,7 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
     Args:
         folder: created if needed; an existing one may hold only files this function writes (it is
             replaced whole, so no gt_bundle.out of an earlier dataset stays); else InputFileError.
-        vg: the view graph; ``stats["t_ij"]`` written as the EG translations (0 if absent).
+        vg: the view graph; ``stats["t"]`` (cam2_from_cam1) written as the EGs' positions (0 if absent).
         list_names: all images of list.txt (default: ``vg.names``); may include images not in vg.
         index: (N,) list.txt index of each camera of vg (default: position of its name).
         focal: (len(list_names),) focal lengths, NaN = unknown (written without "0 f").
@@ -357,7 +360,8 @@ def _write_1dsfm_files(folder: Path, vg: ViewGraph, list_names, index, focal, R_
         fh.write("".join(f"{k}\n" for k in np.sort(index)))
     F = BUNDLER_TO_CV
     R_file = F @ np.swapaxes(vg.R_rel, 1, 2) @ F     # inverse of the reader's F Rᵀ F
-    t = np.asarray(vg.stats.get("t_ij", np.zeros((vg.n_edges, 3))), float) @ F.T
+    t = np.asarray(vg.stats.get("t", np.zeros((vg.n_edges, 3))), float).reshape(vg.n_edges, 3)
+    t = -np.einsum("mba,mb->ma", vg.R_rel, t) @ F.T   # camera j's centre in camera i's frame, Bundler's axes
     with atomic_open(folder / "EGs.txt") as fh:
         for (i, j), Rk, tk in zip(index[vg.edges], R_file, t):
             fh.write(f"{i} {j} " + " ".join(f"{x:.17g}" for x in (*Rk.ravel(), *tk)) + "\n")

@@ -173,3 +173,30 @@ def test_a_bundle_file_with_more_cameras_than_list_txt_is_refused(tmp_path):
     with pytest.raises(InputFileError) as ei:  # the same file as the evaluator's reference
         read_1dsfm_reference(gt)
     assert "8 cameras" in _one_line(ei, gt)
+
+
+# ----------------------------------------------------------------------------- translations: one convention
+def test_translations_follow_the_pipeline_convention_across_formats(tmp_path):
+    """``stats["t"]`` is the pipeline's unit t of cam2_from_cam1 (x_j = R_ij x_i + t, t ∝ R_j (c_i − c_j)) whatever the
+    file: 1DSfM's EGs give camera j's position in camera i's frame, which must be turned into it, and GLOMAP's
+    relative poses written from a 1DSfM folder or from the pipeline's view graph must carry it."""
+    truth = make_synthetic_1dsfm(tmp_path / "ds", n=10, p=0.6, sigma_deg=0.0, digits=None, seed=6)
+    d = read_1dsfm(tmp_path / "ds")
+    C = truth["C"][d.index]
+    Rt = truth["R_cv"][d.index]
+    i, j = d.vg.edges.T
+    t_true = np.einsum("mab,mb->ma", Rt[j], C[i] - C[j])
+    t_true /= np.linalg.norm(t_true, axis=1, keepdims=True)
+    np.testing.assert_allclose(d.vg.stats["t"], t_true, atol=1e-10)
+    rel = write_glomap_relpose(tmp_path / "rel.txt", d.vg)
+    back = read_glomap_relpose(rel, names=d.vg.names)
+    np.testing.assert_allclose(back.stats["t"], t_true, atol=1e-10)
+    from pipeline.io.onedsfm import write_1dsfm
+
+    write_1dsfm(tmp_path / "again", d.vg)
+    np.testing.assert_allclose(read_1dsfm(tmp_path / "again").vg.stats["t"], t_true, atol=1e-10)
+    # a view graph of the pipeline (two-view geometry writes stats["t"]) keeps its translations in GLOMAP's file
+    vg = ViewGraph(d.vg.names, d.vg.edges, d.vg.R_rel, stats={"t": t_true})
+    vals = np.array([ln.split()[6:] for ln in write_glomap_relpose(tmp_path / "p.txt", vg).read_text().splitlines()],
+                    float)
+    np.testing.assert_allclose(vals, t_true, atol=1e-15)
