@@ -171,14 +171,14 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         except ValueError:
             raise InputFileError(f"{path}:{lineno}: {tag}: ids must be integers and the rest numbers") from None
         if not np.all(np.isfinite(vals)):
-            raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+            raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
         if tag == "VERTEX_SE3:QUAT":
             v_ids.append(ids[0])
             v_q.append(vals[3:7])
             v_lines.append(lineno)
             continue
         if ids[0] == ids[1]:
-            raise InputFileError(f"{path}:{lineno}: an edge from vertex {ids[0]} to itself")
+            raise InputFileError(f"{path}:{lineno}: an edge from vertex {ids[0]} to itself; delete the line")
         if tag == "EDGE_SE3:QUAT":
             t, q, up = vals[:3], vals[3:7], vals[7:]
             info = np.zeros((6, 6))

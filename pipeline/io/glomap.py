@@ -69,7 +69,7 @@ def _floats(path: Path, lineno: int, parts: list[str]) -> list[float]:
     except ValueError:
         raise InputFileError(f"{path}:{lineno}: expected numbers, got {' '.join(parts)!r}") from None
     if not np.all(np.isfinite(vals)):
-        raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+        raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
     return vals
 
 
@@ -184,7 +184,7 @@ def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_R
                              f"line {pairs[a][0]}; each pair may appear once, in either orientation: delete one of the lines")
     if np.any(edges[:, 0] == edges[:, 1]):
         k = int(np.flatnonzero(edges[:, 0] == edges[:, 1])[0])
-        raise InputFileError(f"{path}:{pairs[k][0]}: a pair of an image with itself")
+        raise InputFileError(f"{path}:{pairs[k][0]}: a pair of an image with itself; delete the line")
     R = so3.matrix_from_quat(q)
     t = v[:, 4:]
     # orient i < j: R_ji = R_ijᵀ and t_ji = −R_ijᵀ t_ij (the inverse rigid transform)

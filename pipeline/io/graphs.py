@@ -125,5 +125,7 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
         from pipeline.io.glomap import read_glomap_relpose  # noqa: PLC0415
 
         return GraphData(read_glomap_relpose(p, rotation_tol), None, None)
+    if nf == 0:
+        raise InputFileError(f"{p} is empty (no data line); expected {FORMATS}")
     raise InputFileError(f"{p}: unsupported view-graph input" + (f" ({nf} fields a line)" if nf > 0 else "")
                          + f"; expected {FORMATS}")

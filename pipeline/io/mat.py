@@ -281,7 +281,8 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
                                  "without Rgt the largest index is the camera count, so this index is a mistake "
                                  "(check I, or add Rgt 3x3xN)")
     if edges.size and edges.max() >= n:
-        raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
+        raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras; Rgt "
+                             "must hold a 3×3 block for every camera (3×3×N, all zeros where the truth is unknown)")
     H = None
     if "H" in data:
         H = _stack3(path, _numeric(path, data, "H"), "H")

@@ -94,7 +94,7 @@ def _numbers(path: Path, lineno: int, parts: list[str], kind=float) -> list:
         raise InputFileError(f"{path}:{lineno}: expected {'integers' if kind is int else 'numbers'}, "
                              f"got {' '.join(parts)[:60]!r}") from None
     if kind is float and not np.all(np.isfinite(vals)):
-        raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+        raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
     return vals
 
 
@@ -147,7 +147,7 @@ def _read_egs(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray, np.nda
         if i != int(i) or j != int(j) or not (0 <= i < n_images and 0 <= j < n_images):
             raise InputFileError(f"{path}:{lineno}: image indices ({parts[0]}, {parts[1]}) not in [0, {n_images})")
         if i == j:
-            raise InputFileError(f"{path}:{lineno}: an EG of image {int(i)} with itself")
+            raise InputFileError(f"{path}:{lineno}: an EG of image {int(i)} with itself; delete the line")
         ij.append((int(i), int(j)))
         Rs.append(v[2:11])
         ts.append(v[11:14])

@@ -200,3 +200,43 @@ def test_translations_follow_the_pipeline_convention_across_formats(tmp_path):
     vals = np.array([ln.split()[6:] for ln in write_glomap_relpose(tmp_path / "p.txt", vg).read_text().splitlines()],
                     float)
     np.testing.assert_allclose(vals, t_true, atol=1e-15)
+
+
+# ----------------------------------------------------------------------------- messages say what to do
+_EG = "1 0 0 0 1 0 0 0 1 0 0 1"
+
+
+@pytest.mark.parametrize("name,content,remedy", [
+    ("EGs.txt", f"0 0 {_EG}\n", "delete the line"),
+    ("EGs.txt", f"0 1 nan {_EG[2:]}\n", "fix or delete the line"),
+    ("g.g2o", "EDGE_SO3:QUAT 2 2 0 0 0 1 1 0 0 1 0 1\n", "delete the line"),
+    ("g.g2o", "EDGE_SO3:QUAT 1 2 0 0 0 nan 1 0 0 1 0 1\n", "fix or delete the line"),
+    ("rel.txt", "a.jpg a.jpg 1 0 0 0 0 0 1\n", "delete the line"),
+    ("rel.txt", "a.jpg b.jpg 1 0 0 0 0 0 inf\n", "fix or delete the line"),
+    ("empty.txt", "\n\n", "is empty"),
+])
+def test_a_bad_line_says_what_to_do(tmp_path, name, content, remedy):
+    from pipeline.io.graphs import read_input_graph
+
+    if name == "EGs.txt":
+        make_synthetic_1dsfm(tmp_path / "ds", n=4, p=0.6, seed=1, n_extra_images=0)
+        path = tmp_path / "ds" / name
+    else:
+        path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(InputFileError) as ei:
+        read_input_graph(path)
+    assert remedy in _one_line(ei, path)
+
+
+def test_mat_truth_with_fewer_cameras_than_I_says_what_to_do(tmp_path):
+    import scipy.io as sio
+
+    from pipeline.io.mat import read_l1_mat
+
+    vg, R = _graph([str(k) for k in range(4)], [(0, 1), (1, 2), (2, 3)])
+    sio.savemat(tmp_path / "a.mat", {"RR": np.moveaxis(vg.R_rel, 0, 2), "I": (vg.edges + 1).T.astype(float),
+                                     "Rgt": np.moveaxis(R[:3], 0, 2)})
+    with pytest.raises(InputFileError) as ei:
+        read_l1_mat(tmp_path / "a.mat")
+    assert "a 3×3 block for every camera" in _one_line(ei, tmp_path / "a.mat")
