@@ -26,6 +26,7 @@ Every output is written atomically.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 __all__ = ["main", "main_cli", "TARGETS"]
 
 TARGETS = ("npz", "mat", "1dsfm", "g2o", "glomap-relpose", "glomap-rotations", "rotations")
+logger = logging.getLogger(__name__)
 _BY_SUFFIX = {".npz": "npz", ".mat": "mat", ".g2o": "g2o", "": "1dsfm"}
 
 
@@ -66,6 +68,20 @@ def _check_output(src: Path, out: Path, fmt: str) -> None:
                              f"{out / ('graph' + _SUFFIX.get(fmt, '.txt'))})")
 
 
+def _warn_lost(data, out: Path, fmt: str) -> None:
+    """One warning naming what of the input the target format cannot hold (names, H, the truth)."""
+    vg, lost = data.vg, []
+    if fmt in ("g2o", "mat") and list(vg.names) != [str(k) for k in range(vg.n_cameras)]:
+        lost.append(f"camera names (camera k becomes {'vertex' if fmt == 'g2o' else 'index'} "
+                    f"{'k' if fmt == 'g2o' else 'k+1'}: {vg.names[0]!r} is {0 if fmt == 'g2o' else 1})")
+    if fmt in ("glomap-relpose", "1dsfm") and vg.H is not None:
+        lost.append("precisions H")
+    if fmt in ("npz", "g2o", "glomap-relpose") and data.R_gt is not None:
+        lost.append("ground truth")
+    if lost:
+        logger.warning("%s (%s) cannot hold the input's %s; written without", out, fmt, " and ".join(lost))
+
+
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
          rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
     """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
@@ -88,6 +104,7 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
         raise ConfigError(f"--to {fmt} needs a rotations file as INPUT; {src} is not one (10 or 5 fields a line)")
     data = read_input_graph(src, rotation_tol)
     vg = data.vg
+    _warn_lost(data, out, fmt)
     if fmt == "npz":
         return vg.save(out)
     if fmt == "mat":

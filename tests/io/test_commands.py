@@ -112,3 +112,26 @@ def test_average_refuses_outputs_that_would_overwrite_its_input(tmp_path, capsys
         line = _err_line(capsys)
         assert "would overwrite the input" in line, line
     assert {p: p.read_bytes() for p in kept} == kept
+
+
+def test_convert_says_in_one_warning_what_the_target_format_cannot_hold(tmp_path, caplog):
+    import logging
+
+    from pipeline.io.convert import main as convert
+
+    R = so3.random_rotations(3, np.random.default_rng(2))
+    vg = ViewGraph.from_absolute(["x.jpg", "y.jpg", "z.jpg"], R, [[0, 1], [1, 2], [0, 2]])
+    vg = ViewGraph(vg.names, vg.edges, vg.R_rel, H=np.broadcast_to(100.0 * np.eye(3), (3, 3, 3)).copy())
+    src = vg.save(tmp_path / "g.npz")
+    cases = {"g.g2o": ("camera names",), "g.mat": ("camera names",), "rel.txt": ("precisions H",),
+             "ds": ("precisions H",)}
+    for out, lost in cases.items():
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            convert(src, tmp_path / "o" / out, to={"rel.txt": "glomap-relpose", "ds": "1dsfm"}.get(out))
+        warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert len(warnings) == 1 and all(w in warnings[0] for w in lost), (out, warnings)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        convert(src, tmp_path / "o" / "same.npz")
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]
