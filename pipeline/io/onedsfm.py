@@ -267,6 +267,9 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     keep = np.all(old_to_new[ij] >= 0, axis=1)
     info = {"n_images_listed": n_img, "n_cameras": int(cams.size), "n_egs": int(ij.shape[0]),
             "n_egs_outside_cc": int((~keep).sum())}
+    if not keep.any():
+        raise InputFileError(f"{folder / 'EGs.txt'}: none of its {ij.shape[0]} EGs joins two images of "
+                             f"{folder / 'cc.txt'}; check that cc.txt is of this dataset (or delete it)")
     if info["n_egs_outside_cc"]:
         logger.warning("%s: %d of %d EGs have an image outside cc.txt; dropped", folder / "EGs.txt",
                        info["n_egs_outside_cc"], ij.shape[0])

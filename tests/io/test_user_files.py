@@ -240,3 +240,16 @@ def test_mat_truth_with_fewer_cameras_than_I_says_what_to_do(tmp_path):
     with pytest.raises(InputFileError) as ei:
         read_l1_mat(tmp_path / "a.mat")
     assert "a 3×3 block for every camera" in _one_line(ei, tmp_path / "a.mat")
+
+
+def test_1dsfm_with_no_eg_inside_cc_txt_names_the_files(tmp_path):
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=2)
+    egs = tmp_path / "ds" / "EGs.txt"
+    cc = [int(x) for x in (tmp_path / "ds" / "cc.txt").read_text().split()]
+    lonely = cc[0]  # cc.txt keeps one image, and EGs.txt none of its pairs
+    egs.write_text("".join(ln + "\n" for ln in egs.read_text().splitlines() if str(lonely) not in ln.split()[:2]))
+    (tmp_path / "ds" / "cc.txt").write_text(f"{lonely}\n")
+    with pytest.raises(InputFileError) as ei:
+        read_1dsfm(tmp_path / "ds")
+    msg = _one_line(ei, egs)
+    assert "cc.txt" in msg and "none of its" in msg, msg
