@@ -77,6 +77,10 @@ def check_input(path: str | os.PathLike) -> None:
     p = Path(path)
     if _folder_of(p) is not None:
         return
+    egs = p / "EGs.txt" if p.is_dir() else p
+    if egs.name == "EGs.txt" and egs.is_file() and not (egs.parent / "list.txt").is_file():
+        raise InputFileError(f"{egs} is a 1DSfM EGs file, read with the list.txt beside it (line k names image k); "
+                             f"none in {egs.parent}: put the dataset's list.txt there")
     if p.is_dir():
         raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
     if not p.exists():

@@ -135,3 +135,12 @@ def test_convert_says_in_one_warning_what_the_target_format_cannot_hold(tmp_path
     with caplog.at_level(logging.WARNING):
         convert(src, tmp_path / "o" / "same.npz")
     assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+
+
+def test_an_egs_file_without_list_txt_says_what_is_missing(tmp_path, capsys):
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, n_extra_images=1)
+    (tmp_path / "ds" / "list.txt").unlink()
+    for given in (tmp_path / "ds", tmp_path / "ds" / "EGs.txt"):
+        assert average_cli([str(given), "--out", str(tmp_path / "r.txt")]) == 2
+        line = _err_line(capsys)
+        assert "list.txt" in line and "none in" in line, line
