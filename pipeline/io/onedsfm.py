@@ -157,6 +157,31 @@ def _read_egs(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array(ij, np.int64), np.array(Rs).reshape(-1, 3, 3), np.array(ts), lines
 
 
+def _bundle_cameras(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of the header and the camera lines of a Bundler file; the points after them (most of
+    a published file, hundreds of MB) are neither decoded nor kept."""
+    if not path.is_file():
+        raise InputFileError(f"1DSfM bundle file {path} does not exist")
+    body: list[tuple[int, list[str]]] = []
+    need = 1
+    try:
+        with open(path, encoding="utf-8-sig") as fh:
+            for lineno, line in enumerate(fh, 1):
+                parts = line.split()
+                if not parts or parts[0].startswith("#"):
+                    continue
+                body.append((lineno, parts))
+                if len(body) == 1:
+                    if len(parts) != 2:
+                        raise InputFileError(f"{path}:{lineno}: expected '<num_cameras> <num_points>'")
+                    need = 1 + 5 * max(0, _numbers(path, lineno, parts, int)[0])
+                if len(body) >= need:
+                    break
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
+    return body
+
+
 def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read the cameras of a Bundler v0.3 file, converted to cam_from_world OpenCV convention.
@@ -170,14 +195,11 @@ def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
             registered rotation far from SO(3) (one line naming the file).
     """
     path = Path(path)
-    lines = _read_text(path, "bundle")
-    body = [(k + 1, ln.split()) for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    body = _bundle_cameras(path)
     if not body:
         raise InputFileError(f"{path}: empty Bundler file")
     lineno, head = body[0]
-    if len(head) != 2:
-        raise InputFileError(f"{path}:{lineno}: expected '<num_cameras> <num_points>'")
-    n_cam, _ = _numbers(path, lineno, head, int)
+    n_cam = _numbers(path, lineno, head, int)[0]
     if n_cam < 0 or len(body) < 1 + 5 * n_cam:
         raise InputFileError(f"{path}: header announces {n_cam} cameras but the file has "
                              f"{(len(body) - 1) // 5} complete camera blocks")

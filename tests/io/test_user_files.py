@@ -253,3 +253,27 @@ def test_1dsfm_with_no_eg_inside_cc_txt_names_the_files(tmp_path):
         read_1dsfm(tmp_path / "ds")
     msg = _one_line(ei, egs)
     assert "cc.txt" in msg and "none of its" in msg, msg
+
+
+def test_bundler_reads_only_its_camera_section(tmp_path):
+    """A published gt_bundle.out holds its points after the cameras (hundreds of MB): the reader stops at the cameras,
+    in memory (here a peak under twice the file's size) and in what it decodes (a damaged point line is never read)."""
+    import tracemalloc
+
+    from pipeline.io.onedsfm import read_bundler
+
+    R = so3.random_rotations(3, np.random.default_rng(4))
+    path = tmp_path / "b.out"
+    _bundle(path, [(900.0, R[k], [0, 0, k]) for k in range(3)])
+    text = path.read_text().replace("3 0\n", "3 40000\n", 1)
+    views = " ".join(f"{c} {5 * c} 12.5 -3.25" for c in range(3))
+    path.write_bytes(text.encode() + b"1 2 3\n255 0 0\n3 " + views.encode() + b"\n"
+                     + (b"1.5 2.5 3.5\n255 128 0\n3 " + views.encode() + b"\n") * 40000 + b"\xff\xfe damaged\n")
+    tracemalloc.start()
+    try:
+        _, _, _, registered = read_bundler(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert registered.all()
+    assert peak < 2 * path.stat().st_size, (peak, path.stat().st_size)
