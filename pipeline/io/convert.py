@@ -59,6 +59,9 @@ def _check_output(src: Path, out: Path, fmt: str) -> None:
 
     if out.resolve() in (src.resolve(), (_folder_of(src) or src).resolve()):
         raise ConfigError(f"OUTPUT {out} is the input; write the conversion to another path")
+    blocked = next((d for d in out.parents if d.exists() and not d.is_dir()), None)
+    if blocked is not None:
+        raise InputFileError(f"{blocked} is a file, so {out} cannot be written in it; give another path")
     if fmt == "1dsfm":
         from pipeline.io.onedsfm import check_1dsfm_target  # noqa: PLC0415
 

@@ -144,3 +144,12 @@ def test_an_egs_file_without_list_txt_says_what_is_missing(tmp_path, capsys):
         assert average_cli([str(given), "--out", str(tmp_path / "r.txt")]) == 2
         line = _err_line(capsys)
         assert "list.txt" in line and "none in" in line, line
+
+
+def test_convert_into_a_folder_that_is_a_file_is_refused_in_one_line(tmp_path, capsys):
+    src = _npz(tmp_path)
+    (tmp_path / "plain").write_text("a file\n")
+    for out, fmt in ((tmp_path / "plain" / "x.g2o", "g2o"), (tmp_path / "plain" / "sub" / "ds", "1dsfm")):
+        assert convert_cli([str(src), str(out), "--to", fmt]) == 2
+        line = _err_line(capsys)
+        assert f"{tmp_path / 'plain'} is a file" in line and "Errno" not in line, line
