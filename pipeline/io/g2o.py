@@ -221,20 +221,16 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         if undeclared.any():
             k = int(np.flatnonzero(undeclared)[0])
             raise InputFileError(f"{path}:{e_lines[k]}: edge ({e_ij[k, 0]}, {e_ij[k, 1]}) refers to an undeclared vertex")
-        try:
-            qv, _ = normalize_near_unit_quaternions(np.array(v_q)[order], rotation_tol, source=str(path),
-                                                    labels=[f"of line {v_lines[k]}" for k in order])
-        except NearRotationError as exc:
-            raise InputFileError(str(exc)) from None
-        R_init = np.swapaxes(_from_xyzw(qv), 1, 2)      # cam_from_world = (world_from_cam)ᵀ
+        v_q, v_lines = [v_q[k] for k in order], [v_lines[k] for k in order]
     else:
         ids = np.unique(e_ij)
-        R_init = None
-    try:
-        qe, _ = normalize_near_unit_quaternions(np.array(e_q), rotation_tol, source=str(path),
-                                                labels=[f"of line {ln}" for ln in e_lines])
+    try:  # vertices and edges together: one warning for the file
+        q, _ = normalize_near_unit_quaternions(np.array(v_q + e_q).reshape(-1, 4), rotation_tol, source=str(path),
+                                               labels=[f"of line {ln}" for ln in v_lines + e_lines])
     except NearRotationError as exc:
         raise InputFileError(str(exc)) from None
+    qv, qe = q[: len(v_q)], q[len(v_q):]
+    R_init = np.swapaxes(_from_xyzw(qv), 1, 2) if v_q else None  # cam_from_world = (world_from_cam)ᵀ
     Z = _from_xyzw(qe)                                  # T_i⁻¹T_j rotation = R̃_ijᵀ
     R_rel = np.swapaxes(Z, 1, 2)
     H = np.array(e_H)

@@ -277,3 +277,23 @@ def test_bundler_reads_only_its_camera_section(tmp_path):
         tracemalloc.stop()
     assert registered.all()
     assert peak < 2 * path.stat().st_size, (peak, path.stat().st_size)
+
+
+def test_g2o_printed_to_6_digits_is_read_with_one_warning(tmp_path, caplog):
+    """GTSAM's writeG2o prints 6 significant digits: vertices and edges are near-unit quaternions, one warning."""
+    import logging
+
+    vg, R = _graph(["a", "b", "c", "d"], [(0, 1), (1, 2), (2, 3), (0, 3)])
+    p = write_g2o(tmp_path / "g.g2o", vg, R)
+
+    def six_digits(line):
+        t = line.split()
+        n_ids = 1 if t[0].startswith("VERTEX") else 2
+        return " ".join(t[:1 + n_ids] + [f"{float(x):.6g}" for x in t[1 + n_ids:]])
+
+    p.write_text("".join(six_digits(ln) + "\n" for ln in p.read_text().splitlines()))
+    with caplog.at_level(logging.WARNING):
+        d = read_g2o(p)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "normalized" in warnings[0], warnings
+    assert np.abs(d.R_init - R).max() < 1e-5
