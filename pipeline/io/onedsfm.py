@@ -43,7 +43,7 @@ from pipeline.core.atomic import TMP_TAG, atomic_dir, atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.common import repeated_pair
-from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, project_near_rotations
 
 __all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
            "check_1dsfm_target", "BUNDLER_TO_CV"]
@@ -182,7 +182,18 @@ def _bundle_cameras(path: Path) -> list[tuple[int, list[str]]]:
     return body
 
 
-def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
+def _projected(R: np.ndarray, tol: float, what: str, source: Path, labels: list[str], notes: list | None) -> np.ndarray:
+    """Near-rotations projected; one warning here, or a note in ``notes`` for the dataset's one warning."""
+    try:
+        P, rep = project_near_rotations(R, tol, what=what, source=str(source), labels=labels, warn=notes is None)
+    except NearRotationError as exc:
+        raise InputFileError(str(exc)) from None
+    if notes is not None and rep.n_projected:
+        notes.append((f"{rep.n_projected} of {rep.n_total} {what}s of {source.name}", rep.max_deviation))
+    return P
+
+
+def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL, *, _notes: list | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read the cameras of a Bundler v0.3 file, converted to cam_from_world OpenCV convention.
 
@@ -217,8 +228,8 @@ def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     registered = (f > 0) & (np.abs(Rb).sum(axis=(1, 2)) > 0)  # Bundler (and Theia's reader): f <= 0 = not reconstructed
     R = np.broadcast_to(np.eye(3), (n_cam, 3, 3)).copy()
     if registered.any():
-        P = projected_or_input_error(Rb[registered], rotation_tol, what="camera rotation", source=str(path),
-                                     labels=[f"camera {k}" for k in np.flatnonzero(registered)])
+        P = _projected(Rb[registered], rotation_tol, "camera rotation", path,
+                       [f"camera {k}" for k in np.flatnonzero(registered)], _notes)
         R[registered] = BUNDLER_TO_CV @ P
     t = np.where(registered[:, None], tb @ BUNDLER_TO_CV.T, 0.0)
     return R, t, f, registered
@@ -302,8 +313,9 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
         a, b = rep
         raise InputFileError(f"{folder / 'EGs.txt'}:{lines[b]}: images {ij[b, 0]} and {ij[b, 1]} already have an EG on "
                              f"line {lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
-    R_file = projected_or_input_error(R_file, rotation_tol, what="EG rotation", source=str(folder / "EGs.txt"),
-                                      labels=[f"on line {ln}" for ln in lines])
+    notes: list = []  # near-rotations of EGs.txt and gt_bundle.out: one warning for the dataset
+    R_file = _projected(R_file, rotation_tol, "EG rotation", folder / "EGs.txt", [f"on line {ln}" for ln in lines],
+                        notes)
     F = BUNDLER_TO_CV
     R_rel = F @ np.swapaxes(R_file, 1, 2) @ F         # our R_j R_iᵀ for the file's (i, j)
     # the file's t is camera j's centre in camera i's frame; the pipeline's t (x_j = R_ij x_i + t) is −R_ij of it
@@ -321,7 +333,7 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     R_gt = gt_mask = None
     gt_path = folder / "gt_bundle.out"
     if read_truth and gt_path.is_file():
-        Rb, _, _, reg = read_bundler(gt_path, rotation_tol)
+        Rb, _, _, reg = read_bundler(gt_path, rotation_tol, _notes=notes)
         _check_camera_count(gt_path, Rb.shape[0], folder / "list.txt", n_img)
         if Rb.shape[0] < n_img:
             logger.warning("%s has %d cameras for %d listed images; the rest count as unregistered",
@@ -332,6 +344,9 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
         R_all[:k], m_all[:k] = Rb[:k], reg[:k]
         R_gt, gt_mask = R_all[cams], m_all[cams]
         info["n_gt_registered"] = int(gt_mask.sum())
+    if notes:
+        logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)", folder,
+                       " and ".join(n for n, _ in notes), max(d for _, d in notes), rotation_tol)
     return OneDSfMData(vg, cams, focal[cams], R_gt, gt_mask, info)
 
 

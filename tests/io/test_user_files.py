@@ -297,3 +297,13 @@ def test_g2o_printed_to_6_digits_is_read_with_one_warning(tmp_path, caplog):
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and "normalized" in warnings[0], warnings
     assert np.abs(d.R_init - R).max() < 1e-5
+
+
+def test_1dsfm_printed_to_7_digits_is_read_with_one_warning_for_its_rotations(tmp_path, caplog):
+    import logging
+
+    make_synthetic_1dsfm(tmp_path / "ds", n=8, p=0.6, seed=2, digits=7, n_extra_images=0)
+    with caplog.at_level(logging.WARNING):
+        read_1dsfm(tmp_path / "ds")
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "SO(3)" in r.getMessage()]
+    assert len(warnings) == 1 and "EGs.txt" in warnings[0] and "gt_bundle.out" in warnings[0], warnings
