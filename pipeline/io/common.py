@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["repeated_pair"]
+from pipeline.core.errors import InputFileError
+
+__all__ = ["repeated_pair", "line_numbers"]
 
 
 def repeated_pair(ij: np.ndarray) -> tuple[int, int] | None:
@@ -20,3 +24,15 @@ def repeated_pair(ij: np.ndarray) -> tuple[int, int] | None:
     first_of = first[inverse.ravel()]
     again = np.flatnonzero(first_of != np.arange(ij.shape[0]))
     return None if again.size == 0 else (int(first_of[again[0]]), int(again[0]))
+
+
+def line_numbers(path: Path, lineno: int, parts: list[str], kind=float) -> list:
+    """The fields of line ``lineno`` of ``path`` as numbers (``kind``); one error line naming it otherwise."""
+    try:
+        vals = [kind(x) for x in parts]
+    except ValueError:
+        raise InputFileError(f"{path}:{lineno}: expected {'integers' if kind is int else 'numbers'}, "
+                             f"got {' '.join(parts)[:60]!r}") from None
+    if kind is float and not np.all(np.isfinite(vals)):
+        raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
+    return vals
