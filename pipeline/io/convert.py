@@ -93,6 +93,11 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     if fmt not in TARGETS:
         raise ConfigError(f"cannot tell the format of {out} from its name; give --to with one of {list(TARGETS)}")
     _check_output(src, out, fmt)
+    if rotations is not None and fmt != "g2o":
+        raise ConfigError(f"--rotations is for --to g2o (its vertices); drop it for --to {fmt}")
+    if rotations is not None and not Path(rotations).is_file():
+        raise InputFileError(f"--rotations {rotations} is not a rotations file (missing, or a folder); give the file "
+                             "of rotations for the g2o vertices")
     if _is_rotations(src):
         from pipeline.io.glomap import write_glomap_rotations  # noqa: PLC0415
         from pipeline.io.rotations import read_rotations, write_rotations  # noqa: PLC0415

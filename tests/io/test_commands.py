@@ -153,3 +153,16 @@ def test_convert_into_a_folder_that_is_a_file_is_refused_in_one_line(tmp_path, c
         assert convert_cli([str(src), str(out), "--to", fmt]) == 2
         line = _err_line(capsys)
         assert f"{tmp_path / 'plain'} is a file" in line and "Errno" not in line, line
+
+
+def test_convert_rotations_option_is_checked_first_and_by_its_own_name(tmp_path, capsys):
+    src = _npz(tmp_path)
+    (tmp_path / "folder").mkdir()
+    for rot in (tmp_path / "none.txt", tmp_path / "folder"):
+        assert convert_cli([str(src), str(tmp_path / "o.g2o"), "--rotations", str(rot)]) == 2
+        line = _err_line(capsys)
+        assert line.startswith(f"error: --rotations {rot}") and "--init" not in line, line
+    rot = tmp_path / "r.txt"
+    rot.write_text("a 1 0 0 0 1 0 0 0 1\n")
+    assert convert_cli([str(src), str(tmp_path / "o.mat"), "--rotations", str(rot)]) == 2
+    assert "--rotations is for --to g2o" in _err_line(capsys)
