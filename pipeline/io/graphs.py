@@ -131,5 +131,9 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
         return GraphData(read_glomap_relpose(p, rotation_tol), None, None)
     if nf == 0:
         raise InputFileError(f"{p} is empty (no data line); expected {FORMATS}")
+    if nf in (5, 10):
+        raise InputFileError(f"{p} holds rotations, not a view graph ({nf} fields a line: "
+                             f"{'NAME QW QX QY QZ' if nf == 5 else 'name r11 ... r33'}); give it as --init, or to "
+                             f"python -m pipeline.evaluate --rotations; the view graph is one of: {FORMATS}")
     raise InputFileError(f"{p}: unsupported view-graph input" + (f" ({nf} fields a line)" if nf > 0 else "")
                          + f"; expected {FORMATS}")

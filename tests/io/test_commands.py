@@ -166,3 +166,15 @@ def test_convert_rotations_option_is_checked_first_and_by_its_own_name(tmp_path,
     rot.write_text("a 1 0 0 0 1 0 0 0 1\n")
     assert convert_cli([str(src), str(tmp_path / "o.mat"), "--rotations", str(rot)]) == 2
     assert "--rotations is for --to g2o" in _err_line(capsys)
+
+
+def test_a_rotations_file_given_as_the_view_graph_says_what_it_is(tmp_path, capsys):
+    from pipeline.io.glomap import write_glomap_rotations
+    from pipeline.io.rotations import write_rotations
+
+    R = so3.random_rotations(2, np.random.default_rng(0))
+    for f in (write_rotations(tmp_path / "ours.txt", ["a", "b"], R),
+              write_glomap_rotations(tmp_path / "glomap.txt", ["a", "b"], R)):
+        assert average_cli([str(f), "--out", str(tmp_path / "r.txt")]) == 2
+        line = _err_line(capsys)
+        assert "holds rotations, not a view graph" in line and "--init" in line, line
