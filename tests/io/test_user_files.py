@@ -307,3 +307,40 @@ def test_1dsfm_printed_to_7_digits_is_read_with_one_warning_for_its_rotations(tm
         read_1dsfm(tmp_path / "ds")
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "SO(3)" in r.getMessage()]
     assert len(warnings) == 1 and "EGs.txt" in warnings[0] and "gt_bundle.out" in warnings[0], warnings
+
+
+def test_l1_mat_with_quaternions_4_by_M_as_AverageSO3Graph_takes_them(tmp_path):
+    """The public ℓ1/IRLS code (AverageSO3Graph) takes RR as 3×3×M matrices OR 4×M quaternions (scalar first, its
+    q2R), and returns R in the same form; Rgt may come as 4×N too."""
+    import scipy.io as sio
+
+    from pipeline.io.mat import read_l1_mat
+
+    vg, R = _graph([str(k) for k in range(5)], [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4)])
+    q = np.round(so3.quat_from_matrix(vg.R_rel), 6)  # (w, x, y, z), printed to 6 digits
+    I = (vg.edges + 1).T.astype(float)
+    sio.savemat(tmp_path / "q.mat", {"RR": q.T, "I": I, "Rgt": so3.quat_from_matrix(R).T})
+    d = read_l1_mat(tmp_path / "q.mat")
+    assert np.allclose(d.vg.R_rel, so3.relative(R, d.vg.edges), atol=1e-5)
+    assert np.allclose(d.R_gt, R, atol=1e-12) and d.gt_mask.all()
+
+
+def test_l1_mat_truth_with_nan_blocks_marks_those_cameras_unknown(tmp_path):
+    """AverageSO3Graph writes NaN for the cameras outside its largest component; as Rgt they have no truth."""
+    import scipy.io as sio
+
+    from pipeline.io.mat import read_l1_mat
+
+    vg, R = _graph([str(k) for k in range(4)], [(0, 1), (1, 2), (2, 3)])
+    Rgt = np.moveaxis(R, 0, 2).copy()
+    Rgt[:, :, 2] = np.nan
+    sio.savemat(tmp_path / "a.mat", {"RR": np.moveaxis(vg.R_rel, 0, 2), "I": (vg.edges + 1).T.astype(float),
+                                     "Rgt": Rgt})
+    d = read_l1_mat(tmp_path / "a.mat")
+    assert d.gt_mask.tolist() == [True, True, False, True] and np.allclose(d.R_gt[[0, 1, 3]], R[[0, 1, 3]])
+    Rgt[0, 0, 1] = np.nan  # a block partly NaN is damaged, not unknown
+    sio.savemat(tmp_path / "b.mat", {"RR": np.moveaxis(vg.R_rel, 0, 2), "I": (vg.edges + 1).T.astype(float),
+                                     "Rgt": Rgt})
+    with pytest.raises(InputFileError) as ei:
+        read_l1_mat(tmp_path / "b.mat")
+    assert "camera 1" in _one_line(ei, tmp_path / "b.mat")
