@@ -344,3 +344,36 @@ def test_l1_mat_truth_with_nan_blocks_marks_those_cameras_unknown(tmp_path):
     with pytest.raises(InputFileError) as ei:
         read_l1_mat(tmp_path / "b.mat")
     assert "camera 1" in _one_line(ei, tmp_path / "b.mat")
+
+
+# ----------------------------------------------------------------------------- 1DSfM as published, written here by hand
+def test_1dsfm_written_by_the_readme_alone_averages_back_to_its_truth(tmp_path):
+    """EGs.txt and gt_bundle.out written from the SfM_Init README and Bundler's format only (no code of the project's
+    writers or constants): the exact relative rotations average back to the truth, and the evaluator agrees."""
+    from pipeline.averaging.cli import main as average
+    from pipeline.evaluation.compare import evaluate_files
+
+    rng = np.random.default_rng(7)
+    n = 9
+    R = so3.random_rotations(n, rng)                     # cam_from_world, camera looks down +z
+    C = rng.standard_normal((n, 3))
+    Rb = np.diag([1.0, -1.0, -1.0]) @ R                  # Bundler: the camera looks down −z
+    d = tmp_path / "ds"
+    d.mkdir()
+    (d / "list.txt").write_text("".join(f"images/{k:03d}.jpg 0 {900 + k}\r\n" for k in range(n)))  # Windows ends
+    (d / "cc.txt").write_text("".join(f"{k}\n" for k in range(n)) + "\n\n")
+    lines = []
+    for a in range(n):
+        for b in range(a + 1, n):
+            if (a * 7 + b * 3) % 4 == 0 or b == a + 1:
+                i, j = (b, a) if (a + b) % 3 == 0 else (a, b)  # some EGs written with i > j
+                Rij = Rb[i] @ Rb[j].T                        # README: Rij = Ri * Rj'
+                tij = Rb[i] @ (C[j] - C[i])                  # README: position of camera j in camera i's frame
+                lines.append("\t".join(f"{v:.17g}" for v in (i, j, *Rij.ravel(), *tij)))
+    (d / "EGs.txt").write_text("\n".join(lines) + "\n")
+    cams = [f"{900 + k} 0 0\n" + "".join(" ".join(f"{v:.17g}" for v in row) + "\n" for row in Rb[k])
+            + " ".join(f"{v:.17g}" for v in -Rb[k] @ C[k]) + "\n" for k in range(n)]
+    (d / "gt_bundle.out").write_text(f"# Bundle file v0.3\n{n} 0\n" + "".join(cams))
+    out = average(d, tmp_path / "r.txt", method="irls")
+    s = evaluate_files(d, rotations=out, print_table=False)
+    assert s["n_evaluated"] == n and s["max_deg"] < 1e-7, s
