@@ -377,3 +377,32 @@ def test_1dsfm_written_by_the_readme_alone_averages_back_to_its_truth(tmp_path):
     out = average(d, tmp_path / "r.txt", method="irls")
     s = evaluate_files(d, rotations=out, print_table=False)
     assert s["n_evaluated"] == n and s["max_deg"] < 1e-7, s
+
+
+def test_a_g2o_file_written_by_gtsam_reads_in_our_convention(tmp_path):
+    """GTSAM's writeG2o (world_from_cam poses, measurement T_i⁻¹ T_j, information in g2o's (translation, rotation)
+    order) read back: R_ij = R_j R_iᵀ of the cam_from_world R_i = (pose rotation)ᵀ, H = GTSAM's rotation block."""
+    import gtsam  # in the test extra: this check must run, not skip
+
+    n = 5
+    R = so3.random_rotations(n, np.random.default_rng(8))
+    C = np.random.default_rng(9).standard_normal((n, 3))
+    T = [gtsam.Pose3(gtsam.Rot3(R[k].T), C[k]) for k in range(n)]
+    graph, values, H = gtsam.NonlinearFactorGraph(), gtsam.Values(), {}
+    rng = np.random.default_rng(10)
+    for k in range(n):
+        values.insert(k, T[k])
+    for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4), (3, 1)]:
+        A = rng.standard_normal((6, 6))
+        info = A @ A.T + np.eye(6)  # GTSAM's order: rotation, then translation
+        H[tuple(sorted((i, j)))] = (i, j, info[:3, :3])
+        graph.add(gtsam.BetweenFactorPose3(i, j, T[i].between(T[j]), gtsam.noiseModel.Gaussian.Information(info)))
+    gtsam.writeG2o(graph, values, str(tmp_path / "g.g2o"))
+    d = read_g2o(tmp_path / "g.g2o")
+    assert np.abs(d.vg.R_rel - so3.relative(R, d.vg.edges)).max() < 1e-5  # writeG2o prints 6 digits
+    assert np.abs(d.R_init - R).max() < 1e-5
+    for k, (a, b) in enumerate(d.vg.edges):
+        i, j, Hg = H[(a, b)]
+        Rij = R[j] @ R[i].T  # the edge as written; read as (a, b) = (j, i) it is reversed: R̃ᵀ H R̃
+        expected = Hg if (i, j) == (a, b) else Rij.T @ Hg @ Rij
+        assert np.abs(d.vg.H[k] - expected).max() < 1e-4 * np.abs(Hg).max(), (a, b)
