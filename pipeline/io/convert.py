@@ -20,7 +20,10 @@ FORMAT (default: from OUTPUT's extension; ``.txt`` needs it):
 ``rotations``          ours, ``name r11 … r33`` (from a rotations INPUT)
 =====================  ===========================================================
 
-Every output is written atomically.
+Every output is written atomically (a 1DSfM folder as a whole). Before the input is read, an
+OUTPUT that is the input, a folder where a file goes (or a file where a folder goes), or a 1DSfM
+folder holding files this writer does not write is refused in one line; one warning names what
+of the input the target cannot hold (camera names in ``.g2o``/``.mat``, H, the ground truth).
 """
 
 from __future__ import annotations
