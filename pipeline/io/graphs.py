@@ -82,6 +82,10 @@ def check_input(path: str | os.PathLike) -> None:
         raise InputFileError(f"{egs} is a 1DSfM EGs file, read with the list.txt beside it (line k names image k); "
                              f"none in {egs.parent}: put the dataset's list.txt there")
     if p.is_dir():
+        inside = sorted(d.name for d in p.iterdir() if is_1dsfm_folder(d))  # the folder the 1DSfM archives unpack into
+        if inside:
+            raise InputFileError(f"{p} is a folder of 1DSfM datasets ({', '.join(inside[:5])}"
+                                 f"{' ...' if len(inside) > 5 else ''}), not one; give one of them, e.g. {p / inside[0]}")
         raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
     if not p.exists():
         raise InputFileError(f"input view graph {p} does not exist")

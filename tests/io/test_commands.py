@@ -178,3 +178,11 @@ def test_a_rotations_file_given_as_the_view_graph_says_what_it_is(tmp_path, caps
         assert average_cli([str(f), "--out", str(tmp_path / "r.txt")]) == 2
         line = _err_line(capsys)
         assert "holds rotations, not a view graph" in line and "--init" in line, line
+
+
+def test_a_folder_of_1dsfm_datasets_names_them(tmp_path, capsys):
+    for name in ("Alamo", "Ellis_Island"):
+        make_synthetic_1dsfm(tmp_path / "datasets" / name, n=4, p=0.6, seed=1, n_extra_images=0)
+    assert average_cli([str(tmp_path / "datasets"), "--out", str(tmp_path / "r.txt")]) == 2
+    line = _err_line(capsys)
+    assert "Alamo, Ellis_Island" in line and "give one of them" in line, line
