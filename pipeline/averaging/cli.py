@@ -34,7 +34,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
-from pipeline.io.graphs import FORMATS, check_input, input_files
+from pipeline.io.graphs import FORMATS, can_hold_precisions, check_input, input_files
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["main", "main_cli", "build_parser"]
@@ -86,6 +86,10 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
     yaml_data = load_yaml(config_path)
     check_sections(yaml_data)
     spec = parse_method(method, yaml_data, options={k: v for k, v in options.items() if v is not None})
+    if spec.method.requires_H(spec.config) and not can_hold_precisions(input_path):  # known before reading
+        raise ConfigError(f"method {spec.label!r} needs a view graph with H (two-view BA precisions), and "
+                          f"{input_path} cannot hold H (a 1DSfM folder or GLOMAP text); give an .npz, .mat or .g2o "
+                          "with H, or use a method without H (e.g. 'irls')")
     if init_file is not None and not spec.method.takes_init:
         raise ConfigError(f"method {spec.name!r} takes no start; drop --init")
     label = out_path.name[: -len(out_path.suffix)] if out_path.suffix else out_path.name

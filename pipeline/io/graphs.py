@@ -30,7 +30,7 @@ from pipeline.io.mat import MatData, read_mat
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm
 
-__all__ = ["read_input_graph", "check_input", "input_files", "GraphData", "FORMATS"]
+__all__ = ["read_input_graph", "check_input", "input_files", "can_hold_precisions", "GraphData", "FORMATS"]
 
 #: One line per supported input, for messages and ``--help``.
 FORMATS = ("a view-graph .npz (ViewGraph.save), a .mat (LU Sphinx or ℓ1 layout), a 1DSfM folder (EGs.txt, "
@@ -92,6 +92,12 @@ def check_input(path: str | os.PathLike) -> None:
     if p.name in _ONEDSFM_COMPANIONS and is_1dsfm_folder(p.parent):
         raise InputFileError(f"{p} is one file of the 1DSfM dataset in {p.parent}; give the folder {p.parent} (or its "
                              "EGs.txt)")
+
+
+def can_hold_precisions(path: str | os.PathLike) -> bool:
+    """Whether input ``path`` can carry H: an .npz, .mat or .g2o can; a 1DSfM folder or GLOMAP's text cannot."""
+    p = Path(path)
+    return _folder_of(p) is None and p.suffix.lower() in (".npz", ".mat", ".g2o")
 
 
 def input_files(path: str | os.PathLike) -> list[Path]:

@@ -186,3 +186,15 @@ def test_a_folder_of_1dsfm_datasets_names_them(tmp_path, capsys):
     assert average_cli([str(tmp_path / "datasets"), "--out", str(tmp_path / "r.txt")]) == 2
     line = _err_line(capsys)
     assert "Alamo, Ellis_Island" in line and "give one of them" in line, line
+
+
+def test_a_method_needing_h_on_a_format_without_h_is_refused_before_reading(tmp_path, capsys):
+    from pipeline.io.glomap import write_glomap_relpose
+
+    make_synthetic_1dsfm(tmp_path / "ds", n=6, p=0.6, seed=1, digits=7)  # read, it would warn about its 7 digits
+    vg = ViewGraph.from_absolute(["a", "b", "c"], so3.random_rotations(3, np.random.default_rng(1)), [[0, 1], [1, 2]])
+    rel = write_glomap_relpose(tmp_path / "rel.txt", vg)
+    for given, method in ((tmp_path / "ds", "irls-h"), (rel, "sdp")):
+        assert average_cli([str(given), "--method", method, "--out", str(tmp_path / "r.txt")]) == 2
+        line = _err_line(capsys)  # one line: nothing was read
+        assert "needs a view graph with H" in line and "cannot hold H" in line, line
