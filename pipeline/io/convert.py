@@ -88,6 +88,20 @@ def _warn_lost(data, out: Path, fmt: str) -> None:
         logger.warning("%s (%s) cannot hold the input's %s; written without", out, fmt, " and ".join(lost))
 
 
+def _vertex_rotations(path: Path, vg, rotation_tol: float) -> np.ndarray:
+    """(N, 3, 3) rotations of ``path`` for the cameras of ``vg`` (matched by name, as ``--init``)."""
+    from pipeline.core.names import match_names  # noqa: PLC0415
+    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+
+    names, R = read_rotations(path, rotation_tol)
+    idx = match_names(list(vg.names), names, what=str(path))
+    missing = [n for n, k in zip(vg.names, idx) if k < 0]
+    if missing:
+        raise InputFileError(f"--rotations {path} lacks rotations for {len(missing)} camera(s), e.g. {missing[:5]}; "
+                             "give every camera of the view graph, or drop --rotations (vertices at identity)")
+    return R[idx]
+
+
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
          rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
     """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
@@ -115,6 +129,7 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
         raise ConfigError(f"--to {fmt} needs a rotations file as INPUT; {src} is not one (10 or 5 fields a line)")
     data = read_input_graph(src, rotation_tol)
     vg = data.vg
+    R0 = None if rotations is None else _vertex_rotations(Path(rotations), vg, rotation_tol)  # checked before writing
     _warn_lost(data, out, fmt)
     if fmt == "npz":
         return vg.save(out)
@@ -130,11 +145,6 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     if fmt == "g2o":
         from pipeline.io.g2o import write_g2o  # noqa: PLC0415
 
-        R0 = None
-        if rotations is not None:
-            from pipeline.averaging.stage import load_init  # noqa: PLC0415
-
-            R0 = load_init(Path(rotations), vg)
         return write_g2o(out, vg, R0)
     from pipeline.io.glomap import write_glomap_relpose  # noqa: PLC0415
 

@@ -198,3 +198,13 @@ def test_a_method_needing_h_on_a_format_without_h_is_refused_before_reading(tmp_
         assert average_cli([str(given), "--method", method, "--out", str(tmp_path / "r.txt")]) == 2
         line = _err_line(capsys)  # one line: nothing was read
         assert "needs a view graph with H" in line and "cannot hold H" in line, line
+
+
+def test_convert_rotations_missing_cameras_says_so_in_convert_terms(tmp_path, capsys):
+    from pipeline.io.rotations import write_rotations
+
+    src = _npz(tmp_path)
+    rot = write_rotations(tmp_path / "r.txt", ["a", "b"], so3.random_rotations(2, np.random.default_rng(3)))
+    assert convert_cli([str(src), str(tmp_path / "o.g2o"), "--rotations", str(rot)]) == 2
+    line = _err_line(capsys)  # one line, before the warning about what g2o cannot hold
+    assert "--init" not in line and "lacks rotations for 2 camera(s)" in line and "drop --rotations" in line, line
