@@ -34,7 +34,7 @@ from pipeline.core.atomic import write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
-from pipeline.io.graphs import FORMATS
+from pipeline.io.graphs import FORMATS, can_hold_precisions, check_input, input_files
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["main", "main_cli", "build_parser"]
@@ -62,8 +62,7 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
         ``out_path``.
     """
     input_path, out_path = Path(input_path), Path(out_path)
-    if not input_path.exists():
-        raise InputFileError(f"input view graph {input_path} does not exist")
+    check_input(input_path)  # a missing input, a plain folder: one line, before the stage fingerprints it
     if not (rotation_tol >= 0 and rotation_tol < 1):
         raise ConfigError(f"--rotation-tol {rotation_tol!r}; expected a distance from SO(3) in [0, 1), e.g. 1e-3")
     if out_path.suffix.lower() == ".json":
@@ -73,6 +72,10 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
         if path is not None and Path(path).is_dir():
             raise InputFileError(f"{flag} {path} is a folder; pass a file name in it (e.g. {Path(path) / 'x'}"
                                  f"{'.txt' if flag == '--out' else '.json'})")
+    inputs = {f.resolve() for f in input_files(input_path)}
+    for flag, path in (("--out", out_path), ("--json", json_path)):  # read first, then replaced: lost
+        if path is not None and Path(path).resolve() in inputs:
+            raise InputFileError(f"{flag} {path} would overwrite the input {input_path}; write it to another file")
     init_file = None
     if init is not None and str(init) in _START_KINDS:
         options["init"] = str(init)
@@ -83,6 +86,10 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
     yaml_data = load_yaml(config_path)
     check_sections(yaml_data)
     spec = parse_method(method, yaml_data, options={k: v for k, v in options.items() if v is not None})
+    if spec.method.requires_H(spec.config) and not can_hold_precisions(input_path):  # known before reading
+        raise ConfigError(f"method {spec.label!r} needs a view graph with H (two-view BA precisions), and "
+                          f"{input_path} cannot hold H (a 1DSfM folder or GLOMAP text); give an .npz, .mat or .g2o "
+                          "with H, or use a method without H (e.g. 'irls')")
     if init_file is not None and not spec.method.takes_init:
         raise ConfigError(f"method {spec.name!r} takes no start; drop --init")
     label = out_path.name[: -len(out_path.suffix)] if out_path.suffix else out_path.name

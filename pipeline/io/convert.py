@@ -20,12 +20,16 @@ FORMAT (default: from OUTPUT's extension; ``.txt`` needs it):
 ``rotations``          ours, ``name r11 … r33`` (from a rotations INPUT)
 =====================  ===========================================================
 
-Every output is written atomically.
+Every output is written atomically (a 1DSfM folder as a whole). Before the input is read, an
+OUTPUT that is the input, a folder where a file goes (or a file where a folder goes), or a 1DSfM
+folder holding files this writer does not write is refused in one line; one warning names what
+of the input the target cannot hold (camera names in ``.g2o``/``.mat``, H, the ground truth).
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -39,6 +43,7 @@ from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 __all__ = ["main", "main_cli", "TARGETS"]
 
 TARGETS = ("npz", "mat", "1dsfm", "g2o", "glomap-relpose", "glomap-rotations", "rotations")
+logger = logging.getLogger(__name__)
 _BY_SUFFIX = {".npz": "npz", ".mat": "mat", ".g2o": "g2o", "": "1dsfm"}
 
 
@@ -48,6 +53,55 @@ def _is_rotations(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() not in (".npz", ".mat", ".g2o") and _data_fields(path) in (5, 10)
 
 
+_SUFFIX = {"npz": ".npz", "mat": ".mat", "g2o": ".g2o"}
+
+
+def _check_output(src: Path, out: Path, fmt: str) -> None:
+    """Refuse, before reading the input, an output that is the input or a folder where a file goes (and back)."""
+    from pipeline.io.graphs import _folder_of  # noqa: PLC0415
+
+    if out.resolve() in (src.resolve(), (_folder_of(src) or src).resolve()):
+        raise ConfigError(f"OUTPUT {out} is the input; write the conversion to another path")
+    blocked = next((d for d in out.parents if d.exists() and not d.is_dir()), None)
+    if blocked is not None:
+        raise InputFileError(f"{blocked} is a file, so {out} cannot be written in it; give another path")
+    if fmt == "1dsfm":
+        from pipeline.io.onedsfm import check_1dsfm_target  # noqa: PLC0415
+
+        check_1dsfm_target(out)
+    elif out.is_dir():
+        raise InputFileError(f"{out} is a folder; --to {fmt} writes a file: pass a file name in it (e.g. "
+                             f"{out / ('graph' + _SUFFIX.get(fmt, '.txt'))})")
+
+
+def _warn_lost(data, out: Path, fmt: str) -> None:
+    """One warning naming what of the input the target format cannot hold (names, H, the truth)."""
+    vg, lost = data.vg, []
+    if fmt in ("g2o", "mat") and list(vg.names) != [str(k) for k in range(vg.n_cameras)]:
+        lost.append(f"camera names (camera k becomes {'vertex' if fmt == 'g2o' else 'index'} "
+                    f"{'k' if fmt == 'g2o' else 'k+1'}: {vg.names[0]!r} is {0 if fmt == 'g2o' else 1})")
+    if fmt in ("glomap-relpose", "1dsfm") and vg.H is not None:
+        lost.append("precisions H")
+    if fmt in ("npz", "g2o", "glomap-relpose") and data.R_gt is not None:
+        lost.append("ground truth")
+    if lost:
+        logger.warning("%s (%s) cannot hold the input's %s; written without", out, fmt, " and ".join(lost))
+
+
+def _vertex_rotations(path: Path, vg, rotation_tol: float) -> np.ndarray:
+    """(N, 3, 3) rotations of ``path`` for the cameras of ``vg`` (matched by name, as ``--init``)."""
+    from pipeline.core.names import match_names  # noqa: PLC0415
+    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+
+    names, R = read_rotations(path, rotation_tol)
+    idx = match_names(list(vg.names), names, what=str(path))
+    missing = [n for n, k in zip(vg.names, idx) if k < 0]
+    if missing:
+        raise InputFileError(f"--rotations {path} lacks rotations for {len(missing)} camera(s), e.g. {missing[:5]}; "
+                             "give every camera of the view graph, or drop --rotations (vertices at identity)")
+    return R[idx]
+
+
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
          rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
     """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
@@ -55,6 +109,12 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     fmt = to or _BY_SUFFIX.get(out.suffix.lower())
     if fmt not in TARGETS:
         raise ConfigError(f"cannot tell the format of {out} from its name; give --to with one of {list(TARGETS)}")
+    _check_output(src, out, fmt)
+    if rotations is not None and fmt != "g2o":
+        raise ConfigError(f"--rotations is for --to g2o (its vertices); drop it for --to {fmt}")
+    if rotations is not None and not Path(rotations).is_file():
+        raise InputFileError(f"--rotations {rotations} is not a rotations file (missing, or a folder); give the file "
+                             "of rotations for the g2o vertices")
     if _is_rotations(src):
         from pipeline.io.glomap import write_glomap_rotations  # noqa: PLC0415
         from pipeline.io.rotations import read_rotations, write_rotations  # noqa: PLC0415
@@ -69,6 +129,8 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
         raise ConfigError(f"--to {fmt} needs a rotations file as INPUT; {src} is not one (10 or 5 fields a line)")
     data = read_input_graph(src, rotation_tol)
     vg = data.vg
+    R0 = None if rotations is None else _vertex_rotations(Path(rotations), vg, rotation_tol)  # checked before writing
+    _warn_lost(data, out, fmt)
     if fmt == "npz":
         return vg.save(out)
     if fmt == "mat":
@@ -83,11 +145,6 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     if fmt == "g2o":
         from pipeline.io.g2o import write_g2o  # noqa: PLC0415
 
-        R0 = None
-        if rotations is not None:
-            from pipeline.averaging.stage import load_init  # noqa: PLC0415
-
-            R0 = load_init(Path(rotations), vg)
         return write_g2o(out, vg, R0)
     from pipeline.io.glomap import write_glomap_relpose  # noqa: PLC0415
 

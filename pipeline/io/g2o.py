@@ -41,6 +41,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions
 
 __all__ = ["G2oData", "write_g2o", "read_g2o", "INFO_CONVENTIONS"]
@@ -142,7 +143,7 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
     if not path.is_file():
         raise InputFileError(f"g2o file {path} does not exist")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
     counts: Counter[str] = Counter()
@@ -170,14 +171,14 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         except ValueError:
             raise InputFileError(f"{path}:{lineno}: {tag}: ids must be integers and the rest numbers") from None
         if not np.all(np.isfinite(vals)):
-            raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+            raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
         if tag == "VERTEX_SE3:QUAT":
             v_ids.append(ids[0])
             v_q.append(vals[3:7])
             v_lines.append(lineno)
             continue
         if ids[0] == ids[1]:
-            raise InputFileError(f"{path}:{lineno}: an edge from vertex {ids[0]} to itself")
+            raise InputFileError(f"{path}:{lineno}: an edge from vertex {ids[0]} to itself; delete the line")
         if tag == "EDGE_SE3:QUAT":
             t, q, up = vals[:3], vals[3:7], vals[7:]
             info = np.zeros((6, 6))
@@ -195,12 +196,21 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         e_t.append(t)
         e_lines.append(lineno)
     ignored = {k: c for k, c in counts.items() if k not in ("VERTEX_SE3:QUAT", "EDGE_SE3:QUAT", "EDGE_SO3:QUAT")}
+    if not e_ij:
+        flat = sorted(k for k in ignored if "SE2" in k)  # VERTEX_SE2, EDGE_SE2, EDGE_SE2_XY, ...
+        if flat:  # one line, without the warning about the skipped lines
+            raise InputFileError(f"{path} is a 2D pose graph ({', '.join(flat)} lines); this project averages 3D "
+                                 "rotations: give a 3D graph (EDGE_SE3:QUAT edges)")
+        raise InputFileError(f"{path} holds no EDGE_SE3:QUAT or EDGE_SO3:QUAT line; nothing to average (give a 3D "
+                             "pose graph)")
     if ignored:
         logger.warning("%s: skipped %s", path, ", ".join(f"{c} {k} line(s)" for k, c in sorted(ignored.items())))
-    if not e_ij:
-        raise InputFileError(f"{path} holds no EDGE_SE3:QUAT or EDGE_SO3:QUAT line (2D graphs are not rotation graphs "
-                             "of this project)")
     e_ij = np.array(e_ij, dtype=np.int64)
+    rep = repeated_pair(e_ij)
+    if rep is not None:  # named by the file's vertex ids and lines
+        a, b = rep
+        raise InputFileError(f"{path}:{e_lines[b]}: vertices {e_ij[b, 0]} and {e_ij[b, 1]} already have an edge on line "
+                             f"{e_lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
     if v_ids:
         uniq, n_decl = np.unique(np.asarray(v_ids, dtype=np.int64), return_counts=True)
         if np.any(n_decl > 1):
@@ -211,20 +221,16 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
         if undeclared.any():
             k = int(np.flatnonzero(undeclared)[0])
             raise InputFileError(f"{path}:{e_lines[k]}: edge ({e_ij[k, 0]}, {e_ij[k, 1]}) refers to an undeclared vertex")
-        try:
-            qv, _ = normalize_near_unit_quaternions(np.array(v_q)[order], rotation_tol, source=str(path),
-                                                    labels=[f"of line {v_lines[k]}" for k in order])
-        except NearRotationError as exc:
-            raise InputFileError(str(exc)) from None
-        R_init = np.swapaxes(_from_xyzw(qv), 1, 2)      # cam_from_world = (world_from_cam)ᵀ
+        v_q, v_lines = [v_q[k] for k in order], [v_lines[k] for k in order]
     else:
         ids = np.unique(e_ij)
-        R_init = None
-    try:
-        qe, _ = normalize_near_unit_quaternions(np.array(e_q), rotation_tol, source=str(path),
-                                                labels=[f"of line {ln}" for ln in e_lines])
+    try:  # vertices and edges together: one warning for the file
+        q, _ = normalize_near_unit_quaternions(np.array(v_q + e_q).reshape(-1, 4), rotation_tol, source=str(path),
+                                               labels=[f"of line {ln}" for ln in v_lines + e_lines])
     except NearRotationError as exc:
         raise InputFileError(str(exc)) from None
+    qv, qe = q[: len(v_q)], q[len(v_q):]
+    R_init = np.swapaxes(_from_xyzw(qv), 1, 2) if v_q else None  # cam_from_world = (world_from_cam)ᵀ
     Z = _from_xyzw(qe)                                  # T_i⁻¹T_j rotation = R̃_ijᵀ
     R_rel = np.swapaxes(Z, 1, 2)
     H = np.array(e_H)

@@ -16,7 +16,8 @@ same file after the merge into COLMAP, ``colmap/colmap`` ``src/glomap/io/pose_io
 * ``ReadGravity``: ``IMAGE_NAME GX GY GZ`` (not handled here).
 
 Lines are parsed on any whitespace here (a superset of GLOMAP's single-space split);
-``#`` comments and blank lines are skipped (GLOMAP itself writes none).
+blank lines and lines starting with ``#`` are skipped (GLOMAP itself writes none); a ``#``
+within a line is part of an image name (``IMG#12.jpg``), as GLOMAP writes it.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions
 
 __all__ = ["write_glomap_rotations", "read_glomap_rotations", "write_glomap_relpose", "read_glomap_relpose"]
@@ -49,14 +51,13 @@ def _lines(path: Path, n_fields: int, layout: str):
     if not path.is_file():
         raise InputFileError(f"GLOMAP file {path} does not exist")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
     for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
         parts = line.split()
+        if not parts or parts[0].startswith("#"):  # a comment line; '#' within a line is part of a name
+            continue
         if len(parts) != n_fields:
             raise InputFileError(f"{path}:{lineno}: expected '{layout}' ({n_fields} fields), got {len(parts)}")
         yield lineno, parts
@@ -68,7 +69,7 @@ def _floats(path: Path, lineno: int, parts: list[str]) -> list[float]:
     except ValueError:
         raise InputFileError(f"{path}:{lineno}: expected numbers, got {' '.join(parts)!r}") from None
     if not np.all(np.isfinite(vals)):
-        raise InputFileError(f"{path}:{lineno}: NaN or inf value")
+        raise InputFileError(f"{path}:{lineno}: NaN or inf value; fix or delete the line")
     return vals
 
 
@@ -129,11 +130,11 @@ def write_glomap_relpose(path: str | os.PathLike, vg: ViewGraph, t: np.ndarray |
     Args:
         path: output file.
         vg: the view graph (edges i < j, ``R_ij = R_j R_iᵀ``).
-        t: (M, 3) translations of cam2_from_cam1 (default ``vg.stats["t_ij"]`` if present, else 0).
+        t: (M, 3) translations of cam2_from_cam1 (default ``vg.stats["t"]``, the pipeline's, if present, else 0).
     """
     _check_names(vg.names)
     if t is None:
-        t = vg.stats.get("t_ij", np.zeros((vg.n_edges, 3)))
+        t = vg.stats.get("t", np.zeros((vg.n_edges, 3)))
     t = np.asarray(t, dtype=np.float64).reshape(vg.n_edges, 3)
     q = so3.quat_from_matrix(vg.R_rel)
     path = Path(path)
@@ -145,7 +146,7 @@ def write_glomap_relpose(path: str | os.PathLike, vg: ViewGraph, t: np.ndarray |
 
 def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
                         names: list[str] | None = None) -> ViewGraph:
-    """Read GLOMAP relative poses into a ViewGraph (translations in ``stats["t_ij"]``).
+    """Read GLOMAP relative poses into a ViewGraph (cam2_from_cam1 translations in ``stats["t"]``, as the pipeline's).
 
     Args:
         path: the file.
@@ -176,16 +177,21 @@ def read_glomap_relpose(path: str | os.PathLike, rotation_tol: float = DEFAULT_R
     except NearRotationError as exc:
         raise InputFileError(str(exc)) from None
     edges = np.array([(index[a], index[b]) for _, a, b in pairs], dtype=np.int64)
+    rep = repeated_pair(edges)
+    if rep is not None:  # named by the file's image names and lines
+        a, b = rep
+        raise InputFileError(f"{path}:{pairs[b][0]}: images {pairs[b][1]} and {pairs[b][2]} already have a relative pose on "
+                             f"line {pairs[a][0]}; each pair may appear once, in either orientation: delete one of the lines")
     if np.any(edges[:, 0] == edges[:, 1]):
         k = int(np.flatnonzero(edges[:, 0] == edges[:, 1])[0])
-        raise InputFileError(f"{path}:{pairs[k][0]}: a pair of an image with itself")
+        raise InputFileError(f"{path}:{pairs[k][0]}: a pair of an image with itself; delete the line")
     R = so3.matrix_from_quat(q)
     t = v[:, 4:]
     # orient i < j: R_ji = R_ijᵀ and t_ji = −R_ijᵀ t_ij (the inverse rigid transform)
     flip = edges[:, 0] > edges[:, 1]
     t = np.where(flip[:, None], -np.einsum("mba,mb->ma", R, t), t)
     try:
-        vg = ViewGraph.from_edges(names, edges, R, stats={"t_ij": t}, allow_isolated=True)
+        vg = ViewGraph.from_edges(names, edges, R, stats={"t": t}, allow_isolated=True)
     except ViewGraphError as exc:
         raise InputFileError(f"{path}: {exc}") from None
     return vg

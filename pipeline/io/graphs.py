@@ -24,12 +24,13 @@ import os
 from pathlib import Path
 
 from pipeline.core.errors import InputFileError
+from pipeline.core.names import split_fields
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.mat import MatData, read_mat
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 from pipeline.io.onedsfm import is_1dsfm_folder, read_1dsfm
 
-__all__ = ["read_input_graph", "input_files", "GraphData", "FORMATS"]
+__all__ = ["read_input_graph", "check_input", "input_files", "can_hold_precisions", "GraphData", "FORMATS"]
 
 #: One line per supported input, for messages and ``--help``.
 FORMATS = ("a view-graph .npz (ViewGraph.save), a .mat (LU Sphinx or ℓ1 layout), a 1DSfM folder (EGs.txt, "
@@ -37,15 +38,27 @@ FORMATS = ("a view-graph .npz (ViewGraph.save), a .mat (LU Sphinx or ℓ1 layout
 
 GraphData = MatData
 
+#: The other files of a published 1DSfM folder: given alone, they are not a view graph.
+_ONEDSFM_COMPANIONS = ("list.txt", "cc.txt", "gt_bundle.out", "coords.txt", "tracks.txt")
+
 
 def _data_fields(path: Path) -> int:
-    """Fields on the first non-comment line of a text file (0 if none); -1 if not text."""
+    """Fields on the first non-comment line of a text file (0 if none); -1 if not text.
+
+    Counted as our files write them (``"…"`` one name, ``#`` a comment) and, when that is no known
+    layout (5, 9 or 10 fields), as GLOMAP writes them (whitespace only: ``IMG#12.jpg`` is a name).
+    """
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:
             for line in f:
-                parts = line.split("#", 1)[0].split()
-                if parts:
-                    return len(parts)
+                raw = line.split()
+                if not raw or raw[0].startswith("#"):
+                    continue
+                try:
+                    ours = len(split_fields(line))
+                except InputFileError:
+                    ours = -1
+                return ours if ours in (5, 9, 10) or '"' in line else len(raw)
     except (OSError, UnicodeDecodeError):
         return -1
     return 0
@@ -56,6 +69,35 @@ def _folder_of(path: Path) -> Path | None:
     if path.name == "EGs.txt" and is_1dsfm_folder(path.parent):
         return path.parent
     return path if is_1dsfm_folder(path) else None
+
+
+def check_input(path: str | os.PathLike) -> None:
+    """Refuse, in one line and before any work, an input that cannot be a view graph (missing, a plain folder, a
+    companion file of a 1DSfM folder); :func:`read_input_graph` judges the content."""
+    p = Path(path)
+    if _folder_of(p) is not None:
+        return
+    egs = p / "EGs.txt" if p.is_dir() else p
+    if egs.name == "EGs.txt" and egs.is_file() and not (egs.parent / "list.txt").is_file():
+        raise InputFileError(f"{egs} is a 1DSfM EGs file, read with the list.txt beside it (line k names image k); "
+                             f"none in {egs.parent}: put the dataset's list.txt there")
+    if p.is_dir():
+        inside = sorted(d.name for d in p.iterdir() if is_1dsfm_folder(d))  # the folder the 1DSfM archives unpack into
+        if inside:
+            raise InputFileError(f"{p} is a folder of 1DSfM datasets ({', '.join(inside[:5])}"
+                                 f"{' ...' if len(inside) > 5 else ''}), not one; give one of them, e.g. {p / inside[0]}")
+        raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
+    if not p.exists():
+        raise InputFileError(f"input view graph {p} does not exist")
+    if p.name in _ONEDSFM_COMPANIONS and is_1dsfm_folder(p.parent):
+        raise InputFileError(f"{p} is one file of the 1DSfM dataset in {p.parent}; give the folder {p.parent} (or its "
+                             "EGs.txt)")
+
+
+def can_hold_precisions(path: str | os.PathLike) -> bool:
+    """Whether input ``path`` can carry H: an .npz, .mat or .g2o can; a 1DSfM folder or GLOMAP's text cannot."""
+    p = Path(path)
+    return _folder_of(p) is None and p.suffix.lower() in (".npz", ".mat", ".g2o")
 
 
 def input_files(path: str | os.PathLike) -> list[Path]:
@@ -82,10 +124,7 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
     if folder is not None:
         d = read_1dsfm(folder, rotation_tol)
         return GraphData(d.vg, d.R_gt, d.gt_mask)
-    if p.is_dir():
-        raise InputFileError(f"{p} is a folder but not a 1DSfM dataset (EGs.txt and list.txt); expected {FORMATS}")
-    if not p.is_file():
-        raise InputFileError(f"input view graph {p} does not exist")
+    check_input(p)
     suffix = p.suffix.lower()
     if suffix == ".npz":
         return GraphData(ViewGraph.load(p, allow_isolated=True), None, None)
@@ -100,5 +139,11 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
         from pipeline.io.glomap import read_glomap_relpose  # noqa: PLC0415
 
         return GraphData(read_glomap_relpose(p, rotation_tol), None, None)
+    if nf == 0:
+        raise InputFileError(f"{p} is empty (no data line); expected {FORMATS}")
+    if nf in (5, 10):
+        raise InputFileError(f"{p} holds rotations, not a view graph ({nf} fields a line: "
+                             f"{'NAME QW QX QY QZ' if nf == 5 else 'name r11 ... r33'}); give it as --init, or to "
+                             f"python -m pipeline.evaluate --rotations; the view graph is one of: {FORMATS}")
     raise InputFileError(f"{p}: unsupported view-graph input" + (f" ({nf} fields a line)" if nf > 0 else "")
                          + f"; expected {FORMATS}")

@@ -22,9 +22,12 @@ Camera names are the 0-based indices as strings (``"0"``, ``"1"``, …).
 **ℓ1 layout** (public ℓ1 / IRLS rotation-averaging code):
 
 - ``RR`` (3, 3, M): ``RR[:, :, k] ≈ R_j R_iᵀ`` for ``(i, j) = I[:, k]``.
-- ``I`` (2, M): 1-based camera indices, either orientation.
-- ``Rgt`` (3, 3, N, optional): cam_from_world truth; an all-zero block marks a
-  camera without ground truth.
+- ``I`` (2, M): 1-based camera indices, either orientation of each pair; an ``I`` stored M×2
+  (one edge a row) is read as its transpose when M ≠ 2 matches RR.
+- ``Rgt`` (3, 3, N, optional): cam_from_world truth; an all-zero (or all-NaN, as the ℓ1 code
+  writes the cameras it did not solve) block marks a camera without ground truth.
+- ``RR`` and ``Rgt`` may also be 4×M and 4×N quaternions, scalar first: the ℓ1 code
+  (``AverageSO3Graph``) takes either form (its ``q2R``: ``q = (cos θ/2, sin θ/2 · n)``).
 - ``H`` (3, 3, M, optional): precisions, an addition of this project written by
   :func:`write_l1_mat` when the view graph has them.
 
@@ -46,10 +49,12 @@ from typing import Any
 import numpy as np
 import scipy.io as sio
 
+from pipeline.core import so3
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, project_near_rotations
+from pipeline.io.near_rotation import (DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions,
+                                       project_near_rotations)
 
 logger = logging.getLogger(__name__)
 
@@ -105,13 +110,13 @@ def _load(path: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
     return path, data
 
 
-def _numeric(path: Path, data: dict[str, Any], key: str) -> np.ndarray:
+def _numeric(path: Path, data: dict[str, Any], key: str, allow_nan: bool = False) -> np.ndarray:
     a = data[key]
     if not isinstance(a, np.ndarray) or a.dtype.kind not in "fiub":
         got = a if isinstance(a, str) else type(a).__name__
         raise InputFileError(f"{path}: variable {key!r} must be a numeric array, got {got}")
     a = np.asarray(a, dtype=np.float64)
-    if not np.all(np.isfinite(a)):
+    if not np.all(np.isfinite(a) | (allow_nan & np.isnan(a))):
         raise InputFileError(f"{path}: variable {key!r} has NaN or inf entries")
     return a
 
@@ -133,18 +138,44 @@ class _Projector:
             self.worst = max(self.worst, rep.max_deviation)
         return out
 
+    def quaternions(self, q: np.ndarray, key: str, labels: list[str]) -> np.ndarray:
+        """(K, 4) scalar-first quaternions (the ℓ1 code's q2R) → (K, 3, 3), normalized within the tolerance."""
+        try:
+            qn, rep = normalize_near_unit_quaternions(q, self.tol, source=str(self.path), labels=labels, warn=False)
+        except NearRotationError as exc:
+            raise InputFileError(f"{exc}; expected unit quaternions (raise --rotation-tol to accept coarser ones)"
+                                 ) from None
+        if rep.n_projected:
+            self.parts.append(f"{rep.n_projected} of {rep.n_total} {key} quaternions (| |q| − 1 |)")
+            self.worst = max(self.worst, rep.max_deviation)
+        return so3.matrix_from_quat(qn)
+
     def warn(self) -> None:
         if self.parts:
             logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)",
                            self.path, " and ".join(self.parts), self.worst, self.tol)
 
 
+def _is_quaternions(a: np.ndarray) -> bool:
+    """A 4×K variable: K quaternions, scalar first, as the ℓ1 code (AverageSO3Graph) also takes RR and Rgt."""
+    return a.ndim == 2 and a.shape[0] == 4
+
+
 def _ground_truth(path: Path, blocks: np.ndarray, project: _Projector) -> tuple[np.ndarray, np.ndarray]:
-    """Validate (N, 3, 3) truth blocks; all-zero blocks become identity + mask False."""
-    mask = np.abs(blocks).sum(axis=(1, 2)) > 0
-    R = np.where(mask[:, None, None], blocks, np.eye(3))
+    """Validate (N, 3, 3) truth blocks, or (N, 4) quaternions; all-zero or all-NaN ones (the ℓ1 code writes NaN for the
+    cameras it did not solve) become identity + mask False."""
+    flat = blocks.reshape(blocks.shape[0], -1)
+    nan = np.isnan(flat)
+    partial = nan.any(axis=1) & ~nan.all(axis=1)
+    if partial.any():
+        raise InputFileError(f"{path}: the Rgt block of camera {int(np.flatnonzero(partial)[0])} is partly NaN; a "
+                             "camera without truth is all zeros (or all NaN)")
+    mask = ~nan.any(axis=1) & (np.abs(np.nan_to_num(flat)).sum(axis=1) > 0)
+    R = np.broadcast_to(np.eye(3), (blocks.shape[0], 3, 3)).copy()
     if mask.any():
-        R[mask] = project(R[mask], "Rgt", labels=[f"of camera {k}" for k in np.flatnonzero(mask)])
+        labels = [f"of camera {k}" for k in np.flatnonzero(mask)]
+        R[mask] = project.quaternions(flat[mask], "Rgt", labels) if flat.shape[1] == 4 else \
+            project(blocks[mask], "Rgt", labels=labels)
     return R, mask
 
 
@@ -252,22 +283,28 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
     missing = [k for k in ("RR", "I") if k not in data]
     if missing:
         raise InputFileError(f"{path}: missing {missing}; the ℓ1 layout needs RR (3×3×M) and I (2×M), found {sorted(data)}")
-    RR = _stack3(path, _numeric(path, data, "RR"), "RR")
+    RR = _numeric(path, data, "RR")
+    quaternions = _is_quaternions(RR)
+    RR = RR.T if quaternions else _stack3(path, RR, "RR")
     I = _numeric(path, data, "I")
+    if I.ndim == 2 and I.shape == (RR.shape[0], 2) and I.shape[0] != 2:  # stored M×2 (one edge a row): unambiguous
+        logger.info("%s: I is stored %d×2 (one edge a row); read as its transpose", path, I.shape[0])
+        I = I.T
     if I.ndim != 2 or I.shape[0] != 2:
-        if I.ndim == 2 and I.shape[1] == 2 and I.shape[0] != 2:
-            raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M); transpose it")
-        raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M)")
+        raise InputFileError(f"{path}: I.shape={I.shape} but expected (2, M) (or (M, 2)) for the {RR.shape[0]} blocks "
+                             "of RR")
     if I.shape[1] != RR.shape[0]:
         raise InputFileError(f"{path}: I has {I.shape[1]} columns but RR has {RR.shape[0]} blocks; they must match")
     if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
     project = _Projector(path, rotation_tol)
-    RR = project(RR, "RR", labels=[f"{k + 1} (1-based)" for k in range(RR.shape[0])])
+    labels = [f"{k + 1} (1-based)" for k in range(RR.shape[0])]
+    RR = project.quaternions(RR, "RR", labels) if quaternions else project(RR, "RR", labels=labels)
     R_gt = gt_mask = None
     if "Rgt" in data:
-        Rgt = _stack3(path, _numeric(path, data, "Rgt"), "Rgt")
+        Rgt = _numeric(path, data, "Rgt", allow_nan=True)
+        Rgt = Rgt.T if _is_quaternions(Rgt) else _stack3(path, Rgt, "Rgt")
         n = Rgt.shape[0]
         R_gt, gt_mask = _ground_truth(path, Rgt, project)
     else:
@@ -278,7 +315,8 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
                                  "without Rgt the largest index is the camera count, so this index is a mistake "
                                  "(check I, or add Rgt 3x3xN)")
     if edges.size and edges.max() >= n:
-        raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras")
+        raise InputFileError(f"{path}: I refers to camera {int(edges.max()) + 1} but Rgt has only {n} cameras; Rgt "
+                             "must hold a 3×3 block for every camera (3×3×N, all zeros where the truth is unknown)")
     H = None
     if "H" in data:
         H = _stack3(path, _numeric(path, data, "H"), "H")

@@ -15,12 +15,16 @@ Layout and conventions, established from public sources (facts, no code copied):
   1DSfM reader (``theia/io/read_1dsfm.cc``) does exactly this to the EGs: it reads R
   transposed and applies ``bundler_to_theia · Rᵀ · bundler_to_theia`` with
   ``bundler_to_theia = diag(1, −1, −1)``, and ``position ← bundler_to_theia · position``.
-  Hence, for an EG line (i, j, R, t):  ``R_ij(ours) = F Rᵀ F``,  ``t_ij(ours) = F t`` (the
-  direction of camera j's centre in camera i's OpenCV frame).
+  Hence, for an EG line (i, j, R, t):  ``R_ij(ours) = F Rᵀ F``, and ``F t`` is the direction of
+  camera j's centre in camera i's OpenCV frame; the pipeline's translation (``x_j = R_ij x_i + t``,
+  ``stats["t"]``, GLOMAP's cam2_from_cam1) is ``−R_ij F t``.
 * ``gt_bundle.out``: a Bundler v0.3 file (``# Bundle file v0.3``; ``<num_cameras>
   <num_points>``; per camera ``f k1 k2`` then 3 rows of R then t; then the points). R is
-  world-to-camera in Bundler's frame; a camera with f = 0 and an all-zero R is not
-  registered. Camera k is image k of ``list.txt``. Truth in our convention: ``F R``.
+  world-to-camera in Bundler's frame; a camera with f <= 0 or an all-zero R is not
+  registered (Bundler's rule, also Theia's ``ReadBundlerFiles``: a camera with f <= 0 was not
+  reconstructed; a zero R gives no rotation either). Camera k is image k of ``list.txt``; a
+  bundle with more cameras than list.txt has images is refused. Truth in our convention: ``F R``
+  (:mod:`pipeline.io.bundler` reads and writes it).
 
 Reading restricts to ``cc.txt`` (when present) and drops EGs with an endpoint outside it
 (counted in ``info``); the rotations go through the near-rotation projection (the files
@@ -36,18 +40,19 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.atomic import atomic_open
+from pipeline.core.atomic import TMP_TAG, atomic_dir, atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
+from pipeline.io.bundler import BUNDLER_TO_CV, _projected, read_bundler, write_bundler
+from pipeline.io.common import line_numbers as _numbers
+from pipeline.io.common import repeated_pair
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
 
 __all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
-           "BUNDLER_TO_CV"]
+           "check_1dsfm_target", "BUNDLER_TO_CV"]
 
 logger = logging.getLogger(__name__)
 
-#: diag(1, −1, −1): Bundler (camera looks down −z, y up) ↔ OpenCV/COLMAP (+z, y down).
-BUNDLER_TO_CV = np.diag([1.0, -1.0, -1.0])
 
 
 @dataclass
@@ -56,7 +61,8 @@ class OneDSfMData:
 
     Attributes:
         vg: view graph over the cameras of ``cc.txt`` (names: image paths from list.txt),
-            ``stats["t_ij"]``: (M, 3) unit direction of camera j's centre in camera i's frame.
+            ``stats["t"]``: (M, 3) unit translation of cam2_from_cam1 (``x_j = R_ij x_i + t``, the
+            pipeline's convention), from the EGs' camera positions.
         index: (N,) list.txt index of each camera of ``vg``.
         focal: (N,) focal length from list.txt (NaN when absent).
         R_gt: (N, 3, 3) cam_from_world truth from gt_bundle.out (identity where missing) or None.
@@ -77,20 +83,9 @@ def _read_text(path: Path, what: str) -> list[str]:
     if not path.is_file():
         raise InputFileError(f"1DSfM {what} file {path} does not exist")
     try:
-        return path.read_text(encoding="utf-8").splitlines()
+        return path.read_text(encoding="utf-8-sig").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputFileError(f"{path} is not a readable text file ({exc.__class__.__name__})") from None
-
-
-def _numbers(path: Path, lineno: int, parts: list[str], kind=float) -> list:
-    try:
-        vals = [kind(x) for x in parts]
-    except ValueError:
-        raise InputFileError(f"{path}:{lineno}: expected {'integers' if kind is int else 'numbers'}, "
-                             f"got {' '.join(parts)[:60]!r}") from None
-    if kind is float and not np.all(np.isfinite(vals)):
-        raise InputFileError(f"{path}:{lineno}: NaN or inf value")
-    return vals
 
 
 def _read_list(path: Path) -> tuple[list[str], np.ndarray]:
@@ -142,7 +137,7 @@ def _read_egs(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray, np.nda
         if i != int(i) or j != int(j) or not (0 <= i < n_images and 0 <= j < n_images):
             raise InputFileError(f"{path}:{lineno}: image indices ({parts[0]}, {parts[1]}) not in [0, {n_images})")
         if i == j:
-            raise InputFileError(f"{path}:{lineno}: an EG of image {int(i)} with itself")
+            raise InputFileError(f"{path}:{lineno}: an EG of image {int(i)} with itself; delete the line")
         ij.append((int(i), int(j)))
         Rs.append(v[2:11])
         ts.append(v[11:14])
@@ -152,74 +147,10 @@ def _read_egs(path: Path, n_images: int) -> tuple[np.ndarray, np.ndarray, np.nda
     return np.array(ij, np.int64), np.array(Rs).reshape(-1, 3, 3), np.array(ts), lines
 
 
-def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Read the cameras of a Bundler v0.3 file, converted to cam_from_world OpenCV convention.
-
-    Returns:
-        R: (K, 3, 3) ``F R_bundler`` (identity where unregistered), t: (K, 3) ``F t_bundler``,
-        f: (K,) focal lengths, registered: (K,) bool (False for f = 0 and all-zero R).
-
-    Raises:
-        InputFileError: missing file, bad header or counts, truncated camera block, a
-            registered rotation far from SO(3) (one line naming the file).
-    """
-    path = Path(path)
-    lines = _read_text(path, "bundle")
-    body = [(k + 1, ln.split()) for k, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
-    if not body:
-        raise InputFileError(f"{path}: empty Bundler file")
-    lineno, head = body[0]
-    if len(head) != 2:
-        raise InputFileError(f"{path}:{lineno}: expected '<num_cameras> <num_points>'")
-    n_cam, _ = _numbers(path, lineno, head, int)
-    if n_cam < 0 or len(body) < 1 + 5 * n_cam:
-        raise InputFileError(f"{path}: header announces {n_cam} cameras but the file has "
-                             f"{(len(body) - 1) // 5} complete camera blocks")
-    rows = []
-    for k in range(n_cam):
-        blk = body[1 + 5 * k: 6 + 5 * k]
-        for ln, parts in blk:
-            if len(parts) != 3:
-                raise InputFileError(f"{path}:{ln}: camera {k}: expected 3 numbers, got {len(parts)}")
-        rows.append([x for ln, parts in blk for x in _numbers(path, ln, parts)])
-    a = np.array(rows, dtype=np.float64).reshape(n_cam, 15)
-    f = a[:, 0]
-    Rb = a[:, 3:12].reshape(n_cam, 3, 3)
-    tb = a[:, 12:15]
-    registered = ~((f == 0) & (np.abs(Rb).sum(axis=(1, 2)) == 0))
-    R = np.broadcast_to(np.eye(3), (n_cam, 3, 3)).copy()
-    if registered.any():
-        P = projected_or_input_error(Rb[registered], rotation_tol, what="camera rotation", source=str(path),
-                                     labels=[f"camera {k}" for k in np.flatnonzero(registered)])
-        R[registered] = BUNDLER_TO_CV @ P
-    t = np.where(registered[:, None], tb @ BUNDLER_TO_CV.T, 0.0)
-    return R, t, f, registered
-
-
-def write_bundler(path: str | os.PathLike, R: np.ndarray, t: np.ndarray, f: np.ndarray,
-                  registered: np.ndarray | None = None) -> Path:
-    """Write cameras (OpenCV cam_from_world R, t) as a Bundler v0.3 file with no points.
-
-    Unregistered cameras are written as all zeros (f = 0, R = 0, t = 0).
-    """
-    R = np.asarray(R, float)
-    K = R.shape[0]
-    registered = np.ones(K, bool) if registered is None else np.asarray(registered, bool)
-    path = Path(path)
-    with atomic_open(path) as fh:
-        fh.write("# Bundle file v0.3\n")
-        fh.write(f"{K} 0\n")
-        for k in range(K):
-            if registered[k]:
-                Rb, tb, fk = BUNDLER_TO_CV @ R[k], BUNDLER_TO_CV @ t[k], f[k]
-            else:
-                Rb, tb, fk = np.zeros((3, 3)), np.zeros(3), 0.0
-            fh.write(f"{fk:.17g} 0 0\n")
-            for row in Rb:
-                fh.write(" ".join(f"{x:.17g}" for x in row) + "\n")
-            fh.write(" ".join(f"{x:.17g}" for x in tb) + "\n")
-    return path
+def _check_camera_count(bundle: Path, n_cam: int, list_path: Path, n_img: int) -> None:
+    if n_cam > n_img:  # camera k is image k: the files are not of one dataset
+        raise InputFileError(f"{bundle} has {n_cam} cameras but {list_path} lists {n_img} images; camera k is image k "
+                             "of list.txt: check that both files are of this dataset")
 
 
 # ----------------------------------------------------------------------------- read / write
@@ -256,30 +187,41 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     keep = np.all(old_to_new[ij] >= 0, axis=1)
     info = {"n_images_listed": n_img, "n_cameras": int(cams.size), "n_egs": int(ij.shape[0]),
             "n_egs_outside_cc": int((~keep).sum())}
+    if not keep.any():
+        raise InputFileError(f"{folder / 'EGs.txt'}: none of its {ij.shape[0]} EGs joins two images of "
+                             f"{folder / 'cc.txt'}; check that cc.txt is of this dataset (or delete it)")
     if info["n_egs_outside_cc"]:
         logger.warning("%s: %d of %d EGs have an image outside cc.txt; dropped", folder / "EGs.txt",
                        info["n_egs_outside_cc"], ij.shape[0])
     ij, R_file, t_file = ij[keep], R_file[keep], t_file[keep]
     lines = [ln for ln, k in zip(eg_lines, keep) if k]
-    R_file = projected_or_input_error(R_file, rotation_tol, what="EG rotation", source=str(folder / "EGs.txt"),
-                                      labels=[f"on line {ln}" for ln in lines])
+    rep = repeated_pair(ij)
+    if rep is not None:  # named as the file names it: list.txt indices and line numbers
+        a, b = rep
+        raise InputFileError(f"{folder / 'EGs.txt'}:{lines[b]}: images {ij[b, 0]} and {ij[b, 1]} already have an EG on "
+                             f"line {lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
+    notes: list = []  # near-rotations of EGs.txt and gt_bundle.out: one warning for the dataset
+    R_file = _projected(R_file, rotation_tol, "EG rotation", folder / "EGs.txt", [f"on line {ln}" for ln in lines],
+                        notes)
     F = BUNDLER_TO_CV
     R_rel = F @ np.swapaxes(R_file, 1, 2) @ F         # our R_j R_iᵀ for the file's (i, j)
-    t_rel = t_file @ F.T
+    # the file's t is camera j's centre in camera i's frame; the pipeline's t (x_j = R_ij x_i + t) is −R_ij of it
+    t_rel = -np.einsum("mab,mb->ma", R_rel, t_file @ F.T)
     nrm = np.linalg.norm(t_rel, axis=1, keepdims=True)
     t_rel = np.where(nrm > 0, t_rel / np.where(nrm > 0, nrm, 1.0), 0.0)
     e = old_to_new[ij]
     flip = e[:, 0] > e[:, 1]
-    # an EG written with i > j is stored as (j, i): camera i's centre in j's frame is t_ji = −R_ij t_ij
-    t_rel = np.where(flip[:, None], -np.einsum("mab,mb->ma", R_rel, t_rel), t_rel)
+    # an EG written with i > j is stored as (j, i): the inverse rigid transform, t_ji = −R_ijᵀ t_ij
+    t_rel = np.where(flip[:, None], -np.einsum("mba,mb->ma", R_rel, t_rel), t_rel)
     try:
-        vg = ViewGraph.from_edges([names[k] for k in cams], e, R_rel, stats={"t_ij": t_rel}, allow_isolated=True)
+        vg = ViewGraph.from_edges([names[k] for k in cams], e, R_rel, stats={"t": t_rel}, allow_isolated=True)
     except ViewGraphError as exc:
         raise InputFileError(f"{folder / 'EGs.txt'}: {exc}") from None
     R_gt = gt_mask = None
     gt_path = folder / "gt_bundle.out"
     if read_truth and gt_path.is_file():
-        Rb, _, _, reg = read_bundler(gt_path, rotation_tol)
+        Rb, _, _, reg = read_bundler(gt_path, rotation_tol, _notes=notes)
+        _check_camera_count(gt_path, Rb.shape[0], folder / "list.txt", n_img)
         if Rb.shape[0] < n_img:
             logger.warning("%s has %d cameras for %d listed images; the rest count as unregistered",
                            gt_path, Rb.shape[0], n_img)
@@ -289,6 +231,9 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
         R_all[:k], m_all[:k] = Rb[:k], reg[:k]
         R_gt, gt_mask = R_all[cams], m_all[cams]
         info["n_gt_registered"] = int(gt_mask.sum())
+    if notes:
+        logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)", folder,
+                       " and ".join(n for n, _ in notes), max(d for _, d in notes), rotation_tol)
     return OneDSfMData(vg, cams, focal[cams], R_gt, gt_mask, info)
 
 
@@ -296,18 +241,41 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
                 index: np.ndarray | None = None, focal: np.ndarray | None = None,
                 R_gt: np.ndarray | None = None, t_gt: np.ndarray | None = None, gt_mask: np.ndarray | None = None
                 ) -> Path:
-    """Write a view graph as a 1DSfM folder (inverse of :func:`read_1dsfm`).
+    """Write a view graph as a 1DSfM folder (inverse of :func:`read_1dsfm`), atomically as a whole.
 
     Args:
-        folder: created if needed.
-        vg: the view graph; ``stats["t_ij"]`` written as the EG translations (0 if absent).
+        folder: created if needed; an existing one may hold only files this function writes (it is
+            replaced whole, so no gt_bundle.out of an earlier dataset stays); else InputFileError.
+        vg: the view graph; ``stats["t"]`` (cam2_from_cam1) written as the EGs' positions (0 if absent).
         list_names: all images of list.txt (default: ``vg.names``); may include images not in vg.
         index: (N,) list.txt index of each camera of vg (default: position of its name).
         focal: (len(list_names),) focal lengths, NaN = unknown (written without "0 f").
         R_gt, t_gt, gt_mask: (len(list_names), ...) truth for gt_bundle.out (optional).
     """
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    check_1dsfm_target(folder)
+    with atomic_dir(folder) as tmp:  # the folder is replaced whole: no file of an earlier dataset stays beside
+        _write_1dsfm_files(tmp, vg, list_names, index, focal, R_gt, t_gt, gt_mask)
+    return folder
+
+
+#: What :func:`write_1dsfm` writes (a folder holding only these, or nothing, may be replaced).
+_WRITTEN = ("list.txt", "cc.txt", "EGs.txt", "gt_bundle.out")
+
+
+def check_1dsfm_target(folder: str | os.PathLike) -> None:
+    """Refuse (one line) a target that :func:`write_1dsfm` would mix up: a file, or a folder with other files."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputFileError(f"{folder} is a file; a 1DSfM dataset is a folder: give a folder name")
+    if folder.is_dir():
+        other = sorted(f.name for f in folder.iterdir() if f.name not in _WRITTEN and TMP_TAG not in f.name)
+        if other:
+            raise InputFileError(f"{folder} holds {', '.join(other[:3])}{' ...' if len(other) > 3 else ''}, which a "
+                                 "1DSfM folder written there would not replace; give a new or empty folder")
+
+
+def _write_1dsfm_files(folder: Path, vg: ViewGraph, list_names, index, focal, R_gt, t_gt, gt_mask) -> None:
     list_names = list(vg.names) if list_names is None else list(list_names)
     pos = {n: k for k, n in enumerate(list_names)}
     index = np.array([pos[n] for n in vg.names]) if index is None else np.asarray(index)
@@ -319,7 +287,8 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
         fh.write("".join(f"{k}\n" for k in np.sort(index)))
     F = BUNDLER_TO_CV
     R_file = F @ np.swapaxes(vg.R_rel, 1, 2) @ F     # inverse of the reader's F Rᵀ F
-    t = np.asarray(vg.stats.get("t_ij", np.zeros((vg.n_edges, 3))), float) @ F.T
+    t = np.asarray(vg.stats.get("t", np.zeros((vg.n_edges, 3))), float).reshape(vg.n_edges, 3)
+    t = -np.einsum("mba,mb->ma", vg.R_rel, t) @ F.T   # camera j's centre in camera i's frame, Bundler's axes
     with atomic_open(folder / "EGs.txt") as fh:
         for (i, j), Rk, tk in zip(index[vg.edges], R_file, t):
             fh.write(f"{i} {j} " + " ".join(f"{x:.17g}" for x in (*Rk.ravel(), *tk)) + "\n")
@@ -328,7 +297,6 @@ def write_1dsfm(folder: str | os.PathLike, vg: ViewGraph, *, list_names: list[st
         t_gt = np.zeros((K, 3)) if t_gt is None else t_gt
         f_out = np.where(np.isfinite(focal), focal, 1000.0)
         write_bundler(folder / "gt_bundle.out", R_gt, t_gt, f_out, gt_mask)
-    return folder
 
 
 def is_1dsfm_folder(path: str | os.PathLike) -> bool:
@@ -358,5 +326,6 @@ def read_1dsfm_reference(path: str | os.PathLike, rotation_tol: float = DEFAULT_
                              f"is image k of list.txt); none in {folder}")
     names, _ = _read_list(folder / "list.txt")
     R, _, _, registered = read_bundler(bundle, rotation_tol)
-    k = np.flatnonzero(registered[: len(names)])
+    _check_camera_count(bundle, R.shape[0], folder / "list.txt", len(names))
+    k = np.flatnonzero(registered)
     return [names[i] for i in k], R[k]

@@ -65,7 +65,7 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
     names: list[str] = []
     rows: list[list[float]] = []
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = path.read_text(encoding="utf-8-sig").splitlines()
     except UnicodeDecodeError as exc:
         raise InputFileError(f"{path} is not a rotations text file (not UTF-8: {exc.reason} at byte {exc.start})"
                              ) from None
@@ -73,7 +73,8 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
         raise InputFileError(f"rotations file {path} cannot be read ({exc.strerror or exc})") from None
     rows_of = [(k, split_fields(ln, f"{path}:{k}")) for k, ln in enumerate(lines, 1)]
     first = next((parts for _, parts in rows_of if parts), [])
-    if len(first) == 5:
+    raw = next((ln.split() for ln in lines if ln.split() and not ln.split()[0].startswith("#")), [])
+    if len(first) == 5 or (len(first) != 10 and len(raw) == 5):  # GLOMAP's: a '#' there is part of a name
         from pipeline.io.glomap import read_glomap_rotations  # noqa: PLC0415
 
         return read_glomap_rotations(path, tol)

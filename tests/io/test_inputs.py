@@ -156,16 +156,16 @@ def test_average_and_evaluate_read_the_new_formats(formats, tmp_path):
     from pipeline.evaluation.compare import evaluate_files as evaluate
 
     for key in ("1dsfm", "g2o", "relpose"):
-        out = tmp_path / f"{key}.txt"
+        out = tmp_path / "est" / f"{key}.txt"  # not beside the inputs: relpose.txt is one
         assert average_cli([str(formats[key]), "--out", str(out), "-q"]) == 0, key
-    stats = json.loads((tmp_path / "1dsfm.json").read_text())
+    stats = json.loads((tmp_path / "est" / "1dsfm.json").read_text())
     assert stats["vs_ground_truth"]["median_deg"] < 1.0  # gt_bundle.out is the 1DSfM folder's truth
     # GLOMAP rotations as the estimate, the 1DSfM folder (its gt_bundle.out) as the reference
-    names, R = read_rotations(tmp_path / "1dsfm.txt")
+    names, R = read_rotations(tmp_path / "est" / "1dsfm.txt")
     write_glomap_rotations(tmp_path / "est_glomap.txt", names, R)
     s = evaluate(formats["1dsfm"], rotations=tmp_path / "est_glomap.txt", print_table=False)
     assert s["n_evaluated"] == 10 and s["median_deg"] < 1.0
-    s2 = evaluate(formats["1dsfm"] / "gt_bundle.out", rotations=tmp_path / "1dsfm.txt",
+    s2 = evaluate(formats["1dsfm"] / "gt_bundle.out", rotations=tmp_path / "est" / "1dsfm.txt",
                   viewgraph=formats["1dsfm"], print_table=False)
     assert s2["median_deg"] == pytest.approx(s["median_deg"], abs=1e-6) and "edges" in s2
 

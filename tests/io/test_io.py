@@ -155,7 +155,7 @@ def test_l1_mat_single_edge_keeps_3d_layout(tmp_path) -> None:
     "arrays, match",
     [
         ({"RR": np.eye(3)[:, :, None]}, r"missing \['I'\]"),
-        ({"RR": np.eye(3)[:, :, None], "I": np.array([[1.0, 2.0]])}, r"I.shape=\(1, 2\) but expected \(2, M\); transpose it"),
+        ({"RR": np.eye(3)[:, :, None], "I": np.array([[1.0, 2.0, 3.0]])}, r"I.shape=\(1, 3\) but expected \(2, M\)"),
         ({"RR": np.eye(3)[:, :, None], "I": np.array([[0.0], [1.0]])}, r"1-based integer camera indices"),
         ({"RR": np.eye(3)[:, :, None], "I": np.array([[1.5], [2.0]])}, r"1-based integer camera indices"),
         ({"RR": np.repeat(np.eye(3)[:, :, None], 2, 2), "I": np.array([[1.0], [2.0]])}, r"I has 1 columns but RR has 2 blocks"),
