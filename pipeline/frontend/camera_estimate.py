@@ -201,7 +201,8 @@ class FocalEstimate:
         per_pair: (n_pairs,) each pair's own best grid focal.
         note: why the prior was overruled, why no estimate was made, or why it is poorly determined.
         sd_rel: leave-one-image-out (jackknife) sd of log f (≈ relative sd).
-        determined: False when ``sd_rel`` exceeds ``max_focal_sd`` (a flag for the report).
+        determined: False when ``sd_rel`` exceeds ``max_focal_sd`` (a flag for the report); the summary says False
+            too where no estimate was made (``f`` NaN).
     """
 
     f: float
@@ -217,7 +218,7 @@ class FocalEstimate:
 
     def summary(self) -> dict[str, Any]:
         return {"f": self.f, "method": self.method, "prior": self.prior, "n_pairs": self.n_pairs, "note": self.note,
-                "sd_rel": self.sd_rel, "determined": self.determined,
+                "sd_rel": self.sd_rel, "determined": bool(self.determined and np.isfinite(self.f)),  # none: not
                 "grid": self.grid.tolist(), "cost": self.cost.tolist(),
                 "per_pair_median": float(np.median(self.per_pair)) if len(self.per_pair) else None}
 

@@ -25,6 +25,12 @@ exp(−[Δω]×)``, so ``ξ = −Δω`` exactly: **the rotation block is H itsel
 transpose; the sign flip leaves ``ξᵀHξ`` unchanged), and 4H in g2o's own convention. The test
 writes a graph with anisotropic H, solves it with GTSAM's LM from the file GTSAM read, and
 matches this project's anisotropic least-squares solution.
+
+**A coupled information matrix** (a pose graph whose edges tie rotation and translation errors) gives the
+rotation's *marginal* precision, the Schur complement ``I_rr − I_rt I_tt⁺ I_tr`` (the inverse of the rotation
+block of the covariance), as the two-view BA's H is: rotation averaging estimates no translation, so the
+translation measurement cannot be held fixed. Block-diagonal information (every file this project writes, and
+GTSAM's diagonal noise models) gives ``I_rr`` itself.
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.common import repeated_pair
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions
 
-__all__ = ["G2oData", "write_g2o", "read_g2o", "INFO_CONVENTIONS"]
+__all__ = ["G2oData", "write_g2o", "read_g2o", "rotation_marginal", "INFO_CONVENTIONS"]
 
 logger = logging.getLogger(__name__)
 
@@ -123,6 +129,14 @@ def write_g2o(path: str | os.PathLike, vg: ViewGraph, R: np.ndarray | None = Non
     return path
 
 
+def rotation_marginal(info: np.ndarray) -> np.ndarray:
+    """The rotation block's marginal precision of a (6, 6) information in g2o's (translation, rotation) order."""
+    I_tt, I_tr, I_rr = info[:3, :3], info[:3, 3:], info[3:, 3:]
+    if not I_tr.any():
+        return I_rr.copy()
+    return I_rr - I_tr.T @ np.linalg.pinv(I_tt, hermitian=True) @ I_tr
+
+
 def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL, *,
              info_convention: str = "gtsam") -> G2oData:
     """Read the rotation part of a 3D g2o pose graph.
@@ -184,7 +198,7 @@ def read_g2o(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL
             info = np.zeros((6, 6))
             info[_IU6] = up
             info = info + np.triu(info, 1).T
-            Hb = info[3:, 3:]
+            Hb = rotation_marginal(info)
         else:
             t, q, up = np.zeros(3), vals[:4], vals[4:]
             Hb = np.zeros((3, 3))

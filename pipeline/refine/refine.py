@@ -30,10 +30,9 @@ started from them (``R_start``, chained from the averaged rotations by :func:`pi
 and refined with the others; it does not enter the alignment to the averaged frame, and where the final model
 does not support it, it gets no rotation.
 
-It never raises on a pycolmap failure: the status says ``failed`` and the averaged
-rotations are returned. Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``,
-carries ``R_ij = R_j R_iᵀ`` and ``t_ij`` with ``x_j = R_ij x_i + t_ij`` (pycolmap's
-``cam2_from_cam1``); pixel centres at integers (shifted by +0.5 into pycolmap).
+It never raises on a pycolmap failure: the status says ``failed`` and the averaged rotations are returned.
+Conventions: ``R`` is cam_from_world; edge ``(i, j)``, ``i < j``, carries ``R_ij = R_j R_iᵀ`` and ``t_ij`` with
+``x_j = R_ij x_i + t_ij`` (pycolmap's ``cam2_from_cam1``); pixel centres at integers (+0.5 into pycolmap).
 """
 
 from __future__ import annotations
@@ -411,8 +410,9 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
                                       "max_sd_px": limit[cid]} for cid, c in cams.items()}  # the stage's lens
         loose = [cid for cid in corner if not corner[cid] <= limit[cid]]
         if loose:
-            msg = (f"the radial term of {len(loose)} camera(s) is not determined by the model (its displacement at "
-                   f"the image corner has a standard deviation of {max(corner[c] for c in loose):.1f} px > "
+            sd = max(corner[c] for c in loose)  # inf: the covariance is singular
+            msg = (f"the radial term of {len(loose)} camera(s) is not determined by the model (its displacement at the "
+                   f"image corner: {f'sd {sd:.1f} px' if np.isfinite(sd) else 'no finite sd'}, at most "
                    f"{min(limit[c] for c in loose):.1f} px): every camera refined without one")
             return again(msg, "radial_rejected", stats["radial"], replace(cfg, radial="off"))
     # a bogus focal length is held at the cameras stage's estimate; a weakly determined one stays (a refined

@@ -302,17 +302,17 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
     cameras = {}
     for nm, k in cams:
         c: dict[str, Any] = {"refined": bool(res.refined[k]), "change_deg": _deg(res.change_deg[k]),
-                             "sigma_deg": _deg(sigma[k])}
+                             "sigma_deg": _deg(sigma[k]) if res.refined[k] else None}
         if not res.refined[k]:
             c["kept_averaged_why"] = res.why[k]
             if np.isfinite(res.R_refined[k]).all():
                 c["refined_cam_from_world"] = res.R_refined[k].ravel().tolist()
-        if res.cov is not None and np.isfinite(res.cov[k]).all():
+        if res.refined[k] and res.cov is not None and np.isfinite(res.cov[k]).all():
             c["cov_rad2"] = res.cov[k].ravel().tolist()
         if k in focal:
             c["focal_px"] = focal[k]
         cameras[nm] = c
-    ok_sigma = sigma[rows][np.isfinite(sigma[rows])]
+    ok_sigma = sigma[rows][res.refined[rows] & np.isfinite(sigma[rows])]  # a camera not refined has no BA σ
     s = res.stats
     return {"method": "refine", "label": stage.label, "start": stage.start, "start_why": stage.start_why,
             "status": res.status, "warnings": res.warnings, "n_cameras": len(rows),
@@ -321,7 +321,7 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "anchored": [nm for nm, k in cams if res.anchored is not None and res.anchored[k]],
             "placed": dict(stage.placed),
             "sigma_median_deg": float(np.median(ok_sigma)) if len(ok_sigma) else None,
-            "uncertainty_deg": {nm: _deg(sigma[k]) for nm, k in cams},
+            "uncertainty_deg": {nm: _deg(sigma[k]) if res.refined[k] else None for nm, k in cams},
             "change_from_averaged_deg": {nm: _deg(res.change_deg[k]) for nm, k in cams},
             "focal_px_median": float(np.median(list(focal.values()))) if focal else None,
             "focal_refined": not bool(np.all(stage.known_K)) if stage.known_K is not None else None,

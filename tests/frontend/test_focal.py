@@ -126,6 +126,9 @@ def test_focal_jackknife_flags_a_focal_that_rests_on_one_image() -> None:
                          np.full(len(star), 2.0), cfg)
     assert not est.determined and est.sd_rel == np.inf and "poorly determined" in est.note
     assert est.summary()["determined"] is False
+    # no pair at all: no estimate, and the summary does not call its NaN determined
+    none = estimate_focal([], [], np.zeros((0, 2), np.int64), 6, (800, 600), np.zeros(0), cfg)
+    assert np.isnan(none.f) and none.summary()["determined"] is False
 
 
 def test_a_finer_grid_starts_from_its_coarse_neighbours() -> None:

@@ -381,7 +381,8 @@ def test_1dsfm_written_by_the_readme_alone_averages_back_to_its_truth(tmp_path):
 
 def test_a_g2o_file_written_by_gtsam_reads_in_our_convention(tmp_path):
     """GTSAM's writeG2o (world_from_cam poses, measurement T_i⁻¹ T_j, information in g2o's (translation, rotation)
-    order) read back: R_ij = R_j R_iᵀ of the cam_from_world R_i = (pose rotation)ᵀ, H = GTSAM's rotation block."""
+    order) read back: R_ij = R_j R_iᵀ of the cam_from_world R_i = (pose rotation)ᵀ, H = the marginal precision of
+    GTSAM's rotation (its information coupled to the translation's: the Schur complement, not the rotation block)."""
     import gtsam  # in the test extra: this check must run, not skip
 
     n = 5
@@ -395,7 +396,8 @@ def test_a_g2o_file_written_by_gtsam_reads_in_our_convention(tmp_path):
     for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (0, 4), (3, 1)]:
         A = rng.standard_normal((6, 6))
         info = A @ A.T + np.eye(6)  # GTSAM's order: rotation, then translation
-        H[tuple(sorted((i, j)))] = (i, j, info[:3, :3])
+        # the rotation's marginal precision: the Schur complement of the translation block
+        H[tuple(sorted((i, j)))] = (i, j, info[:3, :3] - info[:3, 3:] @ np.linalg.solve(info[3:, 3:], info[3:, :3]))
         graph.add(gtsam.BetweenFactorPose3(i, j, T[i].between(T[j]), gtsam.noiseModel.Gaussian.Information(info)))
     gtsam.writeG2o(graph, values, str(tmp_path / "g.g2o"))
     d = read_g2o(tmp_path / "g.g2o")

@@ -256,3 +256,28 @@ def test_the_report_says_what_the_principal_point_probe_decided():
     notes = refine_notes({"a+refine": {"stats": refined}})
     assert "a+refine: principal points refined for 7 of 8 image(s)" in notes
     assert any("principal point of camera 3 refined to (560.0, 390.0) px" in n for n in notes)
+
+
+def test_a_camera_the_refinement_did_not_refine_has_no_ba_sigma_in_the_stats():
+    """refine_stats: the BA covariance of a camera kept at its averaged (or chained) rotation is not its uncertainty:
+    no σ, no covariance, and the median σ is of the refined cameras only (castle internet: 0026.jpg, chained from
+    its neighbours, showed the model's 0.25°)."""
+    from types import SimpleNamespace
+
+    from pipeline.refine.refine import RefineConfig
+    from pipeline.refine.stage import refine_stats
+
+    n = 4
+    cov = np.stack([np.eye(3) * np.deg2rad(s) ** 2 / 3 for s in (0.01, 0.02, 0.03, 0.9)])  # σ = 0.01 … 0.9°
+    refined = np.array([True, True, True, False])
+    res = SimpleNamespace(R=np.tile(np.eye(3), (n, 1, 1)), cov=cov, refined=refined, change_deg=np.zeros(n),
+                          why=["", "", "", "0 3D points in the final model"], R_refined=np.full((n, 3, 3), np.nan),
+                          reconstruction=None, status="partial", warnings=[], anchored=None,
+                          stats={"times": {"total": 1.0}, "n_points": 10})
+    stage = SimpleNamespace(label="irls+refine", start="irls", start_why="", placed={}, known_K=None,
+                            config=RefineConfig())
+    st = refine_stats(res, [f"v{k}" for k in range(n)], np.arange(n), stage)
+    assert st["sigma_median_deg"] == pytest.approx(0.02)  # of 0.01, 0.02, 0.03: not 0.025 with the 0.9
+    assert st["uncertainty_deg"]["v3"] is None and st["uncertainty_deg"]["v0"] == pytest.approx(0.01)
+    assert st["cameras"]["v3"]["sigma_deg"] is None and "cov_rad2" not in st["cameras"]["v3"]
+    assert "cov_rad2" in st["cameras"]["v2"] and st["kept_averaged"] == {"v3": "0 3D points in the final model"}
