@@ -236,9 +236,10 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         _refine(plan, runner, results)
         names = list(load_manifest(work)["names"])
         peer = _reference(plan, runner, names)
-        glomap = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
+        ran = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
             plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
             plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
+        glomap = ran["glomap"]["reference"] if ran else None
         peers = [p for p in (peer, glomap) if p is not None]
         _components(plan, t_start, peers)
         _, path = _report(plan, runner, vg, specs, results, peers, left_out, t_start)

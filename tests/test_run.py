@@ -133,8 +133,9 @@ def test_second_run_reuses_every_stage(scene, full_run, monkeypatch):
     run.main(scene, full_run, gt=scene / "cameras.txt", quiet=True)
     assert calls == {"sift": 0, "ba": 0, "avg": 0, "colmap": 0}
     after = json.loads((full_run / "metrics.json").read_text())
-    for stage in ("features", "matching", "two_view", "two_view_ba", "averaging", "refine", "reference"):
-        assert after["stages_reused"][stage], stage  # the averaging methods and the refinement too
+    for stage in ("features", "matching", "two_view", "two_view_ba", "averaging", "refine", "reference",
+                  "global_reference"):
+        assert after["stages_reused"][stage], stage  # the averaging methods, the refinement and GLOMAP too
     assert after["methods"]["irls-h-l0.5+refine"]["median_deg"] == before["methods"]["irls-h-l0.5+refine"]["median_deg"]
     assert after["methods"]["irls-l0.5"]["median_deg"] == before["methods"]["irls-l0.5"]["median_deg"]
 

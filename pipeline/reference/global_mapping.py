@@ -98,20 +98,24 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
 
 
 def global_peer_for_run(images: Path, out: Path, K: Any, overwrite: bool, config: GlobalReferenceConfig,
-                        work: Path, names: list[str], progress: bool, notes: list[str]) -> Reference | None:
+                        work: Path, names: list[str], progress: bool, notes: list[str]) -> dict[str, Any] | None:
     """The GLOMAP peer as ``run.py`` runs it: in ``out/reference-global`` on ``out/reference``'s database.
 
-    Its unregistered images, or its failure (which never stops the run), are appended to ``notes``.
+    Returns ``{"glomap": {"reference": Reference, "record": StageRecord}}`` (the record says whether the run reused
+    it), or None where it failed: its failure never stops the run. Its unregistered images, or its failure, are
+    appended to ``notes``.
     """
     try:
-        glo = load_global_reference(main(images, out / "reference-global", K=K, overwrite=overwrite, config=config,
-                                         work=work, names=names, progress=progress, database_dir=out / "reference"))
+        stage = GlobalReferenceStage(out / "reference-global", config, images=Path(images), names=names, K=K,
+                                     work=Path(work), progress=progress, database_dir=out / "reference")
+        record = stage.run(overwrite)
+        glo = load_global_reference(out / "reference-global")
     except (PipelineError, RuntimeError, ValueError, OSError) as exc:
         notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
         logger.warning("%s; continuing without it", notes[-1])
         return None
     notes += [f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items()]
-    return glo
+    return {"glomap": {"reference": glo, "record": record}}
 
 
 def load_global_reference(out: str | Path) -> Reference:
