@@ -83,8 +83,9 @@ def overconfidence_message(kappa2: float | None, cfg: ViewGraphConfig) -> list[s
         return []
     return [f"the pairs' short cycles close {np.sqrt(kappa2):.1f}× wider than their two-view precisions (H) claim, "
             f"beyond the {cfg.h_inflation:g}× the checks assume: their cycle tests widened with it (to at most "
-            f"{cfg.cycle_max_deg:g}°). Pairs biased alike (surfaces whose look changes with the view: light that moves "
-            "with the camera, highlights; or repeated structure) do this, and cycles of such pairs confirm little"]
+            f"{cfg.cycle_max_deg:g}°). Pairs that share a bias do this (focal lengths only guessed, a lens left "
+            "unmodelled, surfaces whose look changes with the view: light that moves with the camera, highlights; "
+            "repeated structure), and cycles of such pairs confirm little"]
 
 
 def _finite(a: np.ndarray | None, k: int) -> float | None:
