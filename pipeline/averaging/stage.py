@@ -160,11 +160,21 @@ class AveragingStage(Stage[Config]):
         if data.R_gt is not None:
             from pipeline.evaluation.metrics import summarize  # noqa: PLC0415 - only .mat inputs carry a ground truth
 
-            kept = np.array([vg.names.index(n) for n in res.names])
+            kept = positions(vg.names, res.names)
             mask = None if data.gt_mask is None else data.gt_mask[kept]
             if mask is None or mask.any():
                 stats["vs_ground_truth"] = summarize(res.R, data.R_gt[kept], mask)
         return stats
+
+
+def positions(names: list[str], subset: list[str]) -> np.ndarray:
+    """(len(subset),) int64: where each of ``subset`` stands in ``names`` (unique; ``names.index`` for each, in
+    one pass over ``names``). A name not in ``names`` raises ValueError, as ``index`` does."""
+    pos = {n: k for k, n in enumerate(names)}
+    try:
+        return np.array([pos[n] for n in subset], np.int64)
+    except KeyError as exc:
+        raise ValueError(f"{exc.args[0]!r} is not in list") from None
 
 
 def _solved_names(vg: ViewGraph) -> list[str]:

@@ -150,6 +150,27 @@ def load_ba_viewgraph(work: Path) -> ViewGraph:
     return vg
 
 
+def same_intrinsics(K: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(M,) bool: ``np.allclose(K[i], K[j])`` of each pair (i, j) of ``edges``, for all pairs at once."""
+    e = np.asarray(edges, np.int64).reshape(-1, 2)
+    return np.isclose(K[e[:, 0]], K[e[:, 1]]).all(axis=(1, 2))
+
+
+def pair_tasks(data: Any, K: np.ndarray, t_in: np.ndarray, mode: str, known: np.ndarray) -> list[Task]:
+    """One BA task per edge of the two-view result ``data``: its inliers, intrinsics, start and focal columns (a
+    "shared" focal of two cameras with different K is refined per camera)."""
+    vg_in = data.vg
+    edges = np.asarray(vg_in.edges, np.int64).reshape(-1, 2)
+    same = same_intrinsics(K, edges)
+    tasks: list[Task] = []
+    for k, (i, j) in enumerate(edges.tolist()):  # gathering the per-edge arrays (one task each): I/O
+        xi, xj = data.correspondences(k)
+        A = focal_columns(mode if same[k] or mode != "shared" else "per_camera", bool(known[i]), bool(known[j]))
+        tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k],
+                      A))
+    return tasks
+
+
 class TwoViewBAStage(PairStage[BAConfig]):
     """Two-view BA of every pair of the two-view result in a WORK folder (folder = WORK)."""
 
@@ -196,14 +217,7 @@ class TwoViewBAStage(PairStage[BAConfig]):
         mode = "per_camera" if cfg.refine_focal == "auto" else cfg.refine_focal
         known = (_known_intrinsics(work, vg_in.n_cameras, per_image_only=cfg.refine_focal == "auto")
                  if mode != "none" else np.ones(vg_in.n_cameras, bool))
-        tasks: list[Task] = []
-        for k in range(M):  # gathering the per-edge arrays: I/O, not the hot path
-            xi, xj = data.correspondences(k)
-            i, j = vg_in.edges[k]
-            A = focal_columns(mode if np.allclose(K[i], K[j]) or mode != "shared" else "per_camera", bool(known[i]),
-                              bool(known[j]))
-            tasks.append((np.asarray(xi, np.float64), np.asarray(xj, np.float64), K[i], K[j], vg_in.R_rel[k], t_in[k],
-                          A))
+        tasks = pair_tasks(data, K, t_in, mode, known)
         fp = cfg.fingerprint()
         keys = [item_key(fp, *task) for task in tasks]
         store = ItemStore(work / self.store)

@@ -255,10 +255,12 @@ def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, 
                     inliers=None if vg.inliers is None else vg.inliers[keep], allow_isolated=True)
     labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
-    for c in range(int(labels.max()) + 1):  # one solve per component (a few): the left-out ones are checked too
+    n_comp = int(labels.max()) + 1
+    n_cams, n_edges = np.bincount(labels, minlength=n_comp), np.bincount(labels[sub.edges[:, 0]], minlength=n_comp)
+    # one solve per component with a cycle (a few): the left-out ones are checked too; a tree (every lone camera is
+    # one) has no residual to judge
+    for c in np.flatnonzero(n_edges >= n_cams).tolist():
         comp, restr = sub.subgraph(labels == c)
-        if comp.n_edges < comp.n_cameras:  # a tree: no residual to judge
-            continue
         res = average(comp, "irls", IRLSConfig(certify=False))
         r[keep[restr.edge_kept[res.edge_index]]] = np.degrees(res.residuals_rad)
     thr = np.maximum(cfg.robust_floor_deg, cfg.robust_k_sigma * cfg.h_inflation * sigma_weak_deg)

@@ -87,25 +87,15 @@ def _owners(cyc_edges: np.ndarray, frac: np.ndarray) -> np.ndarray:
     return np.where(unique, cyc_edges[rows, arg], -1)
 
 
-def _first_blamed(order: np.ndarray, bptr: np.ndarray, bthrough: np.ndarray, padded: np.ndarray, alive: np.ndarray,
-                  frac: np.ndarray, batch: int = 16) -> int:
-    """The first edge of ``order`` that is strictly the most suspicious (:func:`_owners`) in at least one live
-    inconsistent cycle through it (``bptr``, ``bthrough``: those cycles per edge), or −1. Candidates are checked in
-    batches that double in size."""
-    start = 0
-    while start < len(order):
-        cand = order[start:start + batch]
-        who, pos = expand_rows(bptr, cand)
-        cycles = bthrough[pos]
-        live = alive[cycles]
-        who, cycles = who[live], cycles[live]
-        owned = _owners(padded[cycles], frac) == cand[who]
-        hits = np.flatnonzero(np.bincount(who[owned], minlength=len(cand)))
-        if hits.size:
-            return int(cand[hits[0]])
-        start += batch
-        batch *= 2
-    return -1
+def _reown(cycles: np.ndarray, owner: np.ndarray, blame: np.ndarray, padded: np.ndarray, frac: np.ndarray) -> None:
+    """Recompute the owner (:func:`_owners`; a tie: the sentinel edge M) of ``cycles`` (unique, live, inconsistent)
+    from the current ``frac`` and move their counts in ``blame`` ((M + 1,): the live inconsistent cycles each edge
+    owns)."""
+    new = _owners(padded[cycles], frac)
+    new = np.where(new >= 0, new, len(frac) - 1)
+    np.subtract.at(blame, owner[cycles], 1)
+    np.add.at(blame, new, 1)
+    owner[cycles] = new
 
 
 def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
@@ -147,21 +137,26 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
     n_b = np.bincount(flat[bad_rep], minlength=M)
     ptr, through = edge_cycles(cyc, M)
     # An edge is removable when, in at least one live inconsistent cycle, it is strictly the most suspicious (its
-    # "blame"). Only the first removable candidate in priority order is needed, so the candidates are checked in
-    # that order, in growing batches, each against the inconsistent cycles through it: the same choice as counting
-    # every edge's blame over every cycle each round, at the cost of the cycles through a few candidates.
+    # "blame"); of the removable candidates, the first in priority order (largest bad fraction, then most bad cycles,
+    # then lowest index) goes. Each cycle's owner is kept up to date: a round recomputes only the owners of the live
+    # inconsistent cycles through an edge whose fraction changed (the same choice as recounting every cycle).
     bad_idx = np.flatnonzero(~ok)
     bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
     bthrough = bad_idx[bthrough]  # the inconsistent cycles through each edge, as indices of all cycles
     padded = np.where(cyc.edges >= 0, cyc.edges, M)  # a triangle's padding → the sentinel edge M
     frac = np.append(_fraction(n_b, n_c), -1.0)  # (M + 1,): the sentinel's is −1
+    owner, blame = np.full(len(cyc), M, np.int64), np.zeros(M + 1, np.int64)  # a consistent cycle owns nothing
+    owner[bad_idx] = M
+    blame[M] = bad_idx.size
+    _reown(bad_idx, owner, blame, padded, frac)
     removed: list[int] = []
     n_c_at, n_b_at = n_c.copy(), n_b.copy()
     while True:
-        c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction))
-        best = _first_blamed(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, padded, alive, frac)
-        if best < 0:
+        c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction) & (blame[:M] > 0))
+        if not c.size:
             break
+        c = c[frac[c] == frac[c].max()]
+        best = int(c[np.argmax(n_b[c])])  # the first of the most bad cycles: the lowest index
         n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
         kept[best] = False
         removed.append(best)
@@ -170,10 +165,13 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
         alive[dead] = False
         e = cyc.edges[dead]
         m = e >= 0
-        n_c -= np.bincount(e[m], minlength=M)
-        n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
+        np.subtract.at(n_c, e[m], 1)
+        np.subtract.at(n_b, e[m & ~ok[dead, None]], 1)
+        np.subtract.at(blame, owner[dead[~ok[dead]]], 1)
         changed = np.unique(e[m])
         frac[changed] = _fraction(n_b[changed], n_c[changed])
+        near = bthrough[expand_rows(bptr, changed)[1]]
+        _reown(np.unique(near[alive[near]]), owner, blame, padded, frac)
     confirmed = np.zeros(M, bool)
     ce = cyc.edges[alive & ok]
     confirmed[ce[ce >= 0]] = True

@@ -113,17 +113,23 @@ def _checked_pairs(vg: Any, graph: Path | None, weak: bool = True) -> Any:
     if graph is None or not Path(graph).is_file():
         return vg
     g = ViewGraph.load(graph, allow_isolated=True)
-    kept = {(g.names[a], g.names[b]) for a, b in g.edges.tolist()}
+    pos = {n: k for k, n in enumerate(vg.names)}  # names are unique in a view graph
+    on = np.array([pos.get(n, -1) for n in g.names], np.int64)
+    pairs = [on[g.edges.reshape(-1, 2)]]  # as cameras of vg (−1: not in it)
     if weak and (Path(graph).parent / SUMMARY).is_file():
         rows = load_graph_summary(Path(graph).parent).get("pairs", [])
-        try:
-            kept |= {(str(r["pair"][0]), str(r["pair"][1])) for r in rows
-                     if r.get("tracks") is True and r.get("status") == "rejected"}
+        try:  # one row per pair in the JSON file
+            weak_rows = [(pos.get(str(r["pair"][0]), -1), pos.get(str(r["pair"][1]), -1)) for r in rows
+                         if r.get("tracks") is True and r.get("status") == "rejected"]
         except (TypeError, KeyError, IndexError, AttributeError):
             raise CacheError(f"{Path(graph).parent / SUMMARY} has malformed pairs; re-run the view-graph stage"
                              ) from None
-    keep = np.array([(vg.names[a], vg.names[b]) in kept or (vg.names[b], vg.names[a]) in kept
-                     for a, b in vg.edges.tolist()], bool)
+        pairs.append(np.array(weak_rows, np.int64).reshape(-1, 2))
+    P, n = np.concatenate(pairs), len(vg.names)
+    P = P[(P >= 0).all(axis=1)]
+    E = np.asarray(vg.edges, np.int64).reshape(-1, 2)
+    # a pair matches an edge in either orientation
+    keep = np.isin(E.min(1) * n + E.max(1), P.min(1) * n + P.max(1))
     return ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], H=vg.H[keep],
                      inliers=None if vg.inliers is None else vg.inliers[keep],
                      stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
