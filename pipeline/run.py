@@ -64,7 +64,7 @@ from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # n
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
 from pipeline.plan import Plan, prepare  # noqa: E402
 from pipeline.reference.global_mapping import LABEL as GLOBAL_LABEL  # noqa: E402
-from pipeline.reference.global_mapping import global_peer_for_run  # noqa: E402
+from pipeline.reference.global_mapping import GlobalReferenceStage, load_global_reference  # noqa: E402
 from pipeline.reference.incremental import IncrementalReferenceStage  # noqa: E402
 from pipeline.reference.models import load_reference, model_reference  # noqa: E402
 from pipeline.refine.stage import refine_for_run  # noqa: E402
@@ -210,6 +210,25 @@ def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
     return ref
 
 
+def _global_reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
+    """The GLOMAP peer, in OUT/reference-global on OUT/reference's database; its failure is reported and never throws
+    our result away."""
+    if not plan.reference:
+        return None
+    stage = GlobalReferenceStage(plan.out / "reference-global", plan.configs["global_reference"], images=plan.images,
+                                 names=names, K=plan.K, work=plan.work, progress=plan.progress,
+                                 database_dir=plan.out / "reference")
+    try:
+        runner.stage(stage)
+        glo = load_global_reference(plan.out / "reference-global")
+    except (PipelineError, RuntimeError, ValueError, OSError) as exc:
+        plan.notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
+        logger.warning("%s; continuing without it", plan.notes[-1])
+        return None
+    plan.notes.extend(f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items())
+    return glo
+
+
 def main(images: Path | None = None, out: Path | None = None, config: Path | None = None,
          methods: list[str] | None = None, gt: Path | None = None, K: Path | None = None,
          reference: bool | None = None, overwrite: bool = False, quiet: bool = False,
@@ -236,10 +255,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         _refine(plan, runner, results)
         names = list(load_manifest(work)["names"])
         peer = _reference(plan, runner, names)
-        ran = runner.step("global_reference", "pycolmap global (GLOMAP)", lambda: global_peer_for_run(
-            plan.images, plan.out, plan.K, plan.overwrite, plan.configs["global_reference"], work, names,
-            plan.progress, plan.notes)) if plan.reference and plan.run.global_reference else None
-        glomap = ran["glomap"]["reference"] if ran else None
+        glomap = _global_reference(plan, runner, names) if plan.run.global_reference else None
         peers = [p for p in (peer, glomap) if p is not None]
         _components(plan, t_start, peers)
         _, path = _report(plan, runner, vg, specs, results, peers, left_out, t_start)

@@ -69,7 +69,7 @@ class AveragingStage(Stage[Config]):
     name = "averaging"
     title = "rotation averaging"
     config_cls = Config
-    version = 1
+    version = 2  # 2: a g2o file's coupled information gives the rotation's marginal H; Bundler truth needs f > 0
 
     def __init__(self, folder: Path, spec: MethodSpec, viewgraph: Path, *, label: str | None = None,
                  rotations: Path | None = None, init: Path | None = None,

@@ -141,6 +141,7 @@ class CamerasStage(Stage[CamerasConfig]):
     name = NAME
     title = "cameras (intrinsics, distortion)"
     config_cls = CamerasConfig
+    version = 2  # 2: a focal estimated from no pair is not 'determined'
 
     def inputs(self) -> dict[str, str]:
         # the first round's matches: a loop-closure round (pipeline.frontend.loop_stage) adds pairs, not cameras

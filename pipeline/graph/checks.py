@@ -187,10 +187,10 @@ def check_view_graph(vg: ViewGraph, config: ViewGraphConfig | None = None) -> Gr
     info["path"] = _reject(chk, pc.checked & ~pc.consistent & pc.path_confirmed, "path", lambda ix: [
         f"disagrees by {pc.discrepancy_deg[k]:.1f}° (threshold {pc.threshold_deg[k]:.1f}°) with the path of "
         f"{pc.path_length[k]} confirmed pairs between its cameras" for k in ix])
-    confirmed |= pc.checked & pc.consistent
-    by_path = pc.checked & pc.consistent
+    by_path = pc.checked & pc.consistent  # edges in no short cycle only: none has a cycle's figure
+    confirmed |= by_path
     confirm_deg = cf.confirm_deg.copy()
-    confirm_deg[by_path] = np.fmin(confirm_deg[by_path], pc.discrepancy_deg[by_path])
+    confirm_deg[by_path] = pc.discrepancy_deg[by_path]
     unconf = chk.kept & ~confirmed & ((tier != "strong") | tiers.provisional)
     info["unconfirmed"] = _reject(chk, unconf, "unconfirmed", np.where(
         tiers.provisional, "provisional (few inliers) and confirmed by no cycle",

@@ -146,7 +146,6 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
     padded = np.where(cyc.edges >= 0, cyc.edges, M)  # a triangle's padding → the sentinel edge M
     frac = np.append(_fraction(n_b, n_c), -1.0)  # (M + 1,): the sentinel's is −1
     owner, blame = np.full(len(cyc), M, np.int64), np.zeros(M + 1, np.int64)  # a consistent cycle owns nothing
-    owner[bad_idx] = M
     blame[M] = bad_idx.size
     _reown(bad_idx, owner, blame, padded, frac)
     removed: list[int] = []

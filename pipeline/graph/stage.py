@@ -13,8 +13,10 @@ Writes
 - ``OUT/viewgraph.json``: counts; ``left_out`` (every image outside it, with why);
   ``pairs`` (every pair that was estimated or rejected: its status, the step that rejected
   it and why, its tier, and ``tracks``: whether its matches may make the refinement's tracks,
-  :func:`track_pairs`); ``flags`` (``{camera: [reasons]}``); ``messages`` (graph-level,
-  e.g. no cycle: the result cannot be verified); the checks' figures.
+  :func:`track_pairs`; ``confirm_deg``: the angle of the tightest cycle, or the path's disagreement, that
+  confirmed it, null if none); ``flags`` (``{camera: [reasons]}``); ``messages`` (graph-level,
+  e.g. no cycle: the result cannot be verified; cycles that close wider than H claims,
+  :func:`overconfidence_message`); the checks' figures.
 
 With ``checks: false`` every pair of the BA graph is kept, as before this stage checked them.
 Command line::

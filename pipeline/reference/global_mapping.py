@@ -23,7 +23,6 @@ Command line::
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
 from dataclasses import dataclass, fields
@@ -32,16 +31,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pipeline.core.errors import PipelineError
 from pipeline.reference.database import DatabaseConfig
 from pipeline.reference.models import load_reference
 from pipeline.reference.peer import PeerConfig, PeerStage, peer_cli, run_peer
 from pipeline.reference.types import Reference
 
-logger = logging.getLogger(__name__)
-
-__all__ = ["GlobalReferenceConfig", "GlobalReferenceStage", "LABEL", "main", "main_cli", "load_global_reference",
-           "global_peer_for_run"]
+__all__ = ["GlobalReferenceConfig", "GlobalReferenceStage", "LABEL", "main", "main_cli", "load_global_reference"]
 
 #: The label of the GLOMAP peer in metrics and reports.
 LABEL = "glomap"
@@ -95,27 +90,6 @@ def main(images: str | os.PathLike, out: str | os.PathLike, K: str | os.PathLike
     """
     return run_peer(GlobalReferenceStage, images, out, K=K, overwrite=overwrite, config=config, work=work,
                     names=names, progress=progress, database_dir=database_dir)
-
-
-def global_peer_for_run(images: Path, out: Path, K: Any, overwrite: bool, config: GlobalReferenceConfig,
-                        work: Path, names: list[str], progress: bool, notes: list[str]) -> dict[str, Any] | None:
-    """The GLOMAP peer as ``run.py`` runs it: in ``out/reference-global`` on ``out/reference``'s database.
-
-    Returns ``{"glomap": {"reference": Reference, "record": StageRecord}}`` (the record says whether the run reused
-    it), or None where it failed: its failure never stops the run. Its unregistered images, or its failure, are
-    appended to ``notes``.
-    """
-    try:
-        stage = GlobalReferenceStage(out / "reference-global", config, images=Path(images), names=names, K=K,
-                                     work=Path(work), progress=progress, database_dir=out / "reference")
-        record = stage.run(overwrite)
-        glo = load_global_reference(out / "reference-global")
-    except (PipelineError, RuntimeError, ValueError, OSError) as exc:
-        notes.append(f"pycolmap global (GLOMAP) failed: {' '.join(str(exc).split())}")
-        logger.warning("%s; continuing without it", notes[-1])
-        return None
-    notes += [f"GLOMAP did not register {nm}: {why}" for nm, why in glo.unregistered.items()]
-    return {"glomap": {"reference": glo, "record": record}}
 
 
 def load_global_reference(out: str | Path) -> Reference:

@@ -107,7 +107,7 @@ def _checked_pairs(vg: Any, graph: Path | None, weak: bool = True) -> Any:
     """The two-view BA graph ``vg`` cut to the pairs whose matches make tracks: those the view-graph stage kept
     (``graph``, OUT/viewgraph.npz) and, with ``weak``, those it rejected only because their rotation is poorly
     determined (``tracks`` in the summary beside it, :func:`pipeline.graph.stage.track_pairs`)."""
-    from pipeline.core.viewgraph import ViewGraph  # noqa: PLC0415
+    from pipeline.core.viewgraph import ViewGraph, pair_keys  # noqa: PLC0415
     from pipeline.graph.stage import SUMMARY, load_graph_summary  # noqa: PLC0415
 
     if graph is None or not Path(graph).is_file():
@@ -128,8 +128,7 @@ def _checked_pairs(vg: Any, graph: Path | None, weak: bool = True) -> Any:
     P, n = np.concatenate(pairs), len(vg.names)
     P = P[(P >= 0).all(axis=1)]
     E = np.asarray(vg.edges, np.int64).reshape(-1, 2)
-    # a pair matches an edge in either orientation
-    keep = np.isin(E.min(1) * n + E.max(1), P.min(1) * n + P.max(1))
+    keep = np.isin(pair_keys(E[:, 0], E[:, 1], n), pair_keys(P[:, 0], P[:, 1], n))  # either orientation
     return ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], H=vg.H[keep],
                      inliers=None if vg.inliers is None else vg.inliers[keep],
                      stats={k: np.asarray(v)[keep] for k, v in vg.stats.items()}, allow_isolated=True)
@@ -195,6 +194,7 @@ class RefineStage(Stage[RefineConfig]):
     name = "refine"
     title = "multi-view refinement (pycolmap)"
     config_cls = RefineConfig
+    version = 2  # 2: no BA σ for a camera it did not refine; the median σ of the refined ones
 
     def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
                  methods: Sequence[str] | None = None) -> None:

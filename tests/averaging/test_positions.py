@@ -26,7 +26,5 @@ def test_edge_cases():
     assert positions(["a"], ["a"]).tolist() == _reference(["a"], ["a"]).tolist() == [0]
     assert positions(["a", "b", "c"], ["c", "c", "a"]).tolist() == _reference(["a", "b", "c"], ["c", "c", "a"]).tolist()
     assert positions([], []).shape == (0,) and positions(["a"], []).dtype == np.int64  # the old one gave float64 here
-    with pytest.raises(ValueError):
-        _reference(["a", "b"], ["x"])
     with pytest.raises(ValueError, match="'x' is not in list"):
         positions(["a", "b"], ["x"])

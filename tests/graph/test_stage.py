@@ -48,6 +48,10 @@ def test_injected_wrong_pairs_are_rejected_and_no_camera_is_silently_off(tmp_pat
     assert len(injected) >= 3
     m = _run(tmp_path, folder, [(n[a], n[b]) for a, b in scene.true_pairs] + injected)
     fate = {tuple(p["pair"]): p for p in load_graph_summary(tmp_path / "out")["pairs"]}
+    ba_rows = [p for p in fate.values() if "confirmed" in p]  # the pairs of the BA graph: how closely each is checked
+    assert all((p["confirm_deg"] is not None) == (p["status"] == "kept" and p["confirmed"]) for p in ba_rows)
+    assert any(p["confirm_deg"] is not None for p in ba_rows) and all(
+        0 <= p["confirm_deg"] <= 15 for p in ba_rows if p["confirm_deg"] is not None)  # a cycle's or a path's bound
     vg = ViewGraph.load(tmp_path / "out" / "viewgraph.npz")
     measured = {(vg.names[i], vg.names[j]): (R, scene.R[n.index(vg.names[j])] @ scene.R[n.index(vg.names[i])].T)
                 for (i, j), R in zip(vg.edges, vg.R_rel)}
@@ -96,6 +100,7 @@ def test_a_cycle_free_graph_says_its_result_cannot_be_verified(tmp_path):
     assert "cannot be verified" in report and "it does not check that those pairs are right" in report
     s = load_graph_summary(tmp_path / "out")
     assert s["n_cycles"] == 0 and s["n_bridges"] == 3
+    assert all(p["confirm_deg"] is None for p in s["pairs"] if "confirmed" in p)  # nothing confirms a pair of a tree
     (tmp_path / "out" / "viewgraph.json").write_text("{not json")
     with pytest.raises(CacheError, match="viewgraph.json"):
         load_graph_summary(tmp_path / "out")
