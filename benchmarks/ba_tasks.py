@@ -16,9 +16,7 @@ import argparse
 import os
 import platform
 import runpy
-import statistics
 import sys
-import time
 import types
 from pathlib import Path
 
@@ -26,6 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.geometry.ba_stage import pair_tasks  # noqa: E402
 from pipeline.synthetic.protocols import dense_graph  # noqa: E402
@@ -35,13 +34,6 @@ RESULTS = HERE / "results" / "ba_tasks.json"
 REFERENCE = runpy.run_path(str(HERE.parent / "tests" / "geometry" / "test_ba_tasks.py"))["_reference_tasks"]
 
 
-def _timed(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,15 +16,14 @@ import argparse
 import os
 import platform
 import runpy
-import statistics
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.graph.checks import ViewGraphConfig  # noqa: E402
 from pipeline.graph.loops import cycle_filter  # noqa: E402
@@ -37,13 +36,6 @@ DEFINITION = runpy.run_path(str(HERE.parent / "tests" / "graph" / "test_cycle_fi
 FIELDS = DEFINITION["FIELDS"]
 
 
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
 
 
 def _inputs(vg, cfg: ViewGraphConfig) -> tuple[tuple, dict]:

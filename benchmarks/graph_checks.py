@@ -17,9 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -27,6 +25,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
+from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.graph.cycles import cycle_angles, cycle_variance, edge_cycles, find_cycles  # noqa: E402
 from pipeline.graph.loops import cycle_filter  # noqa: E402
@@ -75,13 +74,6 @@ def recount_filter(edges: np.ndarray, R_rel: np.ndarray, n: int, sigma_deg: np.n
         n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
 
 
-def _timed(fn, repeats: int) -> tuple[float, object]:
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
 
 
 def main(argv: list[str] | None = None) -> int:

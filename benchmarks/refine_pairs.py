@@ -17,16 +17,15 @@ import json
 import os
 import platform
 import runpy
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.graph.stage import SUMMARY  # noqa: E402
@@ -38,13 +37,6 @@ RESULTS = HERE / "results" / "refine_pairs.json"
 REFERENCE = runpy.run_path(str(HERE.parent / "tests" / "refine" / "test_checked_pairs.py"))["_reference"]
 
 
-def _timed(fn, repeats):
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
 
 
 def main(argv: list[str] | None = None) -> int:
