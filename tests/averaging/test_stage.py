@@ -198,7 +198,8 @@ def test_upstream_record_is_the_input(six, tmp_path):
                                                     "outputs": {}})
     assert stage.inputs() == {"viewgraph": "abc"}
     assert stage.fingerprint() == fingerprint_of(
-        fingerprint_of("averaging", 1, parse_method("irls").config.fingerprint(), [("viewgraph", "abc")]), "irls")
+        fingerprint_of("averaging", AveragingStage.version, parse_method("irls").config.fingerprint(),
+                       [("viewgraph", "abc")]), "irls")
 
 
 # ------------------------------------------------------------------ the command
