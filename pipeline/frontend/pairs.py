@@ -159,7 +159,7 @@ def resolve_auto(n_images: int, exhaustive_max_images: int) -> str:
 
 
 def choose_pairs(spec: str, names: list[str], descriptors: Callable[[], tuple[list[np.ndarray], list[np.ndarray]]],
-                 exhaustive_max_images: int = 40, seed: int = 0, ranked: dict[str, np.ndarray] | None = None
+                 exhaustive_max_images: int = 50, seed: int = 0, ranked: dict[str, np.ndarray] | None = None
                  ) -> tuple[np.ndarray, dict[str, Any]]:
     """The pairs of ``names`` chosen by ``spec``, and what was chosen.
 
