@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import runpy
-import sys
 import types
 from pathlib import Path
 
@@ -24,16 +22,13 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
-from pipeline.core.atomic import write_json  # noqa: E402
+from _common import median_time as _timed, save_results  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.geometry.ba_stage import pair_tasks  # noqa: E402
 from pipeline.synthetic.protocols import dense_graph  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "ba_tasks.json"
 REFERENCE = runpy.run_path(str(HERE.parent / "tests" / "geometry" / "test_ba_tasks.py"))["_reference_tasks"]
-
-
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,9 +54,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append({"mode": mode, "n_edges": M, "before_s": t_before, "after_s": t_after,
                      "speedup": t_before / t_after, "identical": bool(same), "repeats": a.repeats})
         print(f"{mode:>10s} {M:6d} {t_before:9.3f} {t_after:8.3f} {t_before / t_after:7.2f}  {same}")
-    write_json(a.json, {"rows": rows, "command": "python benchmarks/ba_tasks.py " + " ".join(argv or sys.argv[1:]),
-                        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}})
-    print(f"wrote {a.json}")
+    save_results(a.json, rows, "ba_tasks.py", argv)
     return 0 if all(r["identical"] for r in rows) else 1
 
 

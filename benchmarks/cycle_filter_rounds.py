@@ -14,17 +14,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import runpy
-import sys
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
-from pipeline.core.atomic import write_json  # noqa: E402
+from _common import median_time as _timed, save_results  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.graph.checks import ViewGraphConfig  # noqa: E402
 from pipeline.graph.loops import cycle_filter  # noqa: E402
 from pipeline.graph.tiers import pair_evidence  # noqa: E402
@@ -34,8 +31,6 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "cycle_filter_rounds.json"
 DEFINITION = runpy.run_path(str(HERE.parent / "tests" / "graph" / "test_cycle_filter_rounds.py"))
 FIELDS = DEFINITION["FIELDS"]
-
-
 
 
 def _inputs(vg, cfg: ViewGraphConfig) -> tuple[tuple, dict]:
@@ -71,9 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(f"{name:24s} {vg.n_edges:6d} {len(res.cycles):7d} {len(res.removed):7d} {t_before:9.2f} "
               f"{t_after:8.2f} {row['speedup']:7.2f}  {same}", flush=True)
-    write_json(a.json, {"rows": rows, "command": "python benchmarks/cycle_filter_rounds.py " + " ".join(
-        argv or sys.argv[1:]), "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}})
-    print(f"wrote {a.json}")
+    save_results(a.json, rows, "cycle_filter_rounds.py", argv)
     return 0 if all(r["identical"] for r in rows) else 1
 
 

@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
-import sys
 from pathlib import Path
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -25,8 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
-from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
-from pipeline.core.atomic import write_json  # noqa: E402
+from _common import median_time as _timed, save_results  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.graph.cycles import cycle_angles, cycle_variance, edge_cycles, find_cycles  # noqa: E402
 from pipeline.graph.loops import cycle_filter  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
@@ -74,8 +71,6 @@ def recount_filter(edges: np.ndarray, R_rel: np.ndarray, n: int, sigma_deg: np.n
         n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
 
 
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the two kNN graphs only")
@@ -98,9 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(f"{name:26s} {vg.n_edges:6d} {len(res.removed):7d} {t_ours:8.2f} {t_ref:9.2f} {row['ratio']:6.2f}  "
               f"{row['same_removals']}", flush=True)
-    write_json(a.json, {"rows": rows, "command": "python benchmarks/graph_checks.py " + " ".join(argv or sys.argv[1:]),
-                        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}})
-    print(f"wrote {a.json}")
+    save_results(a.json, rows, "graph_checks.py", argv)
     return 0 if all(r["same_removals"] for r in rows) else 1
 
 

@@ -15,9 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import runpy
-import sys
 import tempfile
 from pathlib import Path
 
@@ -25,8 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-from _timing import median_time as _timed  # noqa: E402  (benchmarks/, the script's folder)
-from pipeline.core.atomic import write_json  # noqa: E402
+from _common import median_time as _timed, save_results  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.graph.stage import SUMMARY  # noqa: E402
 from pipeline.refine.stage import _checked_pairs  # noqa: E402
@@ -35,8 +32,6 @@ from pipeline.synthetic.protocols import dense_graph  # noqa: E402
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "refine_pairs.json"
 REFERENCE = runpy.run_path(str(HERE.parent / "tests" / "refine" / "test_checked_pairs.py"))["_reference"]
-
-
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,9 +58,7 @@ def main(argv: list[str] | None = None) -> int:
            "after_s": t_after, "speedup": t_before / t_after, "identical": bool(same), "repeats": a.repeats}
     print(f"{'pairs':>7s} {'selected':>8s} {'before s':>9s} {'after s':>8s} {'speedup':>7s}  same")
     print(f"{M:7d} {got.n_edges:8d} {t_before:9.3f} {t_after:8.3f} {row['speedup']:7.2f}  {same}")
-    write_json(a.json, {"rows": [row], "command": "python benchmarks/refine_pairs.py " + " ".join(
-        argv or sys.argv[1:]), "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}})
-    print(f"wrote {a.json}")
+    save_results(a.json, [row], "refine_pairs.py", argv)
     return 0 if same else 1
 
 

@@ -15,10 +15,8 @@ from __future__ import annotations
 import argparse
 import copy
 import os
-import platform
 import runpy
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -27,7 +25,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np  # noqa: E402
 
 import pipeline.graph.checks as checks  # noqa: E402
-from pipeline.core.atomic import write_json  # noqa: E402
+from _common import save_results  # noqa: E402  (benchmarks/, the script's folder)
 from pipeline.synthetic.protocols import dense_graph, synthetic_inlier_counts  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -85,9 +83,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{'speedup':>7s}  same")
     print(f"{row['graph']:38s} {vg.n_edges:6d} {n_comp:5d} {n_a:8d} {t_before:9.3f} {t_after:8.3f} "
           f"{row['speedup']:7.2f}  {same}")
-    write_json(a.json, {"rows": [row], "command": "python benchmarks/robust_components.py " + " ".join(
-        argv or sys.argv[1:]), "machine": {"python": platform.python_version(), "cpus": os.cpu_count()}})
-    print(f"wrote {a.json}")
+    save_results(a.json, [row], "robust_components.py", argv)
     return 0 if same else 1
 
 

@@ -34,13 +34,12 @@ from pipeline.averaging.result import AveragingResult
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
-from pipeline.core.names import match_names
 from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.averaging.evidence import camera_evidence
 from pipeline.io.graphs import GraphData, input_files, read_input_graph
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
-from pipeline.io.rotations import read_rotations, write_rotations
+from pipeline.io.rotations import read_rotations, rotations_for, write_rotations
 from pipeline.stage import Stage, StageRecord, file_fingerprint, fingerprint_of
 
 __all__ = ["AveragingStage", "run_averaging", "load_init"]
@@ -189,15 +188,8 @@ def load_init(path: Path, vg: ViewGraph) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"--init {str(path)!r} is neither 'mst', 'random' nor an existing rotations file")
-    names, R = read_rotations(path)
-    idx = match_names(list(vg.names), names, what=str(path))
-    missing = [n for n, k in zip(vg.names, idx) if k < 0]
-    if missing:
-        raise InputFileError(
-            f"{path} lacks initial rotations for {len(missing)} camera(s), e.g. {missing[:5]}; "
-            "give every camera of the view graph or use --init mst"
-        )
-    return R[idx]
+    return rotations_for(path, list(vg.names), f"{path} lacks initial rotations",
+                         "give every camera of the view graph or use --init mst")
 
 
 def run_averaging(folder: Path, spec: MethodSpec, viewgraph: Path, overwrite: bool = False,

@@ -90,16 +90,11 @@ def _warn_lost(data, out: Path, fmt: str) -> None:
 
 def _vertex_rotations(path: Path, vg, rotation_tol: float) -> np.ndarray:
     """(N, 3, 3) rotations of ``path`` for the cameras of ``vg`` (matched by name, as ``--init``)."""
-    from pipeline.core.names import match_names  # noqa: PLC0415
-    from pipeline.io.rotations import read_rotations  # noqa: PLC0415
+    from pipeline.io.rotations import rotations_for  # noqa: PLC0415
 
-    names, R = read_rotations(path, rotation_tol)
-    idx = match_names(list(vg.names), names, what=str(path))
-    missing = [n for n, k in zip(vg.names, idx) if k < 0]
-    if missing:
-        raise InputFileError(f"--rotations {path} lacks rotations for {len(missing)} camera(s), e.g. {missing[:5]}; "
-                             "give every camera of the view graph, or drop --rotations (vertices at identity)")
-    return R[idx]
+    return rotations_for(path, list(vg.names), f"--rotations {path} lacks rotations",
+                         "give every camera of the view graph, or drop --rotations (vertices at identity)",
+                         rotation_tol)
 
 
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,

@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError
-from pipeline.core.names import quote_name, split_fields
+from pipeline.core.names import match_names, quote_name, split_fields
 from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, projected_or_input_error
 
 
@@ -101,3 +101,16 @@ def read_rotations(path: str | os.PathLike, tol: float = DEFAULT_ROTATION_TOL) -
     R = np.array(rows).reshape(-1, 3, 3)
     return names, projected_or_input_error(R, tol, what="the matrix", source=str(path),
                                            labels=[f"of camera {n!r}" for n in names])
+
+
+def rotations_for(path: str | os.PathLike, names: list[str], lacking: str, remedy: str,
+                  tol: float = DEFAULT_ROTATION_TOL) -> np.ndarray:
+    """(N, 3, 3) the rotations file ``path``'s rotations of the cameras ``names`` (matched by name), for a start or
+    a g2o file's vertices; :class:`InputFileError` "<lacking> for k camera(s), e.g. [...]; <remedy>" where the file
+    lacks some."""
+    file_names, R = read_rotations(path, tol)
+    idx = match_names(list(names), file_names, what=str(path))
+    missing = [n for n, k in zip(names, idx) if k < 0]
+    if missing:
+        raise InputFileError(f"{lacking} for {len(missing)} camera(s), e.g. {missing[:5]}; {remedy}")
+    return R[idx]
