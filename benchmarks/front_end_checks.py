@@ -102,12 +102,12 @@ OVERRIDES: list[str] = []  # "section.key=value" from --set
 
 
 def _config(spec: dict, out: Path) -> Path | None:
-    lines = ["run:", "  plots: false"]
-    sections: dict[str, list[str]] = {}
+    sections: dict[str, list[str]] = {"run": ["  plots: false"]}
     for o in OVERRIDES:
         key, _, value = o.partition("=")
         section, _, name = key.partition(".")
         sections.setdefault(section, []).append(f"  {name}: {value}")
+    lines: list[str] = []
     for section, opts in sections.items():
         if section != "matching":
             lines += [f"{section}:", *opts]

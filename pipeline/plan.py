@@ -60,6 +60,9 @@ class RunConfig(Config):
     sdp_solver: Literal["scs", "clarabel"] = option("scs", "conic solver of the SDP")
     reference: bool = option(True, "run the pycolmap references (incremental; GLOMAP too with global_reference)")
     refine: bool = option(True, "refine the recommended (or refine.start) method's rotations with pycolmap")
+    second_opinion: bool = option(True, "where one averaging method ran and no refined row came of it, also run "
+                                  "IRLS-l0.5 (colmap-ra when that is the method) so that the methods' disagreement "
+                                  "can flag the cameras where either errs")
     global_reference: bool = option(True, "run pycolmap's global SfM (GLOMAP) beside the incremental reference")
     align: Literal["l2", "l1"] = option("l2", "global alignment of the evaluation")
     scene_views: int = option(8, "views of the default rendered scene (no IMAGE_DIR)", ge=2)

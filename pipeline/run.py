@@ -157,6 +157,33 @@ def _refine(plan: Plan, runner: Runner, results: dict[str, dict]) -> None:
             plan.out, plan.configs["refine"], list(results), plan.work, plan.overwrite, plan.notes)))
 
 
+#: The second opinion of a run with one method (``run.second_opinion``): IRLS-ℓ½, or colmap-ra where IRLS-ℓ½ is the one.
+SECOND_OPINION = ("irls", "colmap-ra")
+
+
+def _second_opinion(plan: Plan, runner: Runner, specs: list[Any], results: dict[str, dict],
+                    upstream: tuple[str, Path, None] | None = None) -> None:
+    """A second method where only one set of rotations came out of averaging and refinement.
+
+    Cameras are flagged where the methods disagree by more than 1° (:mod:`pipeline.evaluation.flags`); with one
+    set of rotations nothing can disagree, and a camera a method puts degrees off where the graph's evidence is
+    consistent (H's weights on biased pairs, a robust loss in the wrong basin) would go unflagged. The second
+    method is run, reported as a row of its own, and said in the notes."""
+    if not plan.run.second_opinion or len(results) != 1:
+        return
+    only = next(iter(results))
+    for token in SECOND_OPINION:
+        spec = registry.parse_method(token, plan.yaml, plan.overrides)
+        if spec.label != only:
+            break
+    results.update(runner.step("averaging", f"rotation averaging, second opinion ({spec.label})", lambda: {
+        spec.label: run_averaging(plan.out / "rotations", spec, plan.out / "viewgraph.npz", plan.overwrite,
+                                  upstream=upstream)}))
+    specs.append(spec)
+    plan.notes.append(f"one set of rotations ({only}): {spec.label} was run as a second opinion, so that the cameras "
+                      f"where the two disagree by more than 1° are flagged (run.second_opinion: false to skip it)")
+
+
 def _report(plan: Plan, runner: Runner, vg: ViewGraph, specs: list[Any], results: dict[str, dict], peers: list[Any],
             left_out: dict[str, str], t_start: float) -> tuple[Any, Path]:
     """Evaluation, report.md and metrics.json of the run in ``plan.out``; returns the evaluation and the metrics' path."""
@@ -180,6 +207,7 @@ def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
         vg = ViewGraph.load(sub.out / "viewgraph.npz")
         specs, results = _averaging(sub, runner, vg)
         _refine(sub, runner, results)
+        _second_opinion(sub, runner, specs, results)
         models = [model_reference(folders[p.label], list(vg.names), p.label) for p in peers if p.label in folders]
         ev, _ = _report(sub, runner, vg, specs, results, [m for m in models if m], {}, t_start)
         medians = {m: (v.get("references") or {}).get("truth", {}).get("median_deg")
@@ -253,6 +281,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
             plan.notes.extend(f"outside the view graph's largest component: {n}: {w}" for n, w in left_out.items())
         specs, results = _averaging(plan, runner, vg, ("viewgraph", plan.out, None))
         _refine(plan, runner, results)
+        _second_opinion(plan, runner, specs, results, ("viewgraph", plan.out, None))
         names = list(load_manifest(work)["names"])
         peer = _reference(plan, runner, names)
         glomap = _global_reference(plan, runner, names) if plan.run.global_reference else None

@@ -43,7 +43,14 @@ def rotation_gauge_projection(cam_from_world: np.ndarray) -> np.ndarray:
 
 
 def gauge_fixed_rotation_covariance(joint: np.ndarray, cam_from_world: np.ndarray, scale: float) -> np.ndarray:
-    """(N, 3, 3) per-camera blocks of ``scale · P S P``: the joint covariance ``S`` (3N, 3N) in the minimum-norm gauge."""
+    """(N, 3, 3) per-camera blocks of ``scale · P S P``: the joint covariance ``S`` (3N, 3N) in the minimum-norm gauge.
+
+    Raises:
+        ValueError: ``S`` or ``scale`` not finite (pycolmap's estimate of a problem that does not determine some
+            camera): the gauge projection would spread it to every camera.
+    """
+    if not (np.all(np.isfinite(joint)) and np.isfinite(scale)):
+        raise ValueError("pycolmap's BA covariance is not finite (the final problem does not determine every camera)")
     P = rotation_gauge_projection(cam_from_world)
     S = scale * (P @ joint @ P)
     n = len(cam_from_world)

@@ -194,7 +194,7 @@ class RefineStage(Stage[RefineConfig]):
     name = "refine"
     title = "multi-view refinement (pycolmap)"
     config_cls = RefineConfig
-    version = 2  # 2: no BA σ for a camera it did not refine; the median σ of the refined ones
+    version = 3  # 2: no BA σ for a camera it did not refine; 3: no covariance where pycolmap's is not finite (a warning)
 
     def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
                  methods: Sequence[str] | None = None) -> None:

@@ -901,3 +901,17 @@ def test_yaml_off_is_the_word_where_it_is_a_choice(tmp_path) -> None:
     cfg.write_text("two_view_ba:\n  refine_focal: off\n")  # no "off" among its choices: still refused
     with pytest.raises(ConfigError, match=r"refine_focal=False but expected one of 'auto', 'none'"):
         load_configs(cfg)
+
+
+def test_a_bad_value_a_method_checks_itself_names_its_section_and_the_file(tmp_path) -> None:
+    """A loss name is checked by the loss table, not by the option's own check: the message still says where."""
+    from pipeline.core.errors import ConfigError  # noqa: PLC0415
+    from pipeline.plan import load_configs  # noqa: PLC0415
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("averaging:\n  irls: {loss: Kuber}\n")
+    with pytest.raises(ConfigError) as info:
+        load_configs(cfg)
+    msg = str(info.value)
+    assert msg.startswith("[averaging.irls]: unknown loss 'Kuber'") and msg.endswith(f"(in {cfg})")
+    assert "\n" not in msg

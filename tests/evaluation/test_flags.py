@@ -102,3 +102,24 @@ def test_the_report_says_every_rotation_is_checked_only_when_every_camera_has_a_
         p["confirmed"] = True
     md = "\n".join(evidence_markdown(run_evidence(dict(_graph(names), pairs=pairs), {})))
     assert "Every camera's rotation is checked by a cycle of consistent pairs." in md
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method, second", [("irls-h", "irls-l0.5"), ("irls", "colmap-ra")])
+def test_a_run_of_one_method_without_a_refinement_gets_a_second_opinion_for_the_disagreement_flag(
+        run_copy: Path, tiny_scene: Path, tiny_config: Path, tmp_path: Path, method: str, second: str) -> None:
+    cfg = tmp_path / "one.yaml"
+    base = tiny_config.read_text().replace("methods: [irls]", f"methods: [{method}]")
+    cfg.write_text(base.replace("run:\n", "run:\n  refine: false\n"))
+    m = json.loads(main(tiny_scene, run_copy, cfg, gt=tiny_scene / "cameras.txt", reference=False,
+                        quiet=True).read_text())
+    assert len(m["methods"]) == 2 and second in m["methods"]
+    assert any(f"{second} was run as a second opinion" in n for n in m["notes"])
+    cams = m["evidence"]["cameras"]
+    assert cams and all("methods_disagree_deg" in c for c in cams.values())  # the flag has two sets to compare
+    off = tmp_path / "off.yaml"
+    off.write_text(cfg.read_text().replace("run:\n", "run:\n  second_opinion: false\n"))
+    m = json.loads(main(tiny_scene, run_copy, off, gt=tiny_scene / "cameras.txt", reference=False,
+                        quiet=True).read_text())
+    assert len(m["methods"]) == 1 and not any("second opinion" in n for n in m["notes"])
+    assert not any("methods_disagree_deg" in c for c in m["evidence"]["cameras"].values())

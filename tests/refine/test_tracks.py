@@ -99,6 +99,12 @@ def test_gauge_projection_removes_a_global_rotation():
     blocks = gauge_fixed_rotation_covariance(np.eye(15), R, 2.0)
     assert blocks.shape == (5, 3, 3)
     np.testing.assert_allclose(blocks, 2.0 * P.reshape(5, 3, 5, 3)[np.arange(5), :, np.arange(5), :], atol=1e-12)
+    joint = np.eye(15)
+    joint[4, 4] = np.nan  # one camera the problem does not determine: no covariance, not NaN in every camera
+    with pytest.raises(ValueError, match="not finite"):
+        gauge_fixed_rotation_covariance(joint, R, 2.0)
+    with pytest.raises(ValueError, match="not finite"):
+        gauge_fixed_rotation_covariance(np.eye(15), R, np.inf)
 
 
 def test_binary_starting_model_round_trip(tmp_path):
