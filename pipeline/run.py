@@ -162,14 +162,15 @@ SECOND_OPINION = ("irls", "colmap-ra")
 
 
 def _second_opinion(plan: Plan, runner: Runner, specs: list[Any], results: dict[str, dict],
-                    upstream: tuple[str, Path, None] | None = None) -> None:
+                    upstream: tuple[str, Path, None] | None = None, refined: bool = True) -> None:
     """A second method where only one set of rotations came out of averaging and refinement.
 
     Cameras are flagged where the methods disagree by more than 1° (:mod:`pipeline.evaluation.flags`); with one
     set of rotations nothing can disagree, and a camera a method puts degrees off where the graph's evidence is
     consistent (H's weights on biased pairs, a robust loss in the wrong basin) would go unflagged. The second
-    method is run, reported as a row of its own, and said in the notes."""
-    if not plan.run.second_opinion or len(results) != 1:
+    method is run, reported as a row of its own, and said in the notes. Called before the refinement
+    (``refined=False``: only where none will run) and after it (where it gave no row)."""
+    if not plan.run.second_opinion or len(results) != 1 or (not refined and plan.run.refine):
         return
     only = next(iter(results))
     for token in SECOND_OPINION:
@@ -206,6 +207,7 @@ def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
         runner = Runner(sub)
         vg = ViewGraph.load(sub.out / "viewgraph.npz")
         specs, results = _averaging(sub, runner, vg)
+        _second_opinion(sub, runner, specs, results, refined=False)
         _refine(sub, runner, results)
         _second_opinion(sub, runner, specs, results)
         models = [model_reference(folders[p.label], list(vg.names), p.label) for p in peers if p.label in folders]
@@ -280,6 +282,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
                               f"outside it: {', '.join(left_out)}")
             plan.notes.extend(f"outside the view graph's largest component: {n}: {w}" for n, w in left_out.items())
         specs, results = _averaging(plan, runner, vg, ("viewgraph", plan.out, None))
+        _second_opinion(plan, runner, specs, results, ("viewgraph", plan.out, None), refined=False)
         _refine(plan, runner, results)
         _second_opinion(plan, runner, specs, results, ("viewgraph", plan.out, None))
         names = list(load_manifest(work)["names"])

@@ -219,7 +219,13 @@ def method_config_from(name: str, yaml_data: Mapping[str, Any] | None = None, to
     if token_value is not None:
         data[m.token_option] = token_value  # type: ignore[index]
     data.update(overrides or {})
-    return m.config_cls.from_dict(data, where=f"[{ROOT_SECTION}.{name}]")
+    where = f"[{ROOT_SECTION}.{name}]"
+    try:
+        return m.config_cls.from_dict(data, where=where)
+    except ConfigError as exc:  # a value checked by what it names (a loss), not by the option: say where, if YAML
+        if str(exc).startswith("[") or token_value is not None or overrides:
+            raise
+        raise ConfigError(f"{where} {exc}") from None
 
 
 # ---------------------------------------------------------------------------- tokens

@@ -200,12 +200,7 @@ class Config:
         unknown = sorted(set(data) - set(allowed))
         if unknown:
             raise ConfigError(f"{where}: unknown key(s) {unknown}; allowed keys are {allowed}")
-        try:
-            return cls(**data)
-        except ConfigError as exc:  # a check of one value that does not say where it was given (a loss name)
-            if str(exc).startswith("["):
-                raise
-            raise ConfigError(f"{where}: {exc}") from None
+        return cls(**data)
 
     def replace(self: C, **changes: Any) -> C:
         """A copy with ``changes`` applied (``None`` values are ignored) and validated."""

@@ -913,5 +913,5 @@ def test_a_bad_value_a_method_checks_itself_names_its_section_and_the_file(tmp_p
     with pytest.raises(ConfigError) as info:
         load_configs(cfg)
     msg = str(info.value)
-    assert msg.startswith("[averaging.irls]: unknown loss 'Kuber'") and msg.endswith(f"(in {cfg})")
+    assert msg.startswith("[averaging.irls] unknown loss 'Kuber'") and msg.endswith(f"(in {cfg})")
     assert "\n" not in msg
