@@ -92,7 +92,6 @@ class Plan:
     yaml: dict[str, Any]
     methods: list[MethodSpec]
     overrides: dict[str, dict[str, Any]]
-    reference: bool
     overwrite: bool
     quiet: bool
     features: FeaturesStage
@@ -101,6 +100,7 @@ class Plan:
     database: Path | None = None
     work_dir: Path | None = None  # the front end's folder when it is not OUT/work (another component's run)
     components: list[dict[str, Any]] = field(default_factory=list)  # the other components solved, for metrics.json
+    skipped: dict[str, str] = field(default_factory=dict)  # the steps the run leaves out: {step: why, in a few words}
 
     @property
     def work(self) -> Path:
@@ -109,7 +109,8 @@ class Plan:
     def for_component(self, folder: Path, k: int) -> "Plan":
         """The plan of the k-th component's run in ``folder``: the same inputs, configs and front end (this run's
         WORK), its own outputs; the pycolmap peers are not run again (they ran once on every image, in OUT)."""
-        return dataclasses.replace(self, out=Path(folder), work_dir=self.work, reference=False, notes=[
+        peers = {s: self.skipped.get(s, "ran once, on every image, above") for s in ("reference", "global_reference")}
+        return dataclasses.replace(self, out=Path(folder), work_dir=self.work, skipped={**self.skipped, **peers}, notes=[
             f"component {k} of the view graph: no pair links its images to the largest component's (in the run's "
             f"own folder), so its rotations are in a frame of their own"], times={}, components=[])
 
@@ -347,5 +348,15 @@ def prepare(images: Path | None = None, out: Path | None = None, config: Path | 
     notes += [f"image {n} left out: it {why}" for n, why in scan["bad"].items()]
     return Plan(images=images, out=out, K=None if K is None else Path(K), gt=None if gt is None else Path(gt),
                 truth=truth, run=run_cfg, configs=configs, yaml=yaml_data, methods=list(given), overrides=overrides,
-                reference=run_cfg.reference if reference is None else reference, overwrite=overwrite, quiet=quiet,
-                features=features, notes=notes, times=times, database=None if database is None else Path(database))
+                overwrite=overwrite, quiet=quiet, features=features, notes=notes, times=times,
+                database=None if database is None else Path(database), skipped=_skipped(run_cfg, reference))
+
+
+def _skipped(run_cfg: RunConfig, reference: bool | None) -> dict[str, str]:
+    """The optional steps a run leaves out (the refinement, the pycolmap peers), each with the flag or config key
+    that leaves it out; ``reference``: False for ``--no-reference``, True to run the peers, None: ``run.reference``."""
+    out = {} if run_cfg.refine else {"refine": "run.refine: false"}
+    if reference is False or (reference is None and not run_cfg.reference):
+        why = "--no-reference" if reference is False else "run.reference: false"
+        return {**out, "reference": why, "global_reference": why}
+    return out if run_cfg.global_reference else {**out, "global_reference": "run.global_reference: false"}

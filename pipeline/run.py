@@ -30,6 +30,11 @@ recomputed), each also a command of its own:
 10. GLOMAP       ``python -m pipeline.reference.global_mapping`` → OUT/reference-global/ (pycolmap global)
 11. evaluation and report                             → OUT/metrics.json, OUT/report.md
 
+On the console each step is numbered by its place among the 13 of ``STEPS`` (loop closure
+6, refine 9, the two peers 10 and 11, evaluation 12, report 13); a step that does not run
+says so and why, e.g. ``[6/13] loop closure: not run (exhaustive pairs: ...)`` or
+``[10/13] pycolmap reference: not run (--no-reference)``.
+
 Methods come from the registry (:mod:`pipeline.averaging.registry`). With no
 IMAGE_DIR a small scene is rendered into OUT/scene and its cameras are the truth.
 A re-run with the same ``--out`` reuses every finished stage; ``--overwrite`` redoes
@@ -72,6 +77,7 @@ from pipeline.stage import Stage, StageRecord  # noqa: E402
 
 logger = logging.getLogger("run")
 
+REFINE_TITLE = "refine (pycolmap)"
 STEPS = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
          "refine", "reference", "global_reference", "evaluation", "report")
 
@@ -87,6 +93,11 @@ def _reused(res: Any) -> bool | None:
     return None
 
 
+def _number(name: str) -> str:
+    """``[k/13]``: the step's place in ``STEPS``."""
+    return f"[{STEPS.index(name) + 1}/{len(STEPS)}]"
+
+
 class Runner:
     """Runs the steps in order: one progress line each, its wall time, whether it reused its result."""
 
@@ -97,7 +108,7 @@ class Runner:
 
     def step(self, name: str, title: str, fn: Callable[[], Any], again: bool = False) -> Any:
         """Run one step, numbered by its place in ``STEPS``; ``again``: its second round (loop closure)."""
-        k = f"[{STEPS.index(name) + 1}/{len(STEPS)}]"
+        k = _number(name)
         if again:
             title = f"{title} (loop-closure round)"
         if not self.plan.quiet:
@@ -113,6 +124,18 @@ class Runner:
             print(f"{k} {title}: {dt:.2f} s{' (reused)' if reused else ''}", file=sys.stderr, flush=True)
         return res
 
+    def skip(self, name: str, title: str, why: str) -> None:
+        """Say, in its place in ``STEPS``, that a step does not run and why (the progress lines skip no number)."""
+        if not self.plan.quiet:
+            print(f"{_number(name)} {title}: not run ({why})", file=sys.stderr, flush=True)
+
+    def skipped(self, name: str, title: str) -> bool:
+        """Whether the plan leaves the step out (``plan.skipped``); if it does, :meth:`skip` says so."""
+        why = self.plan.skipped.get(name)
+        if why is not None:
+            self.skip(name, title, why)
+        return why is not None
+
     def stage(self, stage: Stage, overwrite: bool | None = None, again: bool = False) -> StageRecord:
         ow = self.plan.overwrite if overwrite is None else overwrite
         return self.step(stage.name, stage.title, lambda: stage.run(ow), again)
@@ -122,7 +145,8 @@ class Runner:
         plan, progress = self.plan, {"progress": self.plan.progress}
         front = FrontEnd(plan.config("matching"), plan.config("cameras", **progress), plan.config("two_view", **progress),
                          plan.config("two_view_ba", **progress), plan.config("loop_closure"), plan.progress)
-        run_front_end(plan.work, front, lambda st, ow, again: self.stage(st, ow, again), plan.overwrite)
+        run_front_end(plan.work, front, lambda st, ow, again: self.stage(st, ow, again), plan.overwrite,
+                      lambda st, why: self.skip(st.name, st.title, why))
         note = loop_note(plan.work)
         if note:
             plan.notes.append(note)
@@ -152,8 +176,8 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
 
 def _refine(plan: Plan, runner: Runner, results: dict[str, dict]) -> None:
     """The recommended method's rotations finished by pycolmap (rows ``<method>+refine``), when the run refines."""
-    if plan.run.refine:
-        results.update(runner.step("refine", "refine (pycolmap)", lambda: refine_for_run(
+    if not runner.skipped("refine", REFINE_TITLE):
+        results.update(runner.step("refine", REFINE_TITLE, lambda: refine_for_run(
             plan.out, plan.configs["refine"], list(results), plan.work, plan.overwrite, plan.notes)))
 
 
@@ -210,6 +234,8 @@ def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
         _second_opinion(sub, runner, specs, results, refined=False)
         _refine(sub, runner, results)
         _second_opinion(sub, runner, specs, results)
+        runner.skipped("reference", IncrementalReferenceStage.title)  # the peers ran once, on every image
+        runner.skipped("global_reference", GlobalReferenceStage.title)
         models = [model_reference(folders[p.label], list(vg.names), p.label) for p in peers if p.label in folders]
         ev, _ = _report(sub, runner, vg, specs, results, [m for m in models if m], {}, t_start)
         medians = {m: (v.get("references") or {}).get("truth", {}).get("median_deg")
@@ -222,7 +248,7 @@ def _components(plan: Plan, t_start: float, peers: list[Any]) -> None:
 
 def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
     """The pycolmap reference; its failure is reported and never throws our result away."""
-    if not plan.reference:
+    if runner.skipped("reference", IncrementalReferenceStage.title):
         return None
     stage = IncrementalReferenceStage(plan.out / "reference", plan.configs["reference"], images=plan.images,
                                       names=names, K=plan.K, work=plan.work, progress=plan.progress)
@@ -243,7 +269,7 @@ def _reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
 def _global_reference(plan: Plan, runner: Runner, names: list[str]) -> Any:
     """The GLOMAP peer, in OUT/reference-global on OUT/reference's database; its failure is reported and never throws
     our result away."""
-    if not plan.reference:
+    if runner.skipped("global_reference", GlobalReferenceStage.title):
         return None
     stage = GlobalReferenceStage(plan.out / "reference-global", plan.configs["global_reference"], images=plan.images,
                                  names=names, K=plan.K, work=plan.work, progress=plan.progress,
@@ -287,7 +313,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
         _second_opinion(plan, runner, specs, results, ("viewgraph", plan.out, None))
         names = list(load_manifest(work)["names"])
         peer = _reference(plan, runner, names)
-        glomap = _global_reference(plan, runner, names) if plan.run.global_reference else None
+        glomap = _global_reference(plan, runner, names)
         peers = [p for p in (peer, glomap) if p is not None]
         _components(plan, t_start, peers)
         _, path = _report(plan, runner, vg, specs, results, peers, left_out, t_start)

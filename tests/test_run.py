@@ -205,6 +205,34 @@ def test_reference_failure_keeps_our_result(scene, full_run, tmp_path, monkeypat
     assert any("pycolmap reference failed: pycolmap crashed" in n for n in m["notes"])
 
 
+@pytest.mark.slow
+def test_a_step_that_does_not_run_says_so_and_why(scene, full_run, tmp_path, capsys):
+    """The console's numbers jumped ([5/13] to [7/13]: loop closure, which exhaustive pairs leave out; [9/13] to
+    [12/13] with --no-reference): nothing told a step left out from one that failed silently."""
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(full_run, out)
+    capsys.readouterr()
+
+    def steps(**kw) -> list[str]:  # the progress lines of a re-run (every stage reused)
+        run.main(scene, out, gt=scene / "cameras.txt", **kw)
+        err = capsys.readouterr().err.splitlines()
+        assert {int(ln[1:ln.index("/")]) for ln in err if ln.startswith("[")} == set(range(1, 14))  # none skipped
+        return [ln for ln in err if "not run" in ln]
+
+    assert steps(reference=False) == [
+        "[6/13] loop closure: not run (exhaustive pairs: 6 images, pairs=auto is exhaustive up to 50)",
+        "[10/13] pycolmap reference: not run (--no-reference)",
+        "[11/13] pycolmap global (GLOMAP): not run (--no-reference)"]
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("run:\n  plots: false\n  refine: false\n  global_reference: false\n")
+    assert steps(config=cfg)[1:] == ["[9/13] refine (pycolmap): not run (run.refine: false)",
+                                     "[11/13] pycolmap global (GLOMAP): not run (run.global_reference: false)"]
+    run.main(scene, out, config=cfg, gt=scene / "cameras.txt", reference=False, quiet=True)
+    assert "not run" not in capsys.readouterr().err  # -q: warnings only
+
+
 def test_bad_config_key(tmp_path, scene):
     p = tmp_path / "bad.yaml"
     p.write_text("run:\n  no_such_key: 1\n")

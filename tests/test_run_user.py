@@ -196,6 +196,8 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
     assert m2["methods"]["irls-l0.5"]["n_cameras"] == 3 and m2["input"]["n_cameras_graph"] == 3
     assert (out / "component-2" / "rotations" / "irls-l0.5.txt").is_file() and (out / "component-2" / "report.md").is_file()
     assert "component 2 of the view graph" in r.stderr
+    comp = r.stderr.split("component 2 of the view graph", 1)[1]  # its console lines skip no number
+    assert "[10/13] pycolmap reference: not run (ran once, on every image, above)" in comp
     # the peers ran once, on every image: component 2 is compared with the model of theirs that holds its images
     for label in ("pycolmap", "glomap"):
         assert m2["peers"][label]["n_registered"] == 3 and m2["peers"][label]["n_images"] == 3, m2["peers"][label]
@@ -206,6 +208,7 @@ def test_two_groups_without_overlap(tmp_path_factory, fast_config):
                         str(fast_config), "--no-reference"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-2000:]
     assert (out / "component-2" / "viewgraph.npz").is_file()
+    assert r.stderr.count("[11/13] pycolmap global (GLOMAP): not run (--no-reference)") == 2  # the run's, component 2's
     assert json.loads((out / "component-2" / "metrics.json").read_text())["methods"]["irls-l0.5"]["n_cameras"] == 3
 
 

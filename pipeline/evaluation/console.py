@@ -10,7 +10,11 @@ from typing import Any
 
 from pipeline.evaluation.flags import certificate_cell
 
-__all__ = ["summary_table", "console_table", "summary_rows", "edge_rows", "intrinsics_console"]
+__all__ = ["summary_table", "console_table", "summary_rows", "edge_rows", "intrinsics_console", "peer_row",
+           "PEER_ROWS"]
+
+#: The report's row of each pycolmap peer (by its label in the metrics), beside our methods' rows.
+PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 
 
 def _finite(v: Any) -> bool:
@@ -22,6 +26,14 @@ def _peers(metrics: dict[str, Any]) -> dict[str, dict[str, Any]]:
     if metrics.get("peers"):
         return metrics["peers"]
     return {"pycolmap": metrics["pycolmap"]} if metrics.get("pycolmap") else {}
+
+
+def peer_row(label: str, short: bool = False) -> str:
+    """The row naming the pycolmap peer labelled ``label`` (the incremental one, GLOMAP) beside our methods' rows:
+    report.md's (``pycolmap (global, GLOMAP)``), or the console table's ``short`` one (``pycolmap-glomap``)."""
+    if short:
+        return "pycolmap" if label == "pycolmap" else f"pycolmap-{label}"
+    return PEER_ROWS.get(label, f"pycolmap ({label})")
 
 
 def intrinsics_console(intr: dict[str, Any]) -> str:
@@ -60,9 +72,9 @@ def summary_table(metrics: dict[str, Any]) -> str:
             rows.append((label, "–", str(m.get("n_cameras", "")), "–", "–", "–", _f(m.get("time_s"), 2), note))
     for label, p in _peers(metrics).items():
         if "median_deg" in p:
-            name = "pycolmap" if label == "pycolmap" else f"pycolmap-{label}"
-            rows.append((name, "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")), _f(p.get("mean_deg")),
-                         _f(p.get("max_deg")), _f(p.get("time_s"), 2), f"{p.get('n_registered')}/{p.get('n_images')} reg."))
+            rows.append((peer_row(label, short=True), "truth", f"{p.get('n_evaluated', 0)}", _f(p.get("median_deg")),
+                         _f(p.get("mean_deg")), _f(p.get("max_deg")), _f(p.get("time_s"), 2),
+                         f"{p.get('n_registered')}/{p.get('n_images')} reg."))
     w = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
     lines = ["  ".join(c.ljust(w[k]) for k, c in enumerate(r)) for r in rows]
     lines.insert(1, "  ".join("-" * x for x in w))

@@ -24,21 +24,19 @@ from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import plots
 from pipeline.evaluation.compare import subset_prefix
 from pipeline.evaluation.console import (  # noqa: F401 (the console's, re-exported)
-    _finite, _peers, console_table, edge_rows, intrinsics_console, summary_rows, summary_table)
+    PEER_ROWS, _finite, _peers, console_table, edge_rows, intrinsics_console, peer_row, summary_rows, summary_table)
 from pipeline.evaluation.flags import CERTIFICATE_NOTE, certificate_cell, certificate_statements, evidence_markdown
 from pipeline.reference.types import Reference
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["ReportData", "metrics_table", "report_data", "write_report", "summary_table", "console_table",
-           "summary_rows", "edge_rows", "intrinsics_lines", "intrinsics_console"]
+           "summary_rows", "edge_rows", "intrinsics_lines", "intrinsics_console", "peer_row"]
 
 TABLE_KEYS = [("n_evaluated", "cams", "{:d}"), ("median_deg", "median °", "{:.3f}"), ("mean_deg", "mean °", "{:.3f}"),
               ("rms_deg", "RMS °", "{:.3f}"), ("max_deg", "max °", "{:.3f}"), ("frobenius", "‖R−R*‖_F", "{:.4f}")]
 METHOD_EXTRAS = ("time_s", "certified", "rank", "gap", "method", "status", "n_refined", "sigma_median_deg",
                  "certificate", "n_edges", "n_dropped", "dropped_names")
-#: The report's row of each pycolmap peer (by its label in the metrics).
-PEER_ROWS = {"pycolmap": "pycolmap (incremental)", "glomap": "pycolmap (global, GLOMAP)"}
 #: The table's key (and title) in a run with no reference: the methods without errors.
 NO_REFERENCE = "Methods (no reference: no errors)"
 
@@ -179,7 +177,7 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
                                 for k, m in metrics["methods"].items()}}
     ref_notes = {}
     for label, p in _peers(metrics).items():
-        row = PEER_ROWS.get(label, f"pycolmap ({label})")
+        row = peer_row(label)
         if label in table and _finite(p.get("median_deg")):  # a peer as a reference: how far it is from the truth
             ref_notes[label] = (f"A reference, not the truth: {row} is itself {p['median_deg']:.3f}° (median) from "
                                 f"the truth on its {p.get('n_evaluated')} images.")

@@ -141,20 +141,31 @@ class LoopClosureStage(Stage[LoopClosureConfig]):
     def __init__(self, work: Path, front: FrontEnd) -> None:
         super().__init__(work, front.loop_closure)
         self.front = front
-        self._applies: bool | None = None
+        self._why_not: str | None = None  # "" once decided that it applies
 
     def first_round(self) -> matching_stage.MatchingStage:
         return matching_stage.MatchingStage(self.folder, self.front.matching, progress=self.front.progress, rank=True)
 
     def applies(self) -> bool:
         """Whether the front end has a loop-closure round: enabled, our own features, retrieval or sequential pairs."""
-        if self._applies is None:
+        return self.why_not() is None
+
+    def why_not(self) -> str | None:
+        """Why the front end has no loop-closure round, in a few words (None: it has one)."""
+        if self._why_not is None:
             fm = feature_stage.load_manifest(self.folder)
             kind, _ = parse_selector(self.front.matching.pairs)
-            if kind == "auto":
-                kind = resolve_auto(len(fm["names"]), self.front.matching.exhaustive_max_images)
-            self._applies = bool(self.config.enabled and not fm.get("database") and kind in ("retrieval", "sequential"))
-        return self._applies
+            n, limit = len(fm["names"]), self.front.matching.exhaustive_max_images
+            if fm.get("database"):
+                why = "a database's matches"
+            elif kind == "auto" and resolve_auto(n, limit) == "exhaustive":
+                why = f"exhaustive pairs: {n} images, pairs=auto is exhaustive up to {limit}"
+            elif kind not in ("auto", "retrieval", "sequential"):
+                why = {"exhaustive": "exhaustive pairs", "file": "a pairs file", "database": "a database's pairs"}[kind]
+            else:
+                why = "" if self.config.enabled else "loop_closure.enabled: false"
+            self._why_not = why
+        return self._why_not or None
 
     def inputs(self) -> dict[str, str]:
         """The first round's selection and every option of the first round (not its records: the second round
@@ -328,19 +339,23 @@ def loop_note(work: Path) -> str | None:
 RunStage = Callable[[Stage, bool, bool], Any]
 
 
-def run_front_end(work: Path, front: FrontEnd, run: RunStage | None = None, overwrite: bool = False) -> None:
+def run_front_end(work: Path, front: FrontEnd, run: RunStage | None = None, overwrite: bool = False,
+                  skip: Callable[[Stage, str], None] | None = None) -> None:
     """Matching, cameras, two-view and two-view BA in WORK, in two rounds around the loop-closure stage where it
     applies (see the module docstring).
 
     Args:
         run: ``run(stage, overwrite, again)`` runs a stage (``again``: its second round); default ``stage.run``.
         overwrite: recompute every stage once (the second round reuses the first round's pairs).
+        skip: ``skip(stage, why)`` is told, after the one round, why the loop-closure stage did not run.
     """
     run = run or (lambda stage, ow, again: stage.run(ow))
     loop = LoopClosureStage(work, front)
     if not loop.applies():
         for st in front.stages(work, None):
             run(st, overwrite, False)
+        if skip is not None:
+            skip(loop, str(loop.why_not()))
         return
     first = overwrite or loop.ready() is None
     if first:

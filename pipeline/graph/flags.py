@@ -5,7 +5,8 @@ Pure functions on arrays. A camera is flagged when
 - it rests on a single pair (degree 1): that pair's error is the camera's;
 - it is joined to the rest only through a *bridge* (an edge in no cycle: its error
   can never be detected), i.e. it lies outside the largest 2-edge-connected block of
-  its component;
+  its component; every bridge on the path from its block to that one is named, in
+  order (its rotation rests on each of them);
 - none of its pairs is in a consistent cycle (unconfirmed);
 - one of its pairs is confirmed only loosely: every cycle (or path) that confirms it closes above
   ``confirm_max_deg`` (the checks' tolerance widens with the pairs' overconfidence, κ, up to
@@ -138,9 +139,11 @@ class GraphFlags:
     n_cycles: int = 0
 
 
-def _bridge_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.ndarray, block: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Per camera: whether its block is its component's largest, and the bridge leaving its block towards it."""
+def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.ndarray, block: np.ndarray,
+                          shown: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per camera: whether its block is its component's largest (the core), the bridges on the path from its block
+    to the core in order, the one leaving its block first ((N, ``shown``) edge indices, -1 past the path's end),
+    and how many bridges that path has."""
     n_blocks = int(block.max()) + 1
     size = np.bincount(block, minlength=n_blocks)
     _, comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)
@@ -154,14 +157,33 @@ def _bridge_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nda
     bi = np.flatnonzero(br)
     ba, bb = block[edges[bi, 0]], block[edges[bi, 1]]
     cores = np.flatnonzero(core)
+    # the blocks and bridges form a tree per component: its cores joined to a virtual root, n_blocks
     T = _graph(np.r_[ba, np.full(len(cores), n_blocks)], np.r_[bb, cores], n_blocks + 1)
     _, pred = breadth_first_order(T, n_blocks, directed=False, return_predecessors=True)
-    towards = np.full(n_blocks, -1)
+    towards = np.full(n_blocks, -1)  # the bridge from each block to the next one towards its core
     nc = ~core & (pred[:n_blocks] >= 0)
     towards[nc] = EdgeIndex(np.stack([np.minimum(ba, bb), np.maximum(ba, bb)], 1), n_blocks).lookup(
         np.flatnonzero(nc), pred[:n_blocks][nc])
     towards = np.where(towards >= 0, bi[np.maximum(towards, 0)], -1) if len(bi) else towards
-    return core[block], towards[block]
+    parent = np.where(nc, pred[:n_blocks], -1)
+    count = np.where(core, 0, _depths(pred, n_blocks)[:n_blocks] - 1)  # the root is 1 hop beyond the core
+    path = np.full((n_blocks, shown), -1)
+    at = np.arange(n_blocks)
+    for k in range(shown):  # one block towards the core per step, every block at once
+        path[:, k] = np.where(at >= 0, towards[np.maximum(at, 0)], -1)
+        at = np.where(at >= 0, parent[np.maximum(at, 0)], -1)
+    return core[block], path[block], count[block]
+
+
+def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> str:
+    """Why a camera is flagged whose block hangs off the core through ``count`` bridges in series (``path``: the
+    first of them, from its block on)."""
+    if count == 1:
+        return f"joined to the rest only through the bridge pair {pair(path[0])}: an error in that pair cannot be " \
+               "detected"
+    named = [pair(e) for e in path[:count]] + ([f"{count - len(path)} more"] if count > len(path) else [])
+    return (f"joined to the rest only through the bridge pairs {', '.join(named[:-1])} and {named[-1]} in series: "
+            "an error in any of them cannot be detected")
 
 
 def _flag_bridged(edges: np.ndarray, n: int, kept: np.ndarray, bridged: np.ndarray, cams: np.ndarray,
@@ -249,11 +271,11 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     add(inc_c[one], [f"rests on a single pair {pair(e)}: nothing checks it" for e in inc_e[one]])
     br = bridges(edges, n, kept)
     block = two_edge_blocks(edges, n, kept, br)
-    in_core, towards = _bridge_towards_core(edges, n, kept, br, block)
+    in_core, path, n_path = _bridges_towards_core(edges, n, kept, br, block)
     size = np.bincount(block, minlength=int(block.max()) + 1)[block]
-    cut = np.flatnonzero(cams & ~in_core & (towards >= 0) & ((deg > 1) | (size > 1)))
-    add(cut, [f"joined to the rest only through the bridge pair {pair(towards[k])}: an error in that pair cannot be "
-              "detected" for k in cut])
+    # a lone camera's one pair is said above, unless the bridges beyond it are more
+    cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
+    add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])

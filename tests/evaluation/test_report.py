@@ -342,3 +342,24 @@ def test_a_peers_time_is_explained_once():
     data = ReportData(metrics={r: {"irls-l0.5": _summary(0.5), "pycolmap (incremental)": row}
                                for r in ("truth", "truth, pycolmap's 13 images", "glomap")})
     assert write_report_text(data).count("time s of a pycolmap row") == 1
+
+
+def test_a_peers_row_beside_ours_is_named_by_one_function_in_the_report_and_on_the_console():
+    """GLOMAP's row beside our methods' was named by two rules, the console table's ("pycolmap-glomap") and
+    report.md's ("pycolmap (global, GLOMAP)"), each in its own module."""
+    from pipeline.core.viewgraph import ViewGraph
+    from pipeline.evaluation.report import peer_row, report_data, summary_table
+    from pipeline.reference import Reference
+
+    names = [f"v{k}.png" for k in range(4)]
+    R = np.broadcast_to(np.eye(3), (4, 3, 3))
+    vg = ViewGraph.from_absolute(names, R, np.array([[0, 1], [1, 2], [2, 3], [0, 3]]))
+    s = _summary(0.1)
+    labels = ("pycolmap", "glomap", "other")
+    metrics = {"methods": {"irls-l0.5": {**s, "references": {"truth": s}}},
+               "peers": {p: {**_summary(0.2), "n_registered": 4, "n_images": 4} for p in labels}}
+    d = report_data(metrics, [Reference(names, R, label="truth")], {}, {}, {}, vg, [], {}, "t", plots_on=False)
+    assert list(d.metrics["truth"])[1:] == [peer_row(p) for p in labels] == [
+        "pycolmap (incremental)", "pycolmap (global, GLOMAP)", "pycolmap (other)"]
+    rows = [r.split()[0] for r in summary_table(metrics).splitlines()[3:]]
+    assert rows == [peer_row(p, short=True) for p in labels] == ["pycolmap", "pycolmap-glomap", "pycolmap-other"]

@@ -394,6 +394,19 @@ def test_no_loop_round_with_exhaustive_pairs_or_when_disabled(work: Path):
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+def test_the_front_end_says_why_it_has_no_loop_round(work: Path):
+    """run.py's console went from [5/13] to [7/13] with no word of the loop-closure step it left out."""
+    fronts = {"exhaustive pairs": dataclasses.replace(front(), matching=MatchingConfig(pairs="exhaustive")),
+              "exhaustive pairs: 24 images, pairs=auto is exhaustive up to 50": dataclasses.replace(
+                  front(), matching=MatchingConfig(pairs="auto")),
+              "loop_closure.enabled: false": front(enabled=False), None: front()}
+    for why, fe in fronts.items():
+        said: list[tuple[str, str]] = []
+        run_front_end(work, fe, lambda st, ow, again: None, skip=lambda st, w: said.append((st.name, w)))
+        assert said == ([] if why is None else [("loop_closure", why)]), why
+        assert LoopClosureStage(work, fe).why_not() == why
+
+
 def test_run_py_reports_the_loop_round(work: Path, tmp_path: Path):
     from pipeline import run  # noqa: PLC0415
 

@@ -41,6 +41,29 @@ def test_triangle_with_a_tail_and_a_dangling_pair():
     assert fl.cameras[7] == ["rests on a single pair (c6, c7): nothing checks it"]
 
 
+def test_bridges_in_series_are_all_named():
+    """A camera two bridges away from the core was said to rest on the first one alone, though an error in either
+    moves it."""
+    # core triangle 0-1-2 (the lowest label of the equal blocks), bridge 2-3, triangle 3-4-5, bridge 5-6, camera 6
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [3, 5], [5, 6]])
+    kept = np.ones(len(E), bool)
+    fl = graph_flags(E, 7, kept, kept & ~bridges(E, 7), np.zeros(len(E), bool), NAMES)
+    assert fl.cameras[6] == ["rests on a single pair (c5, c6): nothing checks it",
+                             "joined to the rest only through the bridge pairs (c5, c6) and (c2, c3) in series: an "
+                             "error in any of them cannot be detected"]
+    for k in (3, 4, 5):
+        assert fl.cameras[k] == ["joined to the rest only through the bridge pair (c2, c3): an error in that pair "
+                                 "cannot be detected"]
+    assert not {0, 1, 2} & set(fl.cameras)
+    # a tail of five bridges: three are named, and how many more
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7]])
+    fl = graph_flags(E, 8, np.ones(8, bool), np.array([1, 1, 1, 0, 0, 0, 0, 0], bool), np.zeros(8, bool), NAMES)
+    assert fl.cameras[7][1] == ("joined to the rest only through the bridge pairs (c6, c7), (c5, c6), (c4, c5) and 2 "
+                                "more in series: an error in any of them cannot be detected")
+    assert fl.cameras[5][0].startswith("joined to the rest only through the bridge pairs (c4, c5), (c3, c4) and "
+                                       "(c2, c3) in series")
+
+
 def test_rejected_pairs_and_the_cameras_considered():
     E = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [2, 3], [1, 3], [3, 4]])
     kept = np.array([1, 1, 1, 1, 1, 0, 0], bool)
