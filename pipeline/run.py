@@ -105,6 +105,7 @@ class Runner:
         self.plan = plan
         self.times: dict[str, float] = dict(plan.times)
         self.reused: dict[str, bool] = {}
+        self.not_run: dict[str, str] = {}  # step → why it did not run (metrics.json: steps_not_run)
 
     def step(self, name: str, title: str, fn: Callable[[], Any], again: bool = False) -> Any:
         """Run one step, numbered by its place in ``STEPS``; ``again``: its second round (loop closure)."""
@@ -126,6 +127,7 @@ class Runner:
 
     def skip(self, name: str, title: str, why: str) -> None:
         """Say, in its place in ``STEPS``, that a step does not run and why (the progress lines skip no number)."""
+        self.not_run[name] = why
         if not self.plan.quiet:
             print(f"{_number(name)} {title}: not run ({why})", file=sys.stderr, flush=True)
 

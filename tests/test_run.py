@@ -229,8 +229,13 @@ def test_a_step_that_does_not_run_says_so_and_why(scene, full_run, tmp_path, cap
     cfg.write_text("run:\n  plots: false\n  refine: false\n  global_reference: false\n")
     assert steps(config=cfg)[1:] == ["[9/13] refine (pycolmap): not run (run.refine: false)",
                                      "[11/13] pycolmap global (GLOMAP): not run (run.global_reference: false)"]
-    run.main(scene, out, config=cfg, gt=scene / "cameras.txt", reference=False, quiet=True)
+    m = json.loads(run.main(scene, out, config=cfg, gt=scene / "cameras.txt", reference=False, quiet=True).read_text())
     assert "not run" not in capsys.readouterr().err  # -q: warnings only
+    assert m["steps_not_run"] == {"loop_closure": "exhaustive pairs: 6 images, pairs=auto is exhaustive up to 50",
+                                  "refine": "run.refine: false", "reference": "--no-reference",
+                                  "global_reference": "--no-reference"}  # metrics.json says it too
+    assert ("Not run: loop_closure (exhaustive pairs: 6 images, pairs=auto is exhaustive up to 50); refine (run.refine: "
+            "false); reference (--no-reference); global_reference (--no-reference).") in (out / "report.md").read_text()
 
 
 def test_bad_config_key(tmp_path, scene):

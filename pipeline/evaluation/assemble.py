@@ -155,6 +155,7 @@ def write_report_md(plan: Any, ev: RunEvaluation, specs: list[Any], results: dic
                        f"Rotations of {plan.images}", plan.run.plots)
     data.intrinsics = ev.intrinsics
     data.n_images = _n_images(plan.work)
+    data.not_run = dict(getattr(runner, "not_run", {}))
     return write_report(plan.out, data)
 
 
@@ -195,6 +196,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     left_out = {n: f"{w}; {placed[n]}" if n in placed else w for n, w in left_out.items()}
     metrics["stages"] = dict(runner.times)
     metrics["stages_reused"] = dict(runner.reused)
+    metrics["steps_not_run"] = dict(getattr(runner, "not_run", {}))
     metrics["total_s"] = time.perf_counter() - t_start
     metrics["our_path_s"] = sum(runner.times.get(k, 0.0) for k in OUR_PATH)
     metrics["input"] = {"images": str(plan.images), "n_images": len(names), "n_skipped": len(skipped),

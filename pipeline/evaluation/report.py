@@ -82,6 +82,7 @@ class ReportData:
     notes: list[str] = field(default_factory=list)
     sections: dict[str, list[str]] = field(default_factory=dict)
     stages: dict[str, float] = field(default_factory=dict)
+    not_run: dict[str, str] = field(default_factory=dict)  # step → why it did not run
     evidence: list[str] = field(default_factory=list)
     certificates: dict[str, str] = field(default_factory=dict)
     n_images: int | None = None
@@ -254,6 +255,8 @@ def write_report(out: str | os.PathLike, data: ReportData) -> Path:
         lines += [f"| **sum of the stages above** | {total:.2f} |", "",
                   "(The report's own stage and the start are not in it: the whole run's wall time is metrics.json's "
                   "total_s.)", ""]
+    if data.not_run:
+        lines += ["Not run: " + "; ".join(f"{k} ({why})" for k, why in data.not_run.items()) + ".", ""]
     lines += data.evidence
     if data.certificates:
         lines += ["## Certificates", "", f"{CERTIFICATE_NOTE[0].upper()}{CERTIFICATE_NOTE[1:]}: each below says for "
