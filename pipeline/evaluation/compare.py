@@ -41,7 +41,6 @@ logger = logging.getLogger(__name__)
 __all__ = ["SUBSET_PREFIX", "EvaluationConfig", "match_reference", "summarize_against", "truth_on_registered",
            "subset_prefix", "subset_label", "peer_metrics", "evaluate_all", "evaluate_files", "main_cli"]
 
-SUBSET_PREFIX = "truth, pycolmap's"  # the truth on the incremental peer's images ("truth, <peer>'s N images")
 CERTIFICATE_KEYS = ("certified", "rank", "gap", "gap_residual", "lower_bound", "primal_cost", "cost_offset", "status",
                     "solver", "fallback")
 
@@ -108,6 +107,9 @@ def summarize_against(names: list[str], R: np.ndarray, ref: Reference, align: st
 def subset_prefix(peer: str) -> str:
     """How the labels of the truth restricted to the images of the peer labelled ``peer`` begin."""
     return f"truth, {peer}'s "
+
+
+SUBSET_PREFIX = subset_prefix("pycolmap").rstrip()  # the truth on the incremental peer's images
 
 
 def subset_label(peer: str, n: int) -> str:

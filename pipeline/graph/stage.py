@@ -109,7 +109,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     name = "viewgraph"
     title = "view graph and its checks"
     config_cls = ViewGraphConfig
-    version = 6  # 4: pairs[].tracks; 5: the other components (OUT/component-k/); 6: loosely confirmed cameras
+    version = 7  # 4: pairs[].tracks; 5: the other components (OUT/component-k/); 6: loosely confirmed cameras; 7: bridges in series
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)
