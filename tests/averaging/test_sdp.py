@@ -218,7 +218,7 @@ def test_o3_aniso_is_not_tight_and_says_so(caplog):
         res = solve_sdp(vg, "o3-aniso", "scs")
     assert res.stats["rank"] > 3
     assert res.stats["certified"] is False
-    assert "NOT certified" in caplog.text
+    assert f"NOT certified optimal: rank {res.stats['rank']} (need 3); gap " in caplog.text  # the failed test first
 
 
 def test_lower_bound_is_below_the_cost_of_any_rotations(noisy):
@@ -402,3 +402,14 @@ def test_one_huge_H_is_certified_by_the_tight_fallback(one_huge_edge):
     assert pol.stats["certified_by"] == "the dual certificate of the rounded rotations"
     assert pol.stats["primal_cost"] <= st["primal_cost"] + 1e-6 * abs(st["primal_cost"])
     assert aligned_errors_deg(pol.R, res.R).max() < 0.05
+
+
+def test_an_uncertified_result_names_the_test_it_failed_first() -> None:
+    """Fountain's message named a passing rank first ("rank 3 (need 3), gap 0.0205× ...") before the failing gap."""
+    from pipeline.averaging.sdp.solve import _failed_tests  # noqa: PLC0415
+
+    att = {"rank": 3, "gap_vs_resolution": 0.0205, "status": "solved"}
+    assert _failed_tests(att, 0.01) == ("gap 0.0205 × the cost's resolution (need <= 0.01); rank 3, solver status "
+                                        "solved")
+    att = {"rank": 5, "gap_vs_resolution": 0.001, "status": "solved"}
+    assert _failed_tests(att, 0.01).startswith("rank 5 (need 3); gap 0.001 ×")

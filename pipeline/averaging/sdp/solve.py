@@ -132,6 +132,14 @@ def _solve_scs(prob: ConicProblem, eps_abs: float, eps_rel: float, max_iters: in
     return sol["x"], sol["y"], sol["s"], str(info["status"]), int(info["iter"])
 
 
+def _failed_tests(att: dict[str, Any], kappa: float) -> str:
+    """The certificate's test an attempt failed, named first (rank, then the gap), then the other and the status."""
+    rank = f"rank {att['rank']} (need 3)"
+    gap = f"gap {att['gap_vs_resolution']:.3g} × the cost's resolution (need <= {kappa:g})"
+    first, then = (rank, gap) if att["rank"] != 3 else (gap, "rank 3")
+    return f"{first}; {then}, solver status {att['status']}"
+
+
 def _solve_clarabel(prob: ConicProblem, eps_abs: float, eps_rel: float, max_iters: int | None,
                     verbose: bool, **kw: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, int]:
     import clarabel
@@ -287,11 +295,8 @@ def _solve(vg: ViewGraph, cfg: SdpConfig, settings: dict[str, Any], start: np.nd
     t3 = time.perf_counter()
     method = f"sdp-{cfg.variant}"
     if not att["certified"]:
-        logger.warning(
-            "%s is NOT certified optimal: rank %d (need 3), gap %.3g × the cost's resolution (need <= %g), "
-            "solver status %s; the rotations are a rounding of the relaxation, not a proven optimum",
-            method, att["rank"], att["gap_vs_resolution"], cfg.cert_kappa, att["status"],
-        )
+        logger.warning("%s is NOT certified optimal: %s; the rotations are a rounding of the relaxation, not a proven "
+                       "optimum", method, _failed_tests(att, cfg.cert_kappa))
     R = att["R"]
     used_fallback = att is not first
     return AveragingResult(
