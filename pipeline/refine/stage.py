@@ -378,8 +378,10 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
         elif probe:
             notes.append(f"{label}: {probe}")
         for cid, pp in (s.get("principal_point") or {}).items():
+            sd = pp.get("sd_px")  # null where it is not finite (a singular covariance)
             notes.append(f"{label}: principal point of camera {cid} refined to ({pp['px'][0]:.1f}, {pp['px'][1]:.1f}) "
-                         f"px, standard deviation {pp['sd_px']:.2f} px")
+                         + (f"px, standard deviation {sd:.2f} px" if sd is not None else
+                            "px, no finite standard deviation"))
         if s["status"] == "failed":
             notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
         notes += [f"{label}: {nm}, left out of the view graph, is {why}" for nm, why in (s.get("placed") or {}).items()]
