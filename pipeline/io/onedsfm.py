@@ -42,6 +42,7 @@ import numpy as np
 
 from pipeline.core.atomic import TMP_TAG, atomic_dir, atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.names import positions
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.bundler import BUNDLER_TO_CV, read_bundler, write_bundler
 from pipeline.io.common import line_numbers as _numbers
@@ -274,8 +275,7 @@ def check_1dsfm_target(folder: str | os.PathLike) -> None:
 
 def _write_1dsfm_files(folder: Path, vg: ViewGraph, list_names, index, focal, R_gt, t_gt, gt_mask) -> None:
     list_names = list(vg.names) if list_names is None else list(list_names)
-    pos = {n: k for k, n in enumerate(list_names)}
-    index = np.array([pos[n] for n in vg.names]) if index is None else np.asarray(index)
+    index = positions(list_names, vg.names) if index is None else np.asarray(index)
     focal = np.full(len(list_names), np.nan) if focal is None else np.asarray(focal, float)
     with atomic_open(folder / "list.txt") as fh:
         for n, f in zip(list_names, focal):
