@@ -26,6 +26,18 @@ def _restore_logging():
 
 
 @pytest.fixture(scope="session")
+def strict_json():
+    """``parse(text)``: JSON read as a strict reader (jq, JavaScript, Go, serde) reads it: ``NaN``, ``Infinity`` and
+    ``-Infinity`` are not JSON and raise ValueError (Python's ``json.loads`` takes them by default)."""
+    import json
+
+    def refuse(token: str) -> None:
+        raise ValueError(f"{token} is not JSON")
+
+    return lambda text: json.loads(text, parse_constant=refuse)
+
+
+@pytest.fixture(scope="session")
 def damage_item():
     """``damage(store_dir, change, which=None) -> key``: rewrite the first stored item (in key order over the chunk
     files) that ``which(item)`` accepts, as ``change(fields)`` leaves its fields (a dict of arrays it may edit or

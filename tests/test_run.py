@@ -84,6 +84,25 @@ def test_full_run_metrics_and_report(full_run):
 
 
 @pytest.mark.slow
+def test_every_json_file_of_a_run_is_strict_json(full_run, strict_json):
+    """jq, JavaScript, Go and serde refuse NaN and Infinity: every JSON file of a run (metrics.json, the stages'
+    records and stats, the front end's manifests) is strict JSON, a figure that is not finite written as null (here
+    at least one: IRLS-ℓ½'s verified certificate has no non-trivial eigenvalue to give, NaN in memory)."""
+    files = sorted(full_run.rglob("*.json"))
+    assert {"metrics.json", "rotations/irls-l0.5.json", "work/cameras.json", "work/features.record.json"} <= {
+        str(f.relative_to(full_run)) for f in files}
+    bad = []
+    for f in files:
+        try:
+            strict_json(f.read_text(encoding="utf-8"))
+        except ValueError as exc:
+            bad.append(f"{f.relative_to(full_run)}: {exc}")
+    assert not bad, bad
+    stats = json.loads((full_run / "rotations" / "irls-l0.5.json").read_text())
+    assert stats["certificate"]["verdict"] == "verified" and stats["certificate"]["lambda_nontrivial"] is None
+
+
+@pytest.mark.slow
 def test_stage_scripts_give_the_same_result(scene, full_run, tmp_path):
     """features → matching → two_view → two_view_ba → viewgraph → average by their commands equals run.py."""
     work = tmp_path / "work"

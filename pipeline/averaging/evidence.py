@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.averaging.result import AveragingResult
+from pipeline.core.names import positions
 from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["MINORITY_SHARE", "camera_evidence", "certificate_statement"]
@@ -55,8 +56,7 @@ def camera_evidence(vg: ViewGraph, res: AveragingResult) -> dict[str, Any]:
         "cameras": [{"name", "n_edges", "n_kept", "kept_weight_share", "support"}]}``.
     """
     statement, verdict = certificate_statement(res)
-    pos = {n: k for k, n in enumerate(res.names)}
-    local = np.array([pos.get(n, -1) for n in vg.names], dtype=np.int64)
+    local = positions(res.names, vg.names, missing=-1)
     idx = np.arange(vg.n_edges) if res.edge_index is None else np.asarray(res.edge_index, dtype=np.int64)
     e = local[vg.edges[idx]]
     n = len(res.names)

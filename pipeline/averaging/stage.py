@@ -34,6 +34,7 @@ from pipeline.averaging.result import AveragingResult
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
+from pipeline.core.names import positions
 from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.averaging.evidence import camera_evidence
@@ -164,16 +165,6 @@ class AveragingStage(Stage[Config]):
             if mask is None or mask.any():
                 stats["vs_ground_truth"] = summarize(res.R, data.R_gt[kept], mask)
         return stats
-
-
-def positions(names: list[str], subset: list[str]) -> np.ndarray:
-    """(len(subset),) int64: where each of ``subset`` stands in ``names`` (unique; ``names.index`` for each, in
-    one pass over ``names``). A name not in ``names`` raises ValueError, as ``index`` does."""
-    pos = {n: k for k, n in enumerate(names)}
-    try:
-        return np.array([pos[n] for n in subset], np.int64)
-    except KeyError as exc:
-        raise ValueError(f"{exc.args[0]!r} is not in list") from None
 
 
 def _solved_names(vg: ViewGraph) -> list[str]:

@@ -4,13 +4,14 @@ An interrupted run leaves either the old file or the new one, never a torn one.
 Its temporary files carry :data:`TMP_TAG` in their names, so the next run in the
 same folder removes them (:func:`remove_stale_temporaries`). Outputs get the
 usual permissions of a new file (0644 under the common umask 022), not the 0600
-of :func:`tempfile.mkstemp`.
+of :func:`tempfile.mkstemp`. JSON is written strict (:func:`write_json`): null where a figure is not finite.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -20,8 +21,8 @@ from typing import IO, Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "save_npz", "save_npz_uncompressed", "save_figure",
-           "remove_stale_temporaries", "TMP_TAG"]
+__all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "finite_json", "save_npz", "save_npz_uncompressed",
+           "save_figure", "remove_stale_temporaries", "TMP_TAG"]
 
 TMP_TAG = ".rotavg-tmp-"
 
@@ -93,20 +94,35 @@ def atomic_open(path: str | os.PathLike, mode: str = "w") -> Iterator[IO[Any]]:
             os.fsync(f.fileno())
 
 
+def finite_json(obj: Any) -> Any:
+    """``obj`` as plain JSON values, with every NaN or infinite float as None: what :func:`write_json` writes is
+    strict JSON (NaN and Infinity are not JSON, and most readers refuse them); null means "not defined" (an estimate
+    made from no pair, an undefined bound). numpy arrays become lists and numpy scalars Python numbers."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_json(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON atomically; numpy scalars and arrays are converted."""
+    """Write ``obj`` as indented strict JSON atomically: numpy scalars and arrays are converted and every NaN or
+    infinite float is written as null (:func:`finite_json`); paths are written as strings. Anything else that is
+    not JSON raises, and so would a NaN or infinity left over: the encoder never writes ``NaN`` or ``Infinity``."""
 
     def default(o: Any) -> Any:
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
         if isinstance(o, Path):
             return str(o)
         raise TypeError(f"{type(o).__name__} is not JSON serializable")
 
     with atomic_open(path) as f:
-        json.dump(obj, f, indent=2, default=default)
+        json.dump(finite_json(obj), f, indent=2, default=default, allow_nan=False)
         f.write("\n")
     return Path(path)
 

@@ -3,7 +3,9 @@
 A name matches another exactly, or else by file stem: ``"0001"`` matches
 ``"0001.jpg"`` and ``"img/0001.png"`` matches ``"0001.jpg"``. A stem that two
 names on the other side share is ambiguous: :func:`match_names` raises, naming
-both, unless ``ambiguous="skip"``, which leaves such names unmatched.
+both, unless ``ambiguous="skip"``, which leaves such names unmatched. Between
+our own lists (a view graph's cameras, a method's), names are matched exactly:
+:func:`positions`.
 
 Names in our text formats (rotations, cameras, intrinsics and pairs files) are
 one field each: :func:`quote_name` writes a name that holds whitespace, ``#`` or
@@ -17,13 +19,13 @@ from __future__ import annotations
 import json
 import re
 from pathlib import PurePosixPath
-from typing import Literal
+from typing import Literal, Sequence
 
 import numpy as np
 
 from pipeline.core.errors import InputFileError
 
-__all__ = ["stem", "match_names", "rows_by_name", "quote_name", "split_fields"]
+__all__ = ["stem", "match_names", "rows_by_name", "positions", "quote_name", "split_fields"]
 
 _TOKEN = re.compile(r'"(?:[^"\\\n]|\\.)*"|[^\s"#]+|#|"')
 
@@ -115,3 +117,19 @@ def rows_by_name(names: list[str], other: list[str], arr: np.ndarray, *, what: s
     if np.any(idx < 0):
         return None
     return np.asarray(arr)[idx]
+
+
+def positions(names: Sequence[str], subset: Sequence[str], missing: int | None = None) -> np.ndarray:
+    """(len(subset),) int64: where each of ``subset`` stands in ``names`` (unique names, matched exactly: what
+    ``names.index`` gives for each, in one pass over ``names``).
+
+    A name not in ``names`` is ``missing`` (e.g. −1, for our lists that hold only some of the cameras); with
+    ``missing=None`` it raises ValueError, as ``index`` does.
+    """
+    pos = {n: k for k, n in enumerate(names)}
+    if missing is not None:
+        return np.array([pos.get(n, missing) for n in subset], np.int64)
+    try:
+        return np.array([pos[n] for n in subset], np.int64)
+    except KeyError as exc:
+        raise ValueError(f"{exc.args[0]!r} is not in list") from None

@@ -16,10 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from pipeline.averaging.convergence import error_vs_time_curves
-from pipeline.core.atomic import write_json
+from pipeline.core.atomic import finite_json, write_json
 from pipeline.core.errors import PipelineError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation.compare import evaluate_all, truth_on_registered
@@ -209,7 +207,7 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
     metrics["components"] = list(getattr(plan, "components", []))  # the view graph's other components, solved apart
     metrics["notes"] = plan.notes
     metrics["units"] = UNITS
-    path = write_json(plan.out / "metrics.json", finite_json(metrics))
+    path = write_json(plan.out / "metrics.json", metrics)
     # every run says it, a resumed one too (the stages that found it may not run)
     unsolved = "\n".join(x for x in (_unsolved_line({n: w for n, w in left_out.items() if n not in placed}),
                                       _placed_line(placed)) if x)
@@ -227,20 +225,6 @@ def write_metrics(plan: Any, ev: RunEvaluation, vg: ViewGraph, left_out: dict[st
         lines = [ln for ln in evidence_console(metrics.get("evidence") or {}).splitlines() if not ln.startswith("†")]
         print("\n".join(lines + ([unsolved] if unsolved else []) + [f"metrics: {path}"]), file=sys.stderr, flush=True)
     return path
-
-
-def finite_json(obj: Any) -> Any:
-    """``obj`` with every NaN or infinite float as None: metrics.json is strict JSON (NaN and Infinity are not JSON,
-    and most readers refuse them); null means "not defined" (an estimate made from no pair, an undefined bound)."""
-    if isinstance(obj, dict):
-        return {k: finite_json(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [finite_json(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return finite_json(obj.tolist())
-    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
-        return None
-    return obj
 
 
 def _placed_line(placed: dict[str, str]) -> str:

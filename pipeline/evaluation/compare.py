@@ -31,7 +31,7 @@ import numpy as np
 
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config, option
-from pipeline.core.names import match_names
+from pipeline.core.names import match_names, positions
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.evaluation import metrics as mt
 from pipeline.reference.types import Reference
@@ -220,8 +220,7 @@ def evaluate_all(vg: ViewGraph, ransac_vg: ViewGraph | None, results: dict[str, 
 
 def _reindexed(vg: ViewGraph, names: list[str]) -> ViewGraph | None:
     """``vg`` with its cameras in the order of ``names``; edges to cameras not in ``names`` are left out."""
-    pos = {n: k for k, n in enumerate(names)}
-    idx = np.array([pos.get(n, -1) for n in vg.names], dtype=np.int64)
+    idx = positions(names, vg.names, missing=-1)
     ok = (idx[vg.edges] >= 0).all(axis=1)
     if not np.any(ok):
         return None

@@ -42,7 +42,8 @@ def intrinsics_console(intr: dict[str, Any]) -> str:
              + f" ({f['source']}, {f['n_images']} images)" for f in intr.get("focal", [])]
     est = [g["focal"] for g in intr.get("estimates", []) if g.get("focal")]
     weak = [e for e in est if e.get("determined") is False and _finite(e.get("f"))]
-    sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" for w in weak)
+    # an sd that is not finite (leaving one image out leaves too few pairs) reads back from cameras.json as null
+    sds = ", ".join(f"{100 * w['sd_rel']:.1f}%" if _finite(w.get("sd_rel")) else "–" for w in weak)
     parts += [f"POORLY DETERMINED for {len(weak)} camera group(s) (jackknife sd {sds})"] if weak else []
     none = sum(f["n_images"] for f in intr.get("focal", []) if f["source"] == "default")  # nothing replaced the guess
     parts += [f"NOT ESTIMATED for {none} image(s) (the default guess 1.2·max(w, h) kept)"] if none else []

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.names import positions
+
 __all__ = ["CERTIFICATE_NOTE", "DISAGREEMENT_DEG", "GUESSED_FOCAL", "method_disagreement", "run_evidence",
            "evidence_markdown", "evidence_console", "certificate_cell", "certificate_statements"]
 
@@ -50,11 +52,11 @@ def method_disagreement(rotations: dict[str, tuple[list[str], np.ndarray]]) -> d
     for a in range(len(labels)):
         for b in range(a + 1, len(labels)):
             na, Ra = rotations[labels[a]]
-            pos = {n: k for k, n in enumerate(rotations[labels[b]][0])}
-            common = [k for k, n in enumerate(na) if n in pos]
+            in_b = positions(rotations[labels[b]][0], na, missing=-1)
+            common = np.flatnonzero(in_b >= 0)
             if len(common) < 2:
                 continue
-            Rb = rotations[labels[b]][1][[pos[na[k]] for k in common]]
+            Rb = np.asarray(rotations[labels[b]][1])[in_b[common]]
             d = rotation_errors_deg(np.asarray(Ra)[common], Rb, align="l1")
             for k, x in zip(common, d):
                 if x > out.get(na[k], (-1.0, ""))[0]:

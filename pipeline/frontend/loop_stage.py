@@ -46,6 +46,7 @@ import numpy as np
 from pipeline.core.atomic import write_json
 from pipeline.core.config import Config, option
 from pipeline.core.errors import CacheError, InputFileError, ViewGraphError
+from pipeline.core.names import positions
 from pipeline.core.readers import read_json
 from pipeline.core.viewgraph import ViewGraph, pair_keys
 from pipeline.frontend import feature_stage, matching_stage
@@ -126,8 +127,7 @@ def first_round_rotations(vg: ViewGraph) -> np.ndarray:
         logger.warning("loop closure: the first round's graph could not be averaged (%s); pairs are chosen without "
                        "their rotations", " ".join(str(exc).split()))
         return R
-    idx = {nm: k for k, nm in enumerate(vg.names)}
-    R[[idx[nm] for nm in res.names]] = np.asarray(res.R)
+    R[positions(vg.names, res.names)] = np.asarray(res.R)
     return R
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from pipeline.core.atomic import atomic_open
 from pipeline.core.errors import InputFileError
 from pipeline.io.common import line_numbers as _numbers
-from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, NearRotationError, project_near_rotations
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, OneWarning, projected_or_input_error
 
 __all__ = ["BUNDLER_TO_CV", "read_bundler", "write_bundler"]
 
@@ -51,20 +51,12 @@ def _bundle_cameras(path: Path) -> list[tuple[int, list[str]]]:
     return body
 
 
-def _projected(R: np.ndarray, tol: float, what: str, source: Path, labels: list[str], notes: list | None) -> np.ndarray:
-    """Near-rotations projected; one warning here, or a note in ``notes`` for the dataset's one warning."""
-    try:
-        P, rep = project_near_rotations(R, tol, what=what, source=str(source), labels=labels, warn=notes is None)
-    except NearRotationError as exc:
-        raise InputFileError(str(exc)) from None
-    if notes is not None and rep.n_projected:
-        notes.append((f"{rep.n_projected} of {rep.n_total} {what}s of {source.name}", rep.max_deviation))
-    return P
-
-
-def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL, *, _notes: list | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL, *,
+                 _near: OneWarning | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Read the cameras of a Bundler v0.3 file, converted to cam_from_world OpenCV convention.
+
+    Its near-rotations are projected with one warning for the file, or with ``_near``'s one warning for a dataset
+    of several files (1DSfM's).
 
     Returns:
         R: (K, 3, 3) ``F R_bundler`` (identity where unregistered), t: (K, 3) ``F t_bundler``,
@@ -97,8 +89,10 @@ def read_bundler(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     registered = (f > 0) & (np.abs(Rb).sum(axis=(1, 2)) > 0)  # Bundler (and Theia's reader): f <= 0 = not reconstructed
     R = np.broadcast_to(np.eye(3), (n_cam, 3, 3)).copy()
     if registered.any():
-        P = _projected(Rb[registered], rotation_tol, "camera rotation", path,
-                       [f"camera {k}" for k in np.flatnonzero(registered)], _notes)
+        labels = [f"camera {k}" for k in np.flatnonzero(registered)]
+        P = projected_or_input_error(Rb[registered], rotation_tol, what="camera rotation", source=str(path),
+                                     labels=labels) if _near is None else \
+            _near.rotations(Rb[registered], "camera rotation", labels, source=path)
         R[registered] = BUNDLER_TO_CV @ P
     t = np.where(registered[:, None], tb @ BUNDLER_TO_CV.T, 0.0)
     return R, t, f, registered

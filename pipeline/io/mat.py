@@ -53,8 +53,7 @@ from pipeline.core import so3
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import InputFileError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.io.near_rotation import (DEFAULT_ROTATION_TOL, NearRotationError, normalize_near_unit_quaternions,
-                                       project_near_rotations)
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, OneWarning
 
 logger = logging.getLogger(__name__)
 
@@ -121,47 +120,12 @@ def _numeric(path: Path, data: dict[str, Any], key: str, allow_nan: bool = False
     return a
 
 
-class _Projector:
-    """Projects a file's variables onto SO(3) within the tolerance and logs ONE warning for the file."""
-
-    def __init__(self, path: Path, tol: float) -> None:
-        self.path, self.tol, self.parts, self.worst = path, tol, [], 0.0
-
-    def __call__(self, R: np.ndarray, key: str, labels: list[str] | None = None) -> np.ndarray:
-        try:
-            out, rep = project_near_rotations(R, self.tol, what=f"{key} block", source=str(self.path), labels=labels,
-                                              warn=False)
-        except NearRotationError as exc:
-            raise InputFileError(f"{exc}; expected rotations (raise --rotation-tol to accept coarser ones)") from None
-        if rep.n_projected:
-            self.parts.append(f"{rep.n_projected} of {rep.n_total} {key} blocks")
-            self.worst = max(self.worst, rep.max_deviation)
-        return out
-
-    def quaternions(self, q: np.ndarray, key: str, labels: list[str]) -> np.ndarray:
-        """(K, 4) scalar-first quaternions (the ℓ1 code's q2R) → (K, 3, 3), normalized within the tolerance."""
-        try:
-            qn, rep = normalize_near_unit_quaternions(q, self.tol, source=str(self.path), labels=labels, warn=False)
-        except NearRotationError as exc:
-            raise InputFileError(f"{exc}; expected unit quaternions (raise --rotation-tol to accept coarser ones)"
-                                 ) from None
-        if rep.n_projected:
-            self.parts.append(f"{rep.n_projected} of {rep.n_total} {key} quaternions (| |q| − 1 |)")
-            self.worst = max(self.worst, rep.max_deviation)
-        return so3.matrix_from_quat(qn)
-
-    def warn(self) -> None:
-        if self.parts:
-            logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)",
-                           self.path, " and ".join(self.parts), self.worst, self.tol)
-
-
 def _is_quaternions(a: np.ndarray) -> bool:
     """A 4×K variable: K quaternions, scalar first, as the ℓ1 code (AverageSO3Graph) also takes RR and Rgt."""
     return a.ndim == 2 and a.shape[0] == 4
 
 
-def _ground_truth(path: Path, blocks: np.ndarray, project: _Projector) -> tuple[np.ndarray, np.ndarray]:
+def _ground_truth(path: Path, blocks: np.ndarray, near: OneWarning) -> tuple[np.ndarray, np.ndarray]:
     """Validate (N, 3, 3) truth blocks, or (N, 4) quaternions; all-zero or all-NaN ones (the ℓ1 code writes NaN for the
     cameras it did not solve) become identity + mask False."""
     flat = blocks.reshape(blocks.shape[0], -1)
@@ -174,8 +138,8 @@ def _ground_truth(path: Path, blocks: np.ndarray, project: _Projector) -> tuple[
     R = np.broadcast_to(np.eye(3), (blocks.shape[0], 3, 3)).copy()
     if mask.any():
         labels = [f"of camera {k}" for k in np.flatnonzero(mask)]
-        R[mask] = project.quaternions(flat[mask], "Rgt", labels) if flat.shape[1] == 4 else \
-            project(blocks[mask], "Rgt", labels=labels)
+        R[mask] = so3.matrix_from_quat(near.quaternions(flat[mask], "Rgt", labels)) if flat.shape[1] == 4 else \
+            near.rotations(blocks[mask], "Rgt block", labels)
     return R, mask
 
 
@@ -231,8 +195,8 @@ def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATI
     present &= ~lower_dup
     i, j = np.nonzero(present)
     edges = np.stack([i, j], axis=1)
-    project = _Projector(path, rotation_tol)
-    R_rel = project(blocks[i, j], "Rrel", labels=[f"({a}, {b})" for a, b in zip(i, j)])
+    near = OneWarning(path, rotation_tol, advise=True)
+    R_rel = near.rotations(blocks[i, j], "Rrel block", [f"({a}, {b})" for a, b in zip(i, j)])
     H = None
     if "Alpha" in data:
         Alpha = _numeric(path, data, "Alpha")
@@ -249,9 +213,9 @@ def read_lu_sphinx(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATI
         Rgt = _numeric(path, data, "Rgt")
         if Rgt.shape != (3 * n, 3):
             raise InputFileError(f"{path}: Rgt.shape={Rgt.shape} but expected ({3 * n}, 3) for {n} cameras")
-        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3), project)
+        R_gt, gt_mask = _ground_truth(path, Rgt.reshape(n, 3, 3), near)
     vg = _make_graph(path, [str(k) for k in range(n)], edges, R_rel, H)
-    project.warn()
+    near.warn()
     return MatData(vg, R_gt, gt_mask)
 
 
@@ -298,15 +262,16 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
     if np.any(I != np.round(I)) or (I.size and (I.min() < 1 or I.max() >= 2 ** 31)):
         raise InputFileError(f"{path}: I must hold 1-based integer camera indices (>= 1)")
     edges = I.T.astype(np.int64) - 1
-    project = _Projector(path, rotation_tol)
+    near = OneWarning(path, rotation_tol, advise=True)
     labels = [f"{k + 1} (1-based)" for k in range(RR.shape[0])]
-    RR = project.quaternions(RR, "RR", labels) if quaternions else project(RR, "RR", labels=labels)
+    RR = so3.matrix_from_quat(near.quaternions(RR, "RR", labels)) if quaternions else \
+        near.rotations(RR, "RR block", labels)
     R_gt = gt_mask = None
     if "Rgt" in data:
         Rgt = _numeric(path, data, "Rgt", allow_nan=True)
         Rgt = Rgt.T if _is_quaternions(Rgt) else _stack3(path, Rgt, "Rgt")
         n = Rgt.shape[0]
-        R_gt, gt_mask = _ground_truth(path, Rgt, project)
+        R_gt, gt_mask = _ground_truth(path, Rgt, near)
     else:
         n = int(edges.max()) + 1 if edges.size else 0
         used = len(np.unique(edges))
@@ -323,7 +288,7 @@ def read_l1_mat(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_
         if H.shape[0] != RR.shape[0]:
             raise InputFileError(f"{path}: H has {H.shape[0]} blocks but RR has {RR.shape[0]}")
     vg = _make_graph(path, [str(k) for k in range(n)], edges, RR, H)
-    project.warn()
+    near.warn()
     return MatData(vg, R_gt, gt_mask)
 
 

@@ -19,13 +19,17 @@ guards an internal invariant); every reader of a user file projects its rotation
 :func:`project_near_rotations` before building the view graph, with a ``rotation_tol``
 argument (``python -m pipeline.average --rotation-tol``, default
 :data:`DEFAULT_ROTATION_TOL`): the ``.mat`` layouts (:mod:`pipeline.io.mat`), rotations
-files (:mod:`pipeline.io.rotations`), 1DSfM, g2o and GLOMAP files.
+files (:mod:`pipeline.io.rotations`), 1DSfM, g2o and GLOMAP files. A reader of an input in parts (the ``.mat``
+layouts' variables, a 1DSfM folder's ``EGs.txt`` and ``gt_bundle.out``) projects each part through
+:class:`OneWarning`, which warns once for the input.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -33,7 +37,7 @@ from pipeline.core import so3
 from pipeline.core.errors import InputFileError
 
 __all__ = ["DEFAULT_ROTATION_TOL", "NearRotationError", "NearRotationReport", "rotation_deviation",
-           "project_near_rotations", "normalize_near_unit_quaternions", "projected_or_input_error"]
+           "project_near_rotations", "normalize_near_unit_quaternions", "projected_or_input_error", "OneWarning"]
 
 logger = logging.getLogger(__name__)
 
@@ -167,3 +171,61 @@ def projected_or_input_error(R: np.ndarray, tol: float, *, what: str, source: st
         return project_near_rotations(R, tol, what=what, source=source, labels=labels)[0]
     except NearRotationError as exc:
         raise InputFileError(str(exc)) from None
+
+
+@dataclass
+class OneWarning:
+    """The near-rotations of one input read in parts (a ``.mat`` file's variables, a 1DSfM folder's files), each
+    projected as it is read, with ONE warning for the input when all are read (:meth:`warn`): ``<source>: 3 of 40 RR
+    blocks and 2 of 9 Rgt blocks deviate from SO(3) (largest max|RᵀR−I| 1.2e-06, tolerance 0.001); projected onto
+    SO(3)``.
+
+    Args:
+        source: the input, named in the warning.
+        tol: the tolerance (``max|RᵀR − I|``, or ``| ‖q‖ − 1 |``).
+        advise: a refusal also says what was expected and that ``--rotation-tol`` accepts coarser inputs.
+    """
+
+    source: str | os.PathLike
+    tol: float
+    advise: bool = False
+    parts: list[str] = field(default_factory=list)
+    worst: float = 0.0
+
+    def rotations(self, R: np.ndarray, what: str, labels: list[str] | None = None,
+                  source: str | os.PathLike | None = None) -> np.ndarray:
+        """(K, 3, 3) matrices ``what`` (e.g. ``"RR block"``) projected onto SO(3); a refusal is one
+        :class:`InputFileError` line. ``source``: the file they came from, when not the input itself (the warning
+        then names it: ``"12 of 40 EG rotations of EGs.txt"``)."""
+        try:
+            out, rep = project_near_rotations(R, self.tol, what=what, source=str(source or self.source), labels=labels,
+                                              warn=False)
+        except NearRotationError as exc:
+            raise InputFileError(f"{exc}{self._advice('rotations')}") from None
+        self._add(rep, f"{what}s" + ("" if source is None else f" of {Path(source).name}"))
+        return out
+
+    def quaternions(self, q: np.ndarray, key: str, labels: list[str] | None = None) -> np.ndarray:
+        """(K, 4) quaternions of the variable ``key`` normalized (:func:`normalize_near_unit_quaternions`); a refusal
+        is one :class:`InputFileError` line."""
+        try:
+            out, rep = normalize_near_unit_quaternions(q, self.tol, source=str(self.source), labels=labels,
+                                                       warn=False)
+        except NearRotationError as exc:
+            raise InputFileError(f"{exc}{self._advice('unit quaternions')}") from None
+        self._add(rep, f"{key} quaternions (| |q| − 1 |)")
+        return out
+
+    def warn(self) -> None:
+        """The one warning (none when nothing deviated)."""
+        if self.parts:
+            logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)",
+                           self.source, " and ".join(self.parts), self.worst, self.tol)
+
+    def _add(self, rep: NearRotationReport, part: str) -> None:
+        if rep.n_projected:
+            self.parts.append(f"{rep.n_projected} of {rep.n_total} {part}")
+            self.worst = max(self.worst, rep.max_deviation)
+
+    def _advice(self, expected: str) -> str:
+        return f"; expected {expected} (raise --rotation-tol to accept coarser ones)" if self.advise else ""

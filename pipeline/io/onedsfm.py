@@ -42,11 +42,12 @@ import numpy as np
 
 from pipeline.core.atomic import TMP_TAG, atomic_dir, atomic_open
 from pipeline.core.errors import InputFileError, ViewGraphError
+from pipeline.core.names import positions
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.io.bundler import BUNDLER_TO_CV, _projected, read_bundler, write_bundler
+from pipeline.io.bundler import BUNDLER_TO_CV, read_bundler, write_bundler
 from pipeline.io.common import line_numbers as _numbers
 from pipeline.io.common import repeated_pair
-from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL
+from pipeline.io.near_rotation import DEFAULT_ROTATION_TOL, OneWarning
 
 __all__ = ["OneDSfMData", "read_1dsfm", "write_1dsfm", "read_bundler", "write_bundler", "is_1dsfm_folder",
            "check_1dsfm_target", "BUNDLER_TO_CV"]
@@ -200,9 +201,8 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
         a, b = rep
         raise InputFileError(f"{folder / 'EGs.txt'}:{lines[b]}: images {ij[b, 0]} and {ij[b, 1]} already have an EG on "
                              f"line {lines[a]}; each pair may appear once, in either orientation: delete one of the lines")
-    notes: list = []  # near-rotations of EGs.txt and gt_bundle.out: one warning for the dataset
-    R_file = _projected(R_file, rotation_tol, "EG rotation", folder / "EGs.txt", [f"on line {ln}" for ln in lines],
-                        notes)
+    near = OneWarning(folder, rotation_tol)  # near-rotations of EGs.txt and gt_bundle.out: one warning for the dataset
+    R_file = near.rotations(R_file, "EG rotation", [f"on line {ln}" for ln in lines], source=folder / "EGs.txt")
     F = BUNDLER_TO_CV
     R_rel = F @ np.swapaxes(R_file, 1, 2) @ F         # our R_j R_iᵀ for the file's (i, j)
     # the file's t is camera j's centre in camera i's frame; the pipeline's t (x_j = R_ij x_i + t) is −R_ij of it
@@ -220,7 +220,7 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
     R_gt = gt_mask = None
     gt_path = folder / "gt_bundle.out"
     if read_truth and gt_path.is_file():
-        Rb, _, _, reg = read_bundler(gt_path, rotation_tol, _notes=notes)
+        Rb, _, _, reg = read_bundler(gt_path, rotation_tol, _near=near)
         _check_camera_count(gt_path, Rb.shape[0], folder / "list.txt", n_img)
         if Rb.shape[0] < n_img:
             logger.warning("%s has %d cameras for %d listed images; the rest count as unregistered",
@@ -231,9 +231,7 @@ def read_1dsfm(folder: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION
         R_all[:k], m_all[:k] = Rb[:k], reg[:k]
         R_gt, gt_mask = R_all[cams], m_all[cams]
         info["n_gt_registered"] = int(gt_mask.sum())
-    if notes:
-        logger.warning("%s: %s deviate from SO(3) (largest max|RᵀR−I| %.3g, tolerance %g); projected onto SO(3)", folder,
-                       " and ".join(n for n, _ in notes), max(d for _, d in notes), rotation_tol)
+    near.warn()
     return OneDSfMData(vg, cams, focal[cams], R_gt, gt_mask, info)
 
 
@@ -277,8 +275,7 @@ def check_1dsfm_target(folder: str | os.PathLike) -> None:
 
 def _write_1dsfm_files(folder: Path, vg: ViewGraph, list_names, index, focal, R_gt, t_gt, gt_mask) -> None:
     list_names = list(vg.names) if list_names is None else list(list_names)
-    pos = {n: k for k, n in enumerate(list_names)}
-    index = np.array([pos[n] for n in vg.names]) if index is None else np.asarray(index)
+    index = positions(list_names, vg.names) if index is None else np.asarray(index)
     focal = np.full(len(list_names), np.nan) if focal is None else np.asarray(focal, float)
     with atomic_open(folder / "list.txt") as fh:
         for n, f in zip(list_names, focal):

@@ -34,7 +34,7 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_dir, write_json
 from pipeline.core.errors import CacheError, InputFileError, PipelineError
-from pipeline.core.names import match_names
+from pipeline.core.names import match_names, positions
 from pipeline.io.rotations import read_rotations, write_rotations
 from pipeline.refine.refine import RefineConfig, RefineResult, refine_rotations
 from pipeline.stage import Stage, StageRecord, read_record
@@ -113,18 +113,16 @@ def _checked_pairs(vg: Any, graph: Path | None, weak: bool = True) -> Any:
     if graph is None or not Path(graph).is_file():
         return vg
     g = ViewGraph.load(graph, allow_isolated=True)
-    pos = {n: k for k, n in enumerate(vg.names)}  # names are unique in a view graph
-    on = np.array([pos.get(n, -1) for n in g.names], np.int64)
-    pairs = [on[g.edges.reshape(-1, 2)]]  # as cameras of vg (−1: not in it)
+    pairs = [positions(vg.names, g.names, missing=-1)[g.edges.reshape(-1, 2)]]  # as cameras of vg (−1: not in it)
     if weak and (Path(graph).parent / SUMMARY).is_file():
         rows = load_graph_summary(Path(graph).parent).get("pairs", [])
         try:  # one row per pair in the JSON file
-            weak_rows = [(pos.get(str(r["pair"][0]), -1), pos.get(str(r["pair"][1]), -1)) for r in rows
-                         if r.get("tracks") is True and r.get("status") == "rejected"]
+            weak_names = [str(nm) for r in rows if r.get("tracks") is True and r.get("status") == "rejected"
+                          for nm in (r["pair"][0], r["pair"][1])]
         except (TypeError, KeyError, IndexError, AttributeError):
             raise CacheError(f"{Path(graph).parent / SUMMARY} has malformed pairs; re-run the view-graph stage"
                              ) from None
-        pairs.append(np.array(weak_rows, np.int64).reshape(-1, 2))
+        pairs.append(positions(vg.names, weak_names, missing=-1).reshape(-1, 2))
     P, n = np.concatenate(pairs), len(vg.names)
     P = P[(P >= 0).all(axis=1)]
     E = np.asarray(vg.edges, np.int64).reshape(-1, 2)
@@ -378,8 +376,10 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
         elif probe:
             notes.append(f"{label}: {probe}")
         for cid, pp in (s.get("principal_point") or {}).items():
+            sd = pp.get("sd_px")  # null where it is not finite (a singular covariance)
             notes.append(f"{label}: principal point of camera {cid} refined to ({pp['px'][0]:.1f}, {pp['px'][1]:.1f}) "
-                         f"px, standard deviation {pp['sd_px']:.2f} px")
+                         + (f"px, standard deviation {sd:.2f} px" if sd is not None else
+                            "px, no finite standard deviation"))
         if s["status"] == "failed":
             notes.append(f"{label}: the refinement failed, so its rotations are the averaged ones of {s['start']}")
         notes += [f"{label}: {nm}, left out of the view graph, is {why}" for nm, why in (s.get("placed") or {}).items()]

@@ -176,6 +176,26 @@ def test_same_size_cut_is_caught_by_its_checksum_and_by_verify(six, tmp_path, ca
     assert "holds 2 camera(s) but the solved component" in caplog.text
 
 
+def test_a_result_cached_with_nan_tokens_by_an_older_version_is_still_reused(six, tmp_path, calls):
+    """Before its JSON was strict, the stage wrote a figure that is not finite as a NaN token (a certificate's
+    undefined eigenvalue): such a cached result, recorded by that version (sizes and checksums of those bytes), is
+    intact and reused, and its stats read back with NaN."""
+    path, _ = six
+    out = tmp_path / "rotations"
+    _run(out, "irls", path)
+    js, rec_path = out / "irls-l0.5.json", out / "irls-l0.5.record.json"
+    stats = json.loads(js.read_text())
+    stats.setdefault("certificate", {})["lambda_nontrivial"] = float("nan")
+    js.write_text(json.dumps(stats, indent=2) + "\n")  # as the older writer wrote it
+    assert '"lambda_nontrivial": NaN' in js.read_text()
+    rec = json.loads(rec_path.read_text())
+    rec["outputs"][js.name], rec["digests"][js.name] = js.stat().st_size, output_digest(js)
+    rec_path.write_text(json.dumps(rec, indent=2) + "\n")
+    again = _run(out, "irls", path)
+    assert again["record"].reused and calls["average"] == 1
+    assert np.isnan(again["stats"]["certificate"]["lambda_nontrivial"])
+
+
 def test_disconnected_graph_solved_component_is_what_verify_expects(tmp_path, calls):
     R = so3.random_rotations(6, np.random.default_rng(1))
     vg = ViewGraph.from_absolute(list("abcdef"), R, [[0, 1], [1, 2], [0, 2], [3, 4]], allow_isolated=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -149,6 +151,26 @@ def test_a_focal_superseded_by_the_view_graph_calibration_is_not_called_unestima
     # how well determined: the calibration gives no uncertainty, and the report says so (the benchmark measured one
     # image's focal 31% off the truth)
     assert notes[1] == "- focal of 10 images from the view-graph calibration: no uncertainty is estimated for it"
+
+
+def test_an_estimate_whose_sd_is_not_finite_is_said_without_one_when_read_back_from_cameras_json(tmp_path):
+    """A focal fixed by pairs that leaving one image out cuts below min_pairs has an infinite jackknife sd: cameras.json
+    (strict JSON) holds null for it, and the console line (which raised TypeError on it), the report and
+    metrics.json's messages say that estimate without an sd."""
+    from pipeline.core.atomic import write_json
+    from pipeline.evaluation.assemble import _weak_focal_messages
+
+    est = [{"n_images": n, "focal": {"f": 900.0, "n_pairs": 4, "sd_rel": sd, "determined": False, "note": ""}}
+           for n, sd in ((3, float("inf")), (5, 0.2))]
+    focal = [{"source": "estimated:profile+rotcons", "n_images": 8, "median_px": 900.0, "min_px": 900.0,
+              "max_px": 900.0}]
+    intr = json.loads(write_json(tmp_path / "cameras.json", {"focal": focal, "estimates": est}).read_text())
+    assert intr["estimates"][0]["focal"]["sd_rel"] is None
+    assert intrinsics_console(intr).endswith("POORLY DETERMINED for 2 camera group(s) (jackknife sd –, 20.0%)")
+    assert "- focal of 1 camera (3 images): 900.0 px from 4 pairs" in intrinsics_lines(intr)
+    assert [m.split(":")[0] for m in _weak_focal_messages(intr)] == [
+        "the focal length of 3 image(s) is poorly determined (900.0 px)",
+        "the focal length of 5 image(s) is poorly determined (900.0 px, jackknife sd 20.0%)"]
 
 
 SDP_CERT = {"certified": True, "rank": 3, "gap": 5.4e-08, "gap_vs_resolution": 0.009, "kappa": 0.01, "n_kept": 13,

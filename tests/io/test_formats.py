@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from pipeline.core.errors import InputFileError
 from pipeline.core.viewgraph import ViewGraph
 from pipeline.io.g2o import read_g2o, write_g2o
 from pipeline.io.glomap import read_glomap_relpose, read_glomap_rotations, write_glomap_relpose, write_glomap_rotations
-from pipeline.io.near_rotation import NearRotationError, project_near_rotations
+from pipeline.io.near_rotation import NearRotationError, OneWarning, project_near_rotations
 from pipeline.io.onedsfm import BUNDLER_TO_CV, read_1dsfm, read_bundler, write_1dsfm
 from pipeline.synthetic.files import make_synthetic_1dsfm
 
@@ -58,6 +59,37 @@ def test_near_rotation_projection_and_refusal():
         bad = R.copy()
         bad[0, 0, 0] = np.nan
         project_near_rotations(bad, source="f.txt")
+
+
+def test_an_input_read_in_parts_warns_once_with_every_part_and_the_largest_deviation(caplog):
+    """OneWarning, as the .mat readers (one variable at a time) and read_1dsfm (EGs.txt, then gt_bundle.out) use it:
+    each part projected as read, one warning naming them all when the input is read, none for exact rotations."""
+    rng = np.random.default_rng(0)
+    R = so3.random_rotations(5, rng)
+    near = OneWarning("ds", 1e-3, advise=True)
+    with caplog.at_level(logging.WARNING):
+        near.rotations(R, "RR block")  # exact: not counted
+        out = near.rotations(np.round(R[:3], 6), "camera rotation", [f"camera {k}" for k in range(3)],
+                             source=Path("ds") / "gt_bundle.out")
+        qn = near.quaternions(np.array([[1.0 + 2e-7, 0, 0, 0], [0, 1.0, 0, 0]]), "Rgt")
+        assert not caplog.records  # nothing said before the input is read
+        near.warn()
+    (msg,) = [r.getMessage() for r in caplog.records]
+    worst = max(float(np.abs(np.swapaxes(A, -1, -2) @ A - np.eye(3)).max()) for A in np.round(R[:3], 6))
+    assert msg == ("ds: 3 of 3 camera rotations of gt_bundle.out and 1 of 2 Rgt quaternions (| |q| − 1 |) deviate "
+                   f"from SO(3) (largest max|RᵀR−I| {worst:.3g}, tolerance 0.001); projected onto SO(3)")
+    assert so3.is_rotation(out, 1e-12).all() and np.allclose(np.linalg.norm(qn, axis=1), 1.0, atol=1e-15)
+    with pytest.raises(InputFileError, match=r"^ds: RR block 1 \(1-based\) is not a rotation: .* tolerance 0.001; "
+                                             r"expected rotations \(raise --rotation-tol to accept coarser ones\)$"):
+        near.rotations(1.01 * R[:1], "RR block", ["1 (1-based)"])
+    with pytest.raises(InputFileError, match=r"^ds: quaternion of camera 0 has norm 1.1, not within 0.001 of 1$"):
+        OneWarning("ds", 1e-3).quaternions(np.array([[1.1, 0, 0, 0]]), "Rgt", ["of camera 0"])
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        exact = OneWarning("ds", 1e-3)
+        exact.rotations(R, "EG rotation", source="ds/EGs.txt")
+        exact.warn()
+    assert not caplog.records
 
 
 # ----------------------------------------------------------------------------- GLOMAP

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.atomic import write_json
 from pipeline.core.errors import InputFileError, PipelineError
 from pipeline.io.rotations import read_rotations
 from pipeline.refine.refine import RefineConfig
@@ -255,7 +256,18 @@ def test_the_report_says_what_the_principal_point_probe_decided():
     assert "kept at the image centres: a camera without a K file" in n_held and "probed: held" in n_held
     notes = refine_notes({"a+refine": {"stats": refined}})
     assert "a+refine: principal points refined for 7 of 8 image(s)" in notes
-    assert any("principal point of camera 3 refined to (560.0, 390.0) px" in n for n in notes)
+    assert "a+refine: principal point of camera 3 refined to (560.0, 390.0) px, standard deviation 2.10 px" in notes
+
+
+def test_a_principal_point_sd_that_is_not_finite_is_said_so_when_read_back(tmp_path):
+    """principal_point="refined" keeps a principal point whose covariance is singular (sd inf): the stats file (strict
+    JSON) holds null for its sd, and the notes (which raised TypeError formatting it) say it has no finite one."""
+    stats = {"start_why": "the recommended method", "status": "ok", "n_refined": 9, "n_cameras": 9, "model": "sparse",
+             "kept_averaged": {}, "principal_point": {"3": {"px": [560.0, 390.0], "sd_px": float("inf")}}}
+    back = json.loads(write_json(tmp_path / "a+refine.json", stats).read_text())
+    assert back["principal_point"]["3"]["sd_px"] is None
+    assert "a+refine: principal point of camera 3 refined to (560.0, 390.0) px, no finite standard deviation" in \
+        refine_notes({"a+refine": {"stats": back}})
 
 
 def test_a_camera_the_refinement_did_not_refine_has_no_ba_sigma_in_the_stats():
