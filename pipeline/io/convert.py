@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m pipeline.convert INPUT OUTPUT [--to FORMAT] [--rotation-tol T]
+    python -m pipeline.convert INPUT OUTPUT [--to FORMAT] [--rotation-tol T] [--g2o-info gtsam|g2o]
 
 INPUT is any view graph of :mod:`pipeline.io.graphs` (``.npz``, ``.mat``, a 1DSfM
 folder, ``.g2o``, GLOMAP relative poses) or a rotations file (ours or GLOMAP's).
@@ -14,7 +14,8 @@ FORMAT (default: from OUTPUT's extension; ``.txt`` needs it):
 ``1dsfm``              a 1DSfM folder (``list.txt``, ``cc.txt``, ``EGs.txt``,
                        ``gt_bundle.out`` when the truth is known)
 ``g2o``                ``EDGE_SE3:QUAT`` lines with H as the rotation information
-                       (GTSAM's reading; ``VERTEX_SE3:QUAT`` from ``--rotations``)
+                       (GTSAM's reading; ``VERTEX_SE3:QUAT`` from ``--rotations``;
+                       ``--g2o-info g2o``: g2o's own, 4H, for a g2o INPUT too)
 ``glomap-relpose``     GLOMAP's ``NAME1 NAME2 QW QX QY QZ TX TY TZ``
 ``glomap-rotations``   GLOMAP's ``NAME QW QX QY QZ`` (from a rotations INPUT)
 ``rotations``          ours, ``name r11 … r33`` (from a rotations INPUT)
@@ -98,8 +99,11 @@ def _vertex_rotations(path: Path, vg, rotation_tol: float) -> np.ndarray:
 
 
 def main(input_path: str | Path, output: str | Path, to: str | None = None, rotations: str | Path | None = None,
-         rotation_tol: float = DEFAULT_ROTATION_TOL) -> Path:
-    """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``."""
+         rotation_tol: float = DEFAULT_ROTATION_TOL, g2o_info: str = "gtsam") -> Path:
+    """Convert ``input_path`` to ``output`` in format ``to`` (module docstring); returns ``output``.
+
+    ``g2o_info``: the information convention of a ``.g2o`` read or written (``gtsam``: the block is H, as GTSAM
+    reads it; ``g2o``: 4H, as g2o's own SE3 edges weigh the quaternion's vector part)."""
     src, out = Path(input_path), Path(output)
     fmt = to or _BY_SUFFIX.get(out.suffix.lower())
     if fmt not in TARGETS:
@@ -122,7 +126,7 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
         raise ConfigError(f"{src} holds rotations, not a view graph: --to glomap-rotations or rotations")
     if fmt in ("glomap-rotations", "rotations"):
         raise ConfigError(f"--to {fmt} needs a rotations file as INPUT; {src} is not one (10 or 5 fields a line)")
-    data = read_input_graph(src, rotation_tol)
+    data = read_input_graph(src, rotation_tol, g2o_info)
     vg = data.vg
     R0 = None if rotations is None else _vertex_rotations(Path(rotations), vg, rotation_tol)  # checked before writing
     _warn_lost(data, out, fmt)
@@ -140,7 +144,7 @@ def main(input_path: str | Path, output: str | Path, to: str | None = None, rota
     if fmt == "g2o":
         from pipeline.io.g2o import write_g2o  # noqa: PLC0415
 
-        return write_g2o(out, vg, R0)
+        return write_g2o(out, vg, R0, info_convention=g2o_info)
     from pipeline.io.glomap import write_glomap_relpose  # noqa: PLC0415
 
     return write_glomap_relpose(out, vg)
@@ -155,6 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rotations", type=Path, default=None, help="g2o: rotations file for the vertices")
     p.add_argument("--rotation-tol", type=float, default=DEFAULT_ROTATION_TOL, metavar="T",
                    help=f"project input rotations within T of SO(3), refuse beyond (default {DEFAULT_ROTATION_TOL:g})")
+    p.add_argument("--g2o-info", choices=("gtsam", "g2o"), default="gtsam",
+                   help="information convention of a .g2o read or written: gtsam (the block is H, GTSAM's reading; "
+                        "default) or g2o (4H, g2o's own SE3 edges)")
     return p
 
 
@@ -162,7 +169,7 @@ def main_cli(argv: list[str] | None = None) -> int:
     def body(a: argparse.Namespace) -> int:
         if not a.input.exists():
             raise InputFileError(f"input {a.input} does not exist")
-        print(main(a.input, a.output, a.to, a.rotations, a.rotation_tol))
+        print(main(a.input, a.output, a.to, a.rotations, a.rotation_tol, a.g2o_info))
         return 0
 
     return run_cli(body, build_parser(), argv)

@@ -109,8 +109,10 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     return [p]
 
 
-def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL) -> GraphData:
-    """Read a view graph to average from any supported input (module docstring).
+def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTATION_TOL,
+                     g2o_info: str = "gtsam") -> GraphData:
+    """Read a view graph to average from any supported input (module docstring); ``g2o_info``: a ``.g2o``'s
+    information convention (:func:`pipeline.io.g2o.read_g2o`'s ``info_convention``).
 
     Returns:
         :class:`GraphData` (``R_gt`` from a ``.mat``'s ``Rgt`` or a 1DSfM ``gt_bundle.out``,
@@ -133,7 +135,7 @@ def read_input_graph(path: str | os.PathLike, rotation_tol: float = DEFAULT_ROTA
     if suffix == ".g2o":
         from pipeline.io.g2o import read_g2o  # noqa: PLC0415
 
-        return GraphData(read_g2o(p, rotation_tol).vg, None, None)
+        return GraphData(read_g2o(p, rotation_tol, info_convention=g2o_info).vg, None, None)
     nf = _data_fields(p)
     if nf == 9:
         from pipeline.io.glomap import read_glomap_relpose  # noqa: PLC0415

@@ -208,3 +208,22 @@ def test_convert_rotations_missing_cameras_says_so_in_convert_terms(tmp_path, ca
     assert convert_cli([str(src), str(tmp_path / "o.g2o"), "--rotations", str(rot)]) == 2
     line = _err_line(capsys)  # one line, before the warning about what g2o cannot hold
     assert "--init" not in line and "lacks rotations for 2 camera(s)" in line and "drop --rotations" in line, line
+
+
+def test_convert_writes_and_reads_g2o_in_either_information_convention(tmp_path):
+    """GTSAM reads the rotation block as H, g2o's own SE3 edges as 4H: --g2o-info chooses, both ways."""
+    R = so3.random_rotations(4, np.random.default_rng(0))
+    H = np.stack([np.diag([1.0, 2.0, 3.0]) * (k + 1) for k in range(4)])
+    vg = ViewGraph.from_absolute(["a", "b", "c", "d"], R, [[0, 1], [1, 2], [2, 3], [0, 3]]).with_H(H)
+    src = vg.save(tmp_path / "g.npz")
+    gtsam, g2o = tmp_path / "gtsam.g2o", tmp_path / "g2o.g2o"
+    assert convert_cli([str(src), str(gtsam), "-q"]) == 0
+    assert convert_cli([str(src), str(g2o), "--g2o-info", "g2o", "-q"]) == 0
+    block = [np.array(ln.split()[-21:], float) for ln in (gtsam.read_text(), g2o.read_text())]  # last edge's info
+    assert not np.allclose(block[0], block[1])
+    for path, conv in ((gtsam, "gtsam"), (g2o, "g2o")):
+        back = tmp_path / f"back_{conv}.npz"
+        assert convert_cli([str(path), str(back), "--g2o-info", conv, "-q"]) == 0
+        np.testing.assert_allclose(ViewGraph.load(back).H, H, rtol=1e-6)
+    assert convert_cli([str(g2o), str(tmp_path / "wrong.npz"), "-q"]) == 0  # read as GTSAM's: 4× the precision
+    np.testing.assert_allclose(ViewGraph.load(tmp_path / "wrong.npz").H, 4 * H, rtol=1e-6)
