@@ -197,8 +197,10 @@ def exif_focal(path: str | os.PathLike) -> float | None:
     try:
         from PIL import Image  # noqa: PLC0415
 
+        from pipeline.frontend.images import header_exif  # noqa: PLC0415
+
         with Image.open(path) as im:
-            exif = im.getexif()
+            exif = header_exif(im)  # not getexif: a PNG's would decode the whole image
             w, h = im.size
             sub = exif.get_ifd(0x8769) if hasattr(exif, "get_ifd") else {}
             f35 = sub.get(0xA405) or exif.get(0xA405)  # FocalLengthIn35mmFilm

@@ -383,3 +383,30 @@ def test_an_exif_orientation_is_said_and_the_stored_pixels_are_used(scene, tmp_p
     (msg,) = [r.getMessage() for r in caplog.records]
     assert msg.startswith("1 image(s) carry an EXIF orientation tag (e.g. turned.jpg: 6)") and "as stored" in msg
     assert read_gray(tmp_path / "turned.jpg")[0].shape == im.size[::-1]  # not turned on reading
+
+
+def test_a_png_header_is_read_without_decoding_its_pixels_and_its_exif_orientation_still_said(tmp_path, caplog):
+    """Pillow's getexif of a PNG decoded the whole image: a 150 kB PNG of 12000×12000 pixels took 0.4 s and 137 MB
+    in the header check that is there to refuse such sizes before any decoding."""
+    import resource
+    import time
+
+    from PIL import Image
+
+    from pipeline.frontend.images import check_headers
+
+    Image.new("L", (12000, 12000)).save(tmp_path / "huge.png")
+    im = Image.new("L", (200, 120), 128)
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    im.save(tmp_path / "turned.png", exif=exif.tobytes())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    with caplog.at_level(logging.WARNING, logger="pipeline.frontend.images"):
+        sizes, bad = check_headers(tmp_path, ["huge.png", "turned.png"])
+    dt = time.perf_counter() - t0
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak) / 1024
+    assert sizes == {"huge.png": (12000, 12000), "turned.png": (200, 120)} and not bad
+    assert dt < 0.1 and grown_mb < 50, (dt, grown_mb)  # 144 Mpx decoded would be 0.4 s and 137 MB
+    (msg,) = [r.getMessage() for r in caplog.records]
+    assert msg.startswith("1 image(s) carry an EXIF orientation tag (e.g. turned.png: 6)")
