@@ -64,6 +64,7 @@ from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
+from pipeline.evaluation.flags import DISAGREEMENT_DEG  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
 from pipeline.graph.stage import ViewGraphStage, load_graph_summary  # noqa: E402
@@ -191,11 +192,12 @@ def _second_opinion(plan: Plan, runner: Runner, specs: list[Any], results: dict[
                     upstream: tuple[str, Path, None] | None = None, refined: bool = True) -> None:
     """A second method where only one set of rotations came out of averaging and refinement.
 
-    Cameras are flagged where the methods disagree by more than 1° (:mod:`pipeline.evaluation.flags`); with one
-    set of rotations nothing can disagree, and a camera a method puts degrees off where the graph's evidence is
-    consistent (H's weights on biased pairs, a robust loss in the wrong basin) would go unflagged. The second
-    method is run, reported as a row of its own, and said in the notes. Called before the refinement
-    (``refined=False``: only where none will run) and after it (where it gave no row)."""
+    Cameras are flagged where the methods disagree by more than ``DISAGREEMENT_DEG`` (1°,
+    :mod:`pipeline.evaluation.flags`); with one set of rotations nothing can disagree, and a camera a method puts
+    degrees off where the graph's evidence is consistent (H's weights on biased pairs, a robust loss in the wrong
+    basin) would go unflagged. The second method is run, reported as a row of its own, and said in the notes.
+    Called before the refinement (``refined=False``: only where none will run) and after it (where it gave no
+    row)."""
     if not plan.run.second_opinion or len(results) != 1 or (not refined and plan.run.refine):
         return
     only = next(iter(results))
@@ -208,7 +210,8 @@ def _second_opinion(plan: Plan, runner: Runner, specs: list[Any], results: dict[
                                   upstream=upstream)}))
     specs.append(spec)
     plan.notes.append(f"one set of rotations ({only}): {spec.label} was run as a second opinion, so that the cameras "
-                      f"where the two disagree by more than 1° are flagged (run.second_opinion: false to skip it)")
+                      f"where the two disagree by more than {DISAGREEMENT_DEG:g}° are flagged (run.second_opinion: false to "
+                      "skip it)")
 
 
 def _report(plan: Plan, runner: Runner, vg: ViewGraph, specs: list[Any], results: dict[str, dict], peers: list[Any],
