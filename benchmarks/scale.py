@@ -50,6 +50,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.frontend.matching_stage import load_matches  # noqa: E402
 from pipeline.frontend.retrieval import pair_recall  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
@@ -225,7 +226,8 @@ def summarize(rows: list[dict]) -> dict:
             out["growth"][lay] = {"n": [rs[0]["n"], rs[-1]["n"]],
                                   "per_image_ratio": rs[-1]["per_image_s"] / rs[0]["per_image_s"],
                                   "cpu_per_image_ratio": cpu[1] / cpu[0] if None not in cpu else None,
-                                  "peak_rss_mb_max": max(r["peak_rss_mb"] for r in rs)}
+                                  "peak_rss_mb_max": max((r["peak_rss_mb"] for r in rs  # null: not measured
+                                                          if r.get("peak_rss_mb") is not None), default=None)}
     return out
 
 
@@ -242,7 +244,7 @@ def print_table(rows: list[dict]) -> None:
               f"{r['recall']['n_selected']:6d} {r['recall']['fraction_matched']:6.3f} {r['recall']['recall']:6.3f} "
               f"{r['median_deg']:7.3f} {f(ex.get('median_deg'), '8.3f'):>8s} "
               f"{f(ex.get('error_ratio_retrieval'), '5.2f'):>5s} {r['our_path_s']:7.1f} {r['per_image_s']:6.2f} "
-              f"{r['peak_rss_mb']:6.0f} {f(pc.get('median_deg'), '7.3f'):>7s} {f(pc.get('time_s'), '7.1f'):>7s} "
+              f"{f(r.get('peak_rss_mb'), '6.0f'):>6s} {f(pc.get('median_deg'), '7.3f'):>7s} {f(pc.get('time_s'), '7.1f'):>7s} "
               f"{f(pc.get('time_ratio_ours'), '7.2f'):>7s}")
 
 
@@ -275,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{lay}-{n}: ours {r['method']} on pycolmap's {r['pycolmap'].get('n_its_images')} images "
                       f"{r['pycolmap'].get('ours_on_its_images_deg'):.4f}° vs its {r['pycolmap']['median_deg']:.4f}°"
                       f" ({r['pycolmap'].get('error_ratio_same_images'):.2f}×); all {n}: {r['median_deg']:.4f}°")
-        a.json.write_text(json.dumps({**json.loads(a.json.read_text()), "rows": list(rows.values())}, indent=1))
+        write_json(a.json, {**json.loads(a.json.read_text()), "rows": list(rows.values())})
         return 0
     for lay in a.layouts:
         for n in a.sizes:
@@ -296,8 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                    "command": "python benchmarks/scale.py " + " ".join(sys.argv[1:] if argv is None else argv),
                    "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}}
             a.json.parent.mkdir(parents=True, exist_ok=True)
-            a.json.write_text(json.dumps(res, indent=1, default=lambda o: o.tolist() if isinstance(o, np.ndarray)
-                                         else str(o)))
+            write_json(a.json, res)  # strict JSON: a figure not measured is null
             print_table([rows[(lay, n)]])
     print_table(list(rows.values()))
     print(json.dumps(summarize(list(rows.values())), indent=1))
