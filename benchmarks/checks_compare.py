@@ -33,6 +33,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.averaging.solve import average  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
@@ -97,8 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         for label in RULES:
             print(f"{name:18s} {label:7s} " + " ".join(f"{str(r[label][c]):>17s}" for c in cols))
     a.json.parent.mkdir(parents=True, exist_ok=True)
-    a.json.write_text(json.dumps({"rows": rows, "change": a.change, "command": "python benchmarks/checks_compare.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)}, indent=1))
+    write_json(a.json, {"rows": rows, "change": a.change, "command": "python benchmarks/checks_compare.py " + " ".join(
+        sys.argv[1:] if argv is None else argv)})
     print(f"wrote {a.json}")
     return 0
 

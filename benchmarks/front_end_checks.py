@@ -43,6 +43,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core import so3  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
@@ -303,7 +304,7 @@ def main() -> int:
         results[name] = {a.label: measure(name, specs[name], a.work, a.label)}
         print(f"{name} {a.label}: {json.dumps({k: v for k, v in results[name][a.label].items() if k not in ('left_out', 'injected', 'stages_s')})}", flush=True)
     if a.json is not None:
-        a.json.write_text(json.dumps(results, indent=1))
+        write_json(a.json, results)
     if a.before is not None and a.before.is_file():
         for name, by in json.loads(a.before.read_text()).items():
             if name in results:
@@ -315,7 +316,7 @@ def main() -> int:
             doc["scaling"] = scaling(a.sizes)
         doc["commands"] = __doc__.split("package::")[1].split("``--scenes``")[0].strip()
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
-        RESULTS.write_text(json.dumps(doc, indent=1, default=float))
+        write_json(RESULTS, doc)
         print(table(doc["scenes"]))
         print(f"wrote {RESULTS}")
     return 0

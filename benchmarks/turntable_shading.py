@@ -40,6 +40,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.io.rotations import read_rotations  # noqa: E402
 from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
@@ -264,8 +265,7 @@ def main() -> int:
         bad = [x for x in results[key]["pairs"] if x["err_deg"] > 5]
         print(f"{key}: {len(bad)} kept pairs > 5°: {bad}", flush=True)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps({"scenes": results, "command": "python benchmarks/turntable_shading.py --work W"},
-                                  indent=1, default=float))
+    write_json(RESULTS, {"scenes": results, "command": "python benchmarks/turntable_shading.py --work W"})
     print(table({k: results[k] for k in keys}))
     print(f"wrote {RESULTS}")
     return 0
