@@ -12,6 +12,8 @@ update ``ΔR_ij ← exp(−[Δω_j]×) ΔR_ij exp([Δω_i]×)``, whose log is, t
 linearized residual is therefore ``r − A ΔΩ``: paper 1's ``A ΔΩ_V + ΔΩ_E`` with its
 ``A`` (+I at ``i``, −I at ``j``) equal to minus ours.
 
+The residuals themselves are computed in :mod:`~pipeline.averaging.residuals` (re-exported here).
+
 Used by :mod:`~pipeline.averaging.l1`, :mod:`~pipeline.averaging.irls`,
 :mod:`~pipeline.averaging.irls_h` and :mod:`~pipeline.averaging.weiszfeld`. Pure
 functions and classes on arrays: no I/O, no logging.
@@ -28,6 +30,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as sla
 
 from pipeline.averaging.iterative import ITERATIVE_FILL, JacobiPreconditioner, cg_with_factor, solve_without_factoring
+from pipeline.averaging.residuals import edge_residuals, graph_residuals
 from pipeline.core import so3
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -95,64 +98,6 @@ def blas_threads(n: int) -> contextlib.AbstractContextManager[Any]:
     gain nothing there) and above :data:`BLAS_THREADS_MAX_SIZE` (threads crash there), all of them between."""
     one = n < DENSE_SINGLE_THREAD_SIZE or n > BLAS_THREADS_MAX_SIZE
     return _one_blas_thread() if one else contextlib.nullcontext()
-
-
-def edge_residuals(edges: np.ndarray, R_rel: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """Residual rotation vectors ``r_ij = log(R_jᵀ R_ij R_i)`` (paper 1, eq. 7).
-
-    Args:
-        edges: (M, 2) camera indices ``(i, j)``.
-        R_rel: (M, 3, 3) measured ``R_ij ≈ R_j R_iᵀ``.
-        R: (N, 3, 3) current cam_from_world rotations.
-
-    Returns:
-        (M, 3) residuals in radians.
-    """
-    Ri = R[edges[:, 0]]
-    Rj = R[edges[:, 1]]
-    return so3.log(np.swapaxes(Rj, 1, 2) @ R_rel @ Ri)
-
-
-_FINGERPRINT_WEIGHTS: dict[int, np.ndarray] = {}
-
-
-def _fingerprint(a: np.ndarray) -> tuple[int, tuple[int, ...], float]:
-    """Where ``a``'s data is, its shape, and its dot product with fixed random weights: any change of the values
-    (in place too) changes the last but for a set of measure zero; 0.1 ms for 20,000 rotations."""
-    flat = np.ascontiguousarray(a, dtype=np.float64).reshape(-1)
-    w = _FINGERPRINT_WEIGHTS.get(flat.size)
-    if w is None:
-        w = _FINGERPRINT_WEIGHTS[flat.size] = np.random.default_rng(flat.size).standard_normal(flat.size)
-        if len(_FINGERPRINT_WEIGHTS) > 8:  # a few graph sizes at a time
-            del _FINGERPRINT_WEIGHTS[next(iter(_FINGERPRINT_WEIGHTS))]
-    # einsum's own loop: no temporary (3× faster than sum(flat * w) on 680k rotations), and not BLAS, whose threads
-    # wake slowly
-    return a.__array_interface__["data"][0], a.shape, float(np.einsum("i,i->", flat, w))
-
-
-def _graph_memo(vg: ViewGraph) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``vg``'s relative quaternions (4, M) and edge ends (M,), (M,), contiguous, kept on the view graph while its
-    measurements are unchanged (an IRLS run evaluates its residuals tens of times; they are converted once)."""
-    fp = (_fingerprint(vg.R_rel), _fingerprint(vg.edges))
-    memo = vg.__dict__.get("_residual_memo")
-    if memo is None or memo[0] != fp:  # NaN never equals itself: a graph with NaN is converted anew
-        e = np.asarray(vg.edges, dtype=np.int64)
-        memo = (fp, (np.ascontiguousarray(so3.quat_from_matrix(vg.R_rel).T), np.ascontiguousarray(e[:, 0]),
-                     np.ascontiguousarray(e[:, 1])))
-        vg.__dict__["_residual_memo"] = memo
-    return memo[1]
-
-
-def graph_residuals(vg: ViewGraph, R: np.ndarray) -> np.ndarray:
-    """:func:`edge_residuals` of ``vg``'s edges at the rotations ``R`` (N, 3, 3), by quaternions: ``r_ij`` is the
-    log of ``q_jᶜ ⊗ q_ij ⊗ q_i`` (:func:`pipeline.core.so3.log_quat`). The same residuals to 2e-15 rad, accurate
-    near π as :func:`pipeline.core.so3.log` is, and 5× faster on 20,000 edges (no (M, 3, 3) gathers or products:
-    an IRLS run on a dense graph spent half its time here)."""
-    q_rel, e0, e1 = _graph_memo(vg)
-    q = np.ascontiguousarray(so3.quat_from_matrix(R).T)
-    qj = q[:, e1]
-    qj[1:] *= -1.0  # conjugate: R_jᵀ
-    return so3.log_quat(so3.quat_multiply(so3.quat_multiply(qj, q_rel, axis=0), q[:, e0], axis=0).T)
 
 
 def apply_update(R: np.ndarray, dw: np.ndarray) -> np.ndarray:

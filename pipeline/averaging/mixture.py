@@ -45,14 +45,30 @@ def mixture_terms(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, s: flo
     """Per-edge log-likelihood, inlier posterior γ and latent precision u = (ν+3)/(ν + q/s²).
 
     Broadcasts: q, half_logdet, lh (M,) or (1, M); s, nu, eps scalars or (K, 1).
+
+    The log-sum-exp ``m + log(exp(a − m) + exp(b − m))``, ``m = max(a, b)``, is evaluated as
+    ``m + log(1 + exp(−|a − b|))``: one of its two exponentials is exp(0) = 1 exactly and the other's argument is
+    ±(a − b) exactly, so the values are the same to the last bit with one exponential fewer; every (K, M) pass
+    writes in place (EM calls this hundreds of times per IRLS run).
     """
-    lt = (gammaln(0.5 * (nu + 3.0)) - gammaln(0.5 * nu) - 1.5 * np.log(nu * np.pi) - 3.0 * np.log(s)
-          + half_logdet - 0.5 * (nu + 3.0) * np.log1p(q / (nu * s * s)))
-    a = np.log1p(-eps) + lt
+    lt = np.empty(np.broadcast_shapes(*map(np.shape, (q, half_logdet, lh, s, nu, eps))))
+    np.divide(q, nu * s * s, out=lt)
+    np.log1p(lt, out=lt)
+    lt *= 0.5 * (nu + 3.0)
+    np.subtract(gammaln(0.5 * (nu + 3.0)) - gammaln(0.5 * nu) - 1.5 * np.log(nu * np.pi) - 3.0 * np.log(s)
+                + half_logdet, lt, out=lt)
+    a = np.add(np.log1p(-eps), lt, out=lt)
     b = np.log(eps) + lh
-    m = np.maximum(a, b)
-    ll = m + np.log(np.exp(a - m) + np.exp(b - m))
-    return ll, np.exp(a - ll), (nu + 3.0) / (nu + q / (s * s))
+    ll = np.subtract(a, b)
+    np.abs(ll, out=ll)
+    np.negative(ll, out=ll)
+    np.exp(ll, out=ll)
+    ll += 1.0
+    np.log(ll, out=ll)
+    ll += np.maximum(a, b)
+    gamma = np.subtract(a, ll, out=a)
+    u = nu + q / (s * s)
+    return ll, np.exp(gamma, out=gamma), np.divide(nu + 3.0, u, out=u)
 
 
 @dataclass
