@@ -9,6 +9,7 @@ import numpy as np
 
 from pipeline.averaging.kernel import check_graph
 from pipeline.averaging.registry import get_method
+from pipeline.averaging.residuals import held_measurements
 from pipeline.averaging.result import AveragingResult, method_config
 from pipeline.core.config import Config
 from pipeline.core.errors import ConfigError, ViewGraphError
@@ -75,10 +76,11 @@ def average(vg: ViewGraph, method: str = "irls", config: Config | None = None, *
             init = init[res.kept]
         if init_weights is not None:
             init_weights = np.asarray(init_weights)[edge_kept]
-    if m.takes_init:
-        out = m.solve(sub, config=cfg, init=None if isinstance(init, str) else init, init_weights=init_weights)
-    else:
-        out = m.solve(sub, config=cfg)
+    with held_measurements(sub):  # the graph is not changed during the solve: its residual memo is validated once
+        if m.takes_init:
+            out = m.solve(sub, config=cfg, init=None if isinstance(init, str) else init, init_weights=init_weights)
+        else:
+            out = m.solve(sub, config=cfg)
     if out.edge_index is None:
         out.edge_index = np.arange(sub.n_edges)
     out.edge_index = np.asarray(edge_kept)[out.edge_index]

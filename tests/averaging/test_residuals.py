@@ -3,8 +3,9 @@
 import numpy as np
 from scipy.special import gammaln
 
+from pipeline.averaging import residuals
 from pipeline.averaging.mixture import log_haar, mixture_terms
-from pipeline.averaging.residuals import _graph_memo, graph_residuals
+from pipeline.averaging.residuals import _graph_memo, edge_residuals, graph_residuals, held_measurements
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
@@ -54,3 +55,43 @@ def test_mixture_terms_are_the_plain_log_sum_exp_to_the_last_bit():
                  (q, hl, lh, 0.01, 3.0, np.full((2, 1), 0.2))]:  # eps alone on a grid
         for fused, plain in zip(mixture_terms(*args), _plain_mixture_terms(*args)):
             assert fused.shape == plain.shape and np.array_equal(fused, plain)
+
+
+def _graph(seed: int, n: int = 30, m: int = 300) -> tuple[ViewGraph, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    edges = np.unique(np.sort(rng.integers(0, n, (m, 2)), axis=1), axis=0)
+    edges = edges[edges[:, 0] < edges[:, 1]]
+    R = so3.random_rotations(n, rng)
+    noise = so3.exp(rng.standard_normal((len(edges), 3)) * 0.05)
+    return ViewGraph([f"c{i}" for i in range(n)], edges, noise @ so3.relative(R, edges)), R
+
+
+def test_a_held_graph_is_fingerprinted_once_and_validated_again_after_the_hold(monkeypatch):
+    vg, R = _graph(5)
+    calls = []
+    fingerprint = residuals._fingerprint
+    monkeypatch.setattr(residuals, "_fingerprint", lambda a: calls.append(1) or fingerprint(a))
+    before = graph_residuals(vg, R)
+    assert len(calls) == 2  # R_rel and edges, at every evaluation outside a hold
+    with held_measurements(vg):
+        with held_measurements(vg):  # holds nest
+            assert np.array_equal(graph_residuals(vg, R), before)
+        for _ in range(3):
+            assert np.array_equal(graph_residuals(vg, R), before)
+    assert len(calls) == 4 and not residuals._HELD
+    vg.R_rel[:] = vg.R_rel[::-1].copy()  # changed in place between two solves
+    with held_measurements(vg):
+        after = graph_residuals(vg, R)
+    assert len(calls) == 6
+    assert np.allclose(after, edge_residuals(vg.edges, vg.R_rel, R), atol=1e-12) and not np.allclose(after, before)
+
+
+def test_a_copy_of_a_held_graph_is_validated_as_any_graph():
+    vg, R = _graph(6)
+    with held_measurements(vg):
+        graph_residuals(vg, R)
+        copy = ViewGraph(vg.names, vg.edges, vg.R_rel.copy())
+        copy.__dict__.update(vg.__dict__)  # the memo travels with a shallow copy of the attributes
+        copy.R_rel = copy.R_rel[::-1].copy()
+        assert np.allclose(graph_residuals(copy, R), edge_residuals(copy.edges, copy.R_rel, R), atol=1e-12)
+
