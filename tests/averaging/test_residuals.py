@@ -4,6 +4,7 @@ import numpy as np
 from scipy.special import gammaln
 
 from pipeline.averaging import residuals
+from pipeline.averaging.kernel import LaplacianSolver, effective_weights
 from pipeline.averaging.mixture import log_haar, mixture_terms
 from pipeline.averaging.residuals import _graph_memo, edge_residuals, graph_residuals, held_measurements
 from pipeline.core import so3
@@ -94,4 +95,32 @@ def test_a_copy_of_a_held_graph_is_validated_as_any_graph():
         copy.__dict__.update(vg.__dict__)  # the memo travels with a shallow copy of the attributes
         copy.R_rel = copy.R_rel[::-1].copy()
         assert np.allclose(graph_residuals(copy, R), edge_residuals(copy.edges, copy.R_rel, R), atol=1e-12)
+
+
+def test_laplacian_entries_without_parallel_edges_are_those_of_the_full_scatter_to_the_last_bit():
+    vg, _ = _graph(7)
+    rng = np.random.default_rng(7)
+    fast, full = LaplacianSolver(vg.edges, vg.n_cameras), LaplacianSolver(vg.edges, vg.n_cameras)
+    full._off = None
+    assert fast._off is not None
+    cut = (rng.random(vg.n_edges) < 0.3) | np.any(vg.edges == 3, axis=1)  # camera 3 left with zero weights only
+    for w in (rng.random(vg.n_edges), np.where(cut, 0.0, rng.random(vg.n_edges) * 1e3)):
+        for _ in range(2):  # the gauge's mask is kept between calls
+            a, b = fast.matrix(w), full.matrix(w)
+            assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+            assert a.data.tobytes() == b.data.tobytes()  # signed zeros included
+            assert np.array_equal(fast.pinned, full.pinned)
+    assert fast.pinned.sum() > 1  # the zero weights cut the graph: several gauges, zeroed rows and columns
+
+
+def test_parallel_edges_are_summed_by_the_full_scatter():
+    edges = np.array([[0, 1], [1, 2], [0, 1], [2, 0]])
+    solver = LaplacianSolver(edges, 3)
+    assert solver._off is None
+    w = np.array([1.0, 2.0, 3.0, 4.0])
+    A = solver.A.toarray()
+    L = A.T @ np.diag(effective_weights(w)) @ A
+    L[0, :] = L[:, 0] = 0.0
+    L[0, 0] = 1.0
+    assert np.array_equal(solver.matrix(w).toarray(), L)
 
