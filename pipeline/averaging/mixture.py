@@ -111,9 +111,16 @@ def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cam
                           iterations, s0, eps0, eps_max)
         return fit_mixture(q_all, half_logdet, theta, n_cameras, (sub.nu,), max(iterations // 2, 5), sub.s,
                            max(sub.eps, 1e-3), eps_max)
-    q = np.asarray(q, dtype=np.float64)[None]
-    hl = np.asarray(half_logdet, dtype=np.float64)[None]
-    lh = log_haar(np.asarray(theta, dtype=np.float64))[None]
+    return _fit(np.asarray(q, dtype=np.float64), np.asarray(half_logdet, dtype=np.float64),
+                log_haar(np.asarray(theta, dtype=np.float64)), n_cameras, nus, iterations, s0, eps0, eps_max)
+
+
+def _fit(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, n_cameras: int | None, nus: tuple[float, ...],
+         iterations: int, s0: float | None, eps0: float, eps_max: float) -> MixtureModel:
+    """:func:`fit_mixture`'s EM on all the edges given, with the outlier densities ``lh`` = :func:`log_haar` (θ)."""
+    q = q[None]
+    hl = half_logdet[None]
+    lh = lh[None]
     nu = np.asarray(nus, dtype=np.float64)[:, None]
     s = np.full_like(nu, s0 if s0 is not None else max(np.sqrt(np.median(q) / 2.366), 1e-12))
     eps = np.full_like(nu, eps0)
@@ -146,10 +153,11 @@ def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: 
         the IRLS weights ``γ u / s²`` (M,) of the rotation M-step (a weighted least squares in the
         metric P), and the updated model.
     """
+    q = np.asarray(q, dtype=np.float64)
+    half_logdet = np.asarray(half_logdet, dtype=np.float64)
+    lh = log_haar(np.asarray(theta, dtype=np.float64))  # once, for the inner EM and the step's weights
     if inner > 1:
-        model = fit_mixture(q, half_logdet, theta, n_cameras, (model.nu,), inner - 1, model.s,
-                            max(model.eps, 1e-4), eps_max)
-    lh = log_haar(theta)
+        model = _fit(q, half_logdet, lh, n_cameras, (model.nu,), inner - 1, model.s, max(model.eps, 1e-4), eps_max)
     ll, g, u = mixture_terms(q, half_logdet, lh, model.s, model.nu, model.eps)
     w = g * u / (model.s * model.s)
     dof = dof_factor(g, n_cameras) if n_cameras else 1.0

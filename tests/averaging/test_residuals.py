@@ -5,7 +5,7 @@ from scipy.special import gammaln
 
 from pipeline.averaging import residuals
 from pipeline.averaging.kernel import LaplacianSolver, effective_weights
-from pipeline.averaging.mixture import log_haar, mixture_terms
+from pipeline.averaging.mixture import MixtureModel, dof_factor, em_update, fit_mixture, log_haar, mixture_terms
 from pipeline.averaging.residuals import _graph_memo, edge_residuals, graph_residuals, held_measurements
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
@@ -124,3 +124,16 @@ def test_parallel_edges_are_summed_by_the_full_scatter():
     L[0, 0] = 1.0
     assert np.array_equal(solver.matrix(w).toarray(), L)
 
+
+def test_em_update_is_the_inner_fit_then_the_step_to_the_last_bit():
+    rng = np.random.default_rng(8)
+    theta = np.abs(rng.standard_normal(4000)) * np.where(rng.random(4000) < 0.2, 1.0, 0.01)
+    m = rng.uniform(0.5, 2.0, 4000)
+    q, hl = m * theta * theta, 1.5 * np.log(m)
+    model = MixtureModel(3.0, 0.012, 0.2, 0.0, np.ones(4000))
+    w, new = em_update(q, hl, theta, model, 50)
+    inner = fit_mixture(q, hl, theta, 50, (model.nu,), 9, model.s, max(model.eps, 1e-4))
+    ll, g, u = mixture_terms(q, hl, log_haar(theta), inner.s, inner.nu, inner.eps)
+    s = max(float(np.sqrt(dof_factor(g, 50) * np.sum(g * u * q) / (3.0 * max(float(g.sum()), 1e-12)))), 1e-12)
+    assert np.array_equal(w, g * u / (inner.s * inner.s)) and np.array_equal(new.gamma, g)
+    assert (new.s, new.eps, new.loglik) == (s, float(np.clip(1.0 - g.mean(), 1e-4, 0.3)), float(ll.mean()))
