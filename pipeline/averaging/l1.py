@@ -98,6 +98,11 @@ def l1_step(
     """
     A, AT = solver.A, solver.AT
     M = r.shape[0]
+    r_norm = _norm(r)  # in r's own memory order, as the sum always ran
+    # Row-major, as every (M, 3) array of the loop is (A x's): graph_residuals' Fortran-ordered residuals made each
+    # pass a strided one and each product with Aᵀ copy its operand (18% of a step on 20,000 edges). The elementwise
+    # values do not depend on the order, nor the reductions below, which run on row-major arrays either way.
+    r = np.ascontiguousarray(r)
     z = np.zeros_like(r) if z0 is None else z0.copy()
     u = np.zeros_like(r) if u0 is None else u0.copy()
     if rho is None:
@@ -130,7 +135,7 @@ def l1_step(
         # checked every few iterations since they cost two extra products.
         r_pri = _norm(Ax - z - r)
         s_dual = rho * _norm(AT @ (z - z_old))
-        eps_pri = sqrt_m * eps_abs + eps_rel * max(_norm(Ax), _norm(z), _norm(r))
+        eps_pri = sqrt_m * eps_abs + eps_rel * max(_norm(Ax), _norm(z), r_norm)
         eps_dual = np.sqrt(3 * solver.n) * eps_abs + eps_rel * rho * _norm(AT @ u)
         if r_pri <= eps_pri and s_dual <= eps_dual:
             converged = True

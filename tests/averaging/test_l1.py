@@ -74,3 +74,43 @@ def test_l1_averaging_is_robust_to_outliers():
     G = so3.chordal_mean(np.swapaxes(R, 1, 2) @ Rl1)
     assert np.rad2deg(so3.angle_between(Rl1, R @ G)).max() < 0.1
     assert hist[-1]["mean_step_rad"] < hist[0]["mean_step_rad"]
+
+
+def _plain_l1_step(solver, r, max_iterations, eps_abs=1e-7, eps_rel=1e-5, relax=1.6, check_every=5):
+    """The ADMM of :func:`l1_step` as first written, on ``r`` as given (its memory order included)."""
+    A, AT, M = solver.A, solver.AT, r.shape[0]
+    z, u = np.zeros_like(r), np.zeros_like(r)
+    rho = 1.0 / max(float(np.median(np.abs(r))), 1e-6)
+    norm = lambda a: float(np.sqrt(np.square(a).sum()))  # noqa: E731
+    for k in range(1, max_iterations + 1):
+        x = solver.solve(AT @ (r + z - u))
+        Ax = A @ x
+        v = relax * (Ax - r) + (1.0 - relax) * z + u
+        z_old, u = z, np.clip(v, -1.0 / rho, 1.0 / rho)
+        z = v - u
+        if k % check_every and k < max_iterations:
+            continue
+        r_pri, s_dual = norm(Ax - z - r), rho * norm(AT @ (z - z_old))
+        eps_pri = np.sqrt(3 * M) * eps_abs + eps_rel * max(norm(Ax), norm(z), norm(r))
+        if r_pri <= eps_pri and s_dual <= np.sqrt(3 * solver.n) * eps_abs + eps_rel * rho * norm(AT @ u):
+            break
+        if r_pri > 10.0 * s_dual:
+            rho, u = rho * 2.0, u / 2.0
+        elif s_dual > 10.0 * r_pri:
+            rho, u = rho / 2.0, u * 2.0
+    return x, k, float(np.abs(A @ x - r).sum()), z, u, rho
+
+
+def test_admm_on_column_major_residuals_is_the_plain_iteration_to_the_last_bit():
+    edges, rng = _random_graph(40, 0.5, 5)
+    r = np.asfortranarray(0.05 * rng.standard_normal((len(edges), 3)) * np.where(rng.random((len(edges), 1)) < 0.2,
+                                                                                  20.0, 1.0))  # as graph_residuals'
+    solver = LaplacianSolver(edges, 40, ref=0)
+    solver.factor(np.ones(len(edges)))
+    for cap, eps in ((7, 1e-7), (2000, 1e-4)):  # stopped by the cap; by the tolerances after changes of ρ (990)
+        st = l1_step(solver, r, max_iterations=cap, eps_abs=eps, eps_rel=1e-3)
+        x, k, obj, z, u, rho = _plain_l1_step(solver, r, cap, eps_abs=eps, eps_rel=1e-3)
+        assert (st.iterations, st.objective, st.rho, st.converged) == (k, obj, rho, k < cap)
+        assert st.rho != 1.0 / float(np.median(np.abs(r)))
+        for a, b in ((st.x, x), (st.z, z), (st.u, u)):
+            assert a.tobytes() == b.tobytes()
