@@ -21,11 +21,9 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
 
 from _common import median_time as _timed, save_results  # noqa: E402  (benchmarks/, the script's folder)
-from pipeline.graph.cycles import cycle_angles, cycle_variance, edge_cycles, find_cycles  # noqa: E402
-from pipeline.graph.loops import cycle_filter  # noqa: E402
+from pipeline.graph.loops import CycleRounds, cycle_filter  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.synthetic.protocols import dense_graph  # noqa: E402
 
@@ -36,17 +34,10 @@ def recount_filter(edges: np.ndarray, R_rel: np.ndarray, n: int, sigma_deg: np.n
                    k_sigma: float = 3.0, min_deg: float = 1.0, max_deg: float = 10.0,
                    max_bad_fraction: float = 0.5) -> list[int]:
     """The removal order of :func:`cycle_filter` with every blame recounted in every round (the reference)."""
-    M = len(edges)
-    cyc = find_cycles(edges, n, np.ones(M, bool), max_len, 2_000_000)
-    ang = cycle_angles(R_rel, cyc)
-    sC2 = cycle_variance(np.maximum(sigma_deg, 1e-6) ** 2, cyc)
-    kappa2 = max(1.0, float(np.median(ang**2 / sC2)) / chi2.median(3)) if len(cyc) else 1.0
-    ok = ang <= np.minimum(np.maximum(min_deg, k_sigma * np.sqrt(kappa2 * sC2)), max_deg)
-    valid = cyc.edges >= 0
-    n_c = np.bincount(cyc.edges[valid], minlength=M)
-    n_b = np.bincount(cyc.edges[valid & ~ok[:, None]], minlength=M)
-    ptr, through = edge_cycles(cyc, M)
-    alive, kept, bad_idx, removed = np.ones(len(cyc), bool), np.ones(M, bool), np.flatnonzero(~ok), []
+    st = CycleRounds.start(edges, R_rel, n, sigma_deg, max_len=max_len, k_sigma=k_sigma, min_deg=min_deg,
+                           max_deg=max_deg)
+    cyc, ok, alive, n_c, n_b, kept = st.cycles, st.consistent, st.alive, st.n_c, st.n_b, st.kept
+    M, bad_idx = len(kept), np.flatnonzero(~ok)
     while True:
         frac = np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
         cand = kept & (n_c >= 1) & (frac > max_bad_fraction)
@@ -57,18 +48,10 @@ def recount_filter(edges: np.ndarray, R_rel: np.ndarray, n: int, sigma_deg: np.n
             second = np.where(f == top[:, -1:], top[:, -2:-1], top[:, -1:])
             cand &= np.bincount(ce[(ce >= 0) & (f > second)], minlength=M) >= 1
         if not cand.any():
-            return removed
+            return st.removed
         c = np.flatnonzero(cand)
         best = int(c[np.lexsort((-n_b[c], -frac[c]))[0]])
-        kept[best] = False
-        removed.append(best)
-        dead = through[ptr[best]:ptr[best + 1]]
-        dead = dead[alive[dead]]
-        alive[dead] = False
-        e = cyc.edges[dead]
-        m = e >= 0
-        n_c -= np.bincount(e[m], minlength=M)
-        n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
+        st.drop(best)
 
 
 def main(argv: list[str] | None = None) -> int:

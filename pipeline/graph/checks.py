@@ -238,6 +238,20 @@ def _drop_disputed_bridges(vg: ViewGraph, chk: GraphChecks) -> int:
         "rejected: which of them is wrong cannot be told" for _ in ix])
 
 
+def _robust_subgraph(vg: ViewGraph, chk: GraphChecks, cfg: ViewGraphConfig) -> tuple[np.ndarray, ViewGraph]:
+    """The edges the robust solution weighs (indices into ``vg``) and their graph.
+
+    The kept pairs, and those dropped only because no cycle confirmed them (when robust_unconfirmed): a pair whose
+    one triangle is inconsistent because of *another* pair of it is such a pair, and without it that other pair's
+    error has only long loops to go to, which IRLS-ℓ½ spreads below its threshold and the polish may then put on
+    any pair of the loop (a rendered 500-view street: a correct pan pair rejected at 26°, the wrong pair kept, half
+    the street lost). Only kept pairs are judged.
+    """
+    keep = np.flatnonzero(chk.kept | (cfg.robust_unconfirmed & (chk.step == "unconfirmed")))
+    return keep, ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep],
+                           inliers=None if vg.inliers is None else vg.inliers[keep], allow_isolated=True)
+
+
 def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, cfg: ViewGraphConfig) -> int:
     """Step 6: reject the kept edges whose IRLS-ℓ½ residual is far beyond their σ, in every component with a cycle."""
     from pipeline.averaging.irls import IRLSConfig  # noqa: PLC0415 - the graph checks use one averaging method
@@ -245,14 +259,7 @@ def _robust_filter(vg: ViewGraph, chk: GraphChecks, sigma_weak_deg: np.ndarray, 
 
     if not chk.kept.any():
         return 0
-    # The solution also weighs the pairs dropped only because no cycle confirmed them (when
-    # robust_unconfirmed): a pair whose one triangle is inconsistent because of *another* pair of it is such
-    # a pair, and without it that other pair's error has only long loops to go to, which IRLS-ℓ½ spreads
-    # below its threshold and the polish may then put on any pair of the loop (a rendered 500-view street:
-    # a correct pan pair rejected at 26°, the wrong pair kept, half the street lost). Only kept pairs are judged.
-    keep = np.flatnonzero(chk.kept | (cfg.robust_unconfirmed & (chk.step == "unconfirmed")))
-    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep],
-                    inliers=None if vg.inliers is None else vg.inliers[keep], allow_isolated=True)
+    keep, sub = _robust_subgraph(vg, chk, cfg)
     labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
     n_comp = int(labels.max()) + 1

@@ -25,7 +25,7 @@ deviations ``sigma_deg`` (M,)); cycles from :mod:`pipeline.graph.cycles`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -36,7 +36,7 @@ from pipeline.core import so3
 from pipeline.graph.cycles import (Cycles, EdgeIndex, cycle_angles, cycle_variance, edge_cycles, expand_rows,
                                    find_cycles, find_triangles)
 
-__all__ = ["CycleResult", "cycle_filter", "PathCheck", "cycle_check", "colocation_check", "group_median"]
+__all__ = ["CycleResult", "CycleRounds", "cycle_filter", "PathCheck", "cycle_check", "colocation_check", "group_median"]
 
 
 @dataclass
@@ -98,6 +98,97 @@ def _reown(cycles: np.ndarray, owner: np.ndarray, blame: np.ndarray, padded: np.
     owner[cycles] = new
 
 
+@dataclass
+class CycleRounds:
+    """What the greedy rounds of :func:`cycle_filter` work on: every short cycle, judged once, and the counts of live
+    cycles through each edge (:meth:`start`; :meth:`drop` removes an edge; :meth:`result`). Which edge goes: the caller.
+
+    Attributes:
+        kept: (M,) bool edges still kept.
+        cycles: every cycle of the input graph; ``angles`` (C,) degrees, ``consistent`` (C,), ``alive`` (C,).
+        kappa2: the calibrated inflation of σ.
+        n_c, n_b: (M,) live cycles and live inconsistent cycles through each edge.
+        ptr, through: the cycles through each edge (:func:`~pipeline.graph.cycles.edge_cycles`).
+        removed: the edges dropped, in order; ``n_c_at``, ``n_b_at`` (M,) their counts when they went.
+    """
+
+    kept: np.ndarray
+    cycles: Cycles
+    angles: np.ndarray
+    kappa2: float
+    consistent: np.ndarray
+    alive: np.ndarray
+    n_c: np.ndarray
+    n_b: np.ndarray
+    ptr: np.ndarray
+    through: np.ndarray
+    removed: list[int] = field(default_factory=list)
+    n_c_at: np.ndarray = field(init=False)
+    n_b_at: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.n_c_at, self.n_b_at = self.n_c.copy(), self.n_b.copy()
+
+    @classmethod
+    def start(cls, edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
+              k_sigma: float = 3.0, min_deg: float = 1.0, max_deg: float | None = 10.0, calibrate: bool = True,
+              active: np.ndarray | None = None, max_four_cycles: int = 2_000_000) -> "CycleRounds":
+        """The cycles of ``edges`` (``active`` ones only), their angles, κ², each judged consistent or not
+        (:func:`cycle_filter`'s arguments), and the counts through each edge."""
+        edges = np.asarray(edges, np.int64).reshape(-1, 2)
+        M = len(edges)
+        kept = np.ones(M, bool) if active is None else np.asarray(active, bool).copy()
+        cyc = find_cycles(edges, n_cameras, kept, max_len, max_four_cycles)
+        ang = cycle_angles(R_rel, cyc)
+        sC2 = cycle_variance(np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2, cyc)
+        kappa2 = max(1.0, float(np.median(ang**2 / sC2)) / chi2.median(3)) if calibrate and len(cyc) else 1.0
+        thr = np.maximum(min_deg, k_sigma * np.sqrt(kappa2 * sC2))
+        if max_deg is not None:
+            thr = np.minimum(thr, max_deg)
+        ok = ang <= thr
+        valid = cyc.edges >= 0
+        flat, bad_rep = cyc.edges[valid], np.broadcast_to(~ok[:, None], cyc.edges.shape)[valid]
+        ptr, through = edge_cycles(cyc, M)
+        return cls(kept, cyc, ang, kappa2, ok, np.ones(len(cyc), bool), np.bincount(flat, minlength=M),
+                   np.bincount(flat[bad_rep], minlength=M), ptr, through)
+
+    def inconsistent(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The inconsistent cycles (indices of all cycles), those through each edge (``bptr``, ``bthrough``: indices
+        of all cycles), and every cycle's edges with a triangle's padding as the sentinel edge M."""
+        cyc, M = self.cycles, len(self.kept)
+        bad_idx = np.flatnonzero(~self.consistent)
+        bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
+        return bad_idx, bptr, bad_idx[bthrough], np.where(cyc.edges >= 0, cyc.edges, M)
+
+    def drop(self, best: int) -> tuple[np.ndarray, np.ndarray]:
+        """Remove edge ``best`` (its counts recorded): its live cycles die and leave the counts. Returns those cycles
+        and the edges they ran through (unique)."""
+        self.n_c_at[best], self.n_b_at[best] = self.n_c[best], self.n_b[best]
+        self.removed.append(best)
+        self.kept[best] = False
+        dead = self.through[self.ptr[best]:self.ptr[best + 1]]
+        dead = dead[self.alive[dead]]
+        self.alive[dead] = False
+        e = self.cycles.edges[dead]
+        m = e >= 0
+        np.subtract.at(self.n_c, e[m], 1)
+        np.subtract.at(self.n_b, e[m & ~self.consistent[dead, None]], 1)
+        return dead, np.unique(e[m])
+
+    def result(self) -> CycleResult:
+        """The final graph's :class:`CycleResult` (a removed edge's counts: when it went)."""
+        kept, ok, alive, ang = self.kept, self.consistent, self.alive, self.angles
+        n_c_at, n_b_at = self.n_c_at.copy(), self.n_b_at.copy()
+        confirmed = np.zeros(len(kept), bool)
+        ce = self.cycles.edges[alive & ok]
+        confirmed[ce[ce >= 0]] = True
+        confirm_deg = np.full(len(kept), np.inf)
+        np.minimum.at(confirm_deg, ce[ce >= 0], np.broadcast_to(ang[alive & ok][:, None], ce.shape)[ce >= 0])
+        n_c_at[kept], n_b_at[kept] = self.n_c[kept], self.n_b[kept]
+        return CycleResult(kept, list(self.removed), n_c_at, n_b_at, self.kappa2, confirmed & kept, self.cycles, ok,
+                           alive, ang, np.where(confirmed & kept, confirm_deg, np.inf))
+
+
 def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg: np.ndarray, *, max_len: int = 4,
                  k_sigma: float = 3.0, min_deg: float = 1.0, max_deg: float | None = 10.0,
                  max_bad_fraction: float = 0.5, min_cycles: int = 1, calibrate: bool = True,
@@ -117,68 +208,31 @@ def cycle_filter(edges: np.ndarray, R_rel: np.ndarray, n_cameras: int, sigma_deg
     Returns:
         :class:`CycleResult`.
     """
-    edges = np.asarray(edges, np.int64).reshape(-1, 2)
-    M = len(edges)
-    kept = np.ones(M, bool) if active is None else np.asarray(active, bool).copy()
-    cyc = find_cycles(edges, n_cameras, kept, max_len, max_four_cycles)
-    ang = cycle_angles(R_rel, cyc)
-    sC2 = cycle_variance(np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2, cyc)
-    kappa2 = 1.0
-    if calibrate and len(cyc):
-        kappa2 = max(1.0, float(np.median(ang**2 / sC2)) / chi2.median(3))
-    thr = np.maximum(min_deg, k_sigma * np.sqrt(kappa2 * sC2))
-    if max_deg is not None:
-        thr = np.minimum(thr, max_deg)
-    ok = ang <= thr
-    alive = np.ones(len(cyc), bool)
-    valid = cyc.edges >= 0
-    flat, bad_rep = cyc.edges[valid], np.broadcast_to(~ok[:, None], cyc.edges.shape)[valid]
-    n_c = np.bincount(flat, minlength=M)
-    n_b = np.bincount(flat[bad_rep], minlength=M)
-    ptr, through = edge_cycles(cyc, M)
+    st = CycleRounds.start(edges, R_rel, n_cameras, sigma_deg, max_len=max_len, k_sigma=k_sigma, min_deg=min_deg,
+                           max_deg=max_deg, calibrate=calibrate, active=active, max_four_cycles=max_four_cycles)
+    cyc, ok, alive, n_c, n_b, kept = st.cycles, st.consistent, st.alive, st.n_c, st.n_b, st.kept
+    M = len(kept)
     # An edge is removable when, in at least one live inconsistent cycle, it is strictly the most suspicious (its
     # "blame"); of the removable candidates, the first in priority order (largest bad fraction, then most bad cycles,
     # then lowest index) goes. Each cycle's owner is kept up to date: a round recomputes only the owners of the live
     # inconsistent cycles through an edge whose fraction changed (the same choice as recounting every cycle).
-    bad_idx = np.flatnonzero(~ok)
-    bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
-    bthrough = bad_idx[bthrough]  # the inconsistent cycles through each edge, as indices of all cycles
-    padded = np.where(cyc.edges >= 0, cyc.edges, M)  # a triangle's padding → the sentinel edge M
-    frac = np.append(_fraction(n_b, n_c), -1.0)  # (M + 1,): the sentinel's is −1
+    bad_idx, bptr, bthrough, padded = st.inconsistent()
+    frac = np.append(_fraction(n_b, n_c), -1.0)  # (M + 1,): the sentinel edge M's is −1
     owner, blame = np.full(len(cyc), M, np.int64), np.zeros(M + 1, np.int64)  # a consistent cycle owns nothing
     blame[M] = bad_idx.size
     _reown(bad_idx, owner, blame, padded, frac)
-    removed: list[int] = []
-    n_c_at, n_b_at = n_c.copy(), n_b.copy()
     while True:
         c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction) & (blame[:M] > 0))
         if not c.size:
             break
         c = c[frac[c] == frac[c].max()]
         best = int(c[np.argmax(n_b[c])])  # the first of the most bad cycles: the lowest index
-        n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
-        kept[best] = False
-        removed.append(best)
-        dead = through[ptr[best]:ptr[best + 1]]
-        dead = dead[alive[dead]]
-        alive[dead] = False
-        e = cyc.edges[dead]
-        m = e >= 0
-        np.subtract.at(n_c, e[m], 1)
-        np.subtract.at(n_b, e[m & ~ok[dead, None]], 1)
+        dead, changed = st.drop(best)
         np.subtract.at(blame, owner[dead[~ok[dead]]], 1)
-        changed = np.unique(e[m])
         frac[changed] = _fraction(n_b[changed], n_c[changed])
         near = bthrough[expand_rows(bptr, changed)[1]]
         _reown(np.unique(near[alive[near]]), owner, blame, padded, frac)
-    confirmed = np.zeros(M, bool)
-    ce = cyc.edges[alive & ok]
-    confirmed[ce[ce >= 0]] = True
-    confirm_deg = np.full(M, np.inf)
-    np.minimum.at(confirm_deg, ce[ce >= 0], np.broadcast_to(ang[alive & ok][:, None], ce.shape)[ce >= 0])
-    n_c_at[kept], n_b_at[kept] = n_c[kept], n_b[kept]
-    return CycleResult(kept, removed, n_c_at, n_b_at, kappa2, confirmed & kept, cyc, ok, alive, ang,
-                       np.where(confirmed & kept, confirm_deg, np.inf))
+    return st.result()
 
 
 @dataclass

@@ -6,22 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
 
 from pipeline.core import so3
-from pipeline.graph.cycles import Cycles, cycle_angles, cycle_variance, edge_cycles, expand_rows, find_cycles
-from pipeline.graph.loops import cycle_filter
+from pipeline.graph.cycles import expand_rows
+from pipeline.graph.loops import CycleRounds, _fraction, _owners, cycle_filter
 
 FIELDS = ("kept", "n_cycles", "n_bad", "confirmed", "alive")  # what the rounds decide (the rest is set up before them)
-
-
-def _owners_ref(cyc_edges, frac):
-    f = frac[cyc_edges]
-    arg = np.argmax(f, axis=1)
-    rows = np.arange(len(f))
-    top = f[rows, arg]
-    unique = np.count_nonzero(f == top[:, None], axis=1) == 1
-    return np.where(unique, cyc_edges[rows, arg], -1)
 
 
 def _first_blamed_ref(order, bptr, bthrough, padded, alive, frac, batch=16):
@@ -32,7 +22,7 @@ def _first_blamed_ref(order, bptr, bthrough, padded, alive, frac, batch=16):
         cycles = bthrough[pos]
         live = alive[cycles]
         who, cycles = who[live], cycles[live]
-        owned = _owners_ref(padded[cycles], frac) == cand[who]
+        owned = _owners(padded[cycles], frac) == cand[who]
         hits = np.flatnonzero(np.bincount(who[owned], minlength=len(cand)))
         if hits.size:
             return int(cand[hits[0]])
@@ -44,56 +34,23 @@ def _first_blamed_ref(order, bptr, bthrough, padded, alive, frac, batch=16):
 def _reference(edges, R_rel, n_cameras, sigma_deg, *, max_len=4, k_sigma=3.0, min_deg=1.0, max_deg=10.0,
                max_bad_fraction=0.5, min_cycles=1, calibrate=True, active=None, max_four_cycles=2_000_000):
     """The filter's rounds before the owners were kept: each round sorts every candidate and checks them in order."""
-    frac_of = lambda b, c: np.where(c > 0, b / np.maximum(c, 1), 0.0)  # noqa: E731
-    edges = np.asarray(edges, np.int64).reshape(-1, 2)
-    M = len(edges)
-    kept = np.ones(M, bool) if active is None else np.asarray(active, bool).copy()
-    cyc = find_cycles(edges, n_cameras, kept, max_len, max_four_cycles)
-    ang = cycle_angles(R_rel, cyc)
-    sC2 = cycle_variance(np.maximum(np.asarray(sigma_deg, float), 1e-6) ** 2, cyc)
-    kappa2 = max(1.0, float(np.median(ang**2 / sC2)) / chi2.median(3)) if calibrate and len(cyc) else 1.0
-    thr = np.maximum(min_deg, k_sigma * np.sqrt(kappa2 * sC2))
-    if max_deg is not None:
-        thr = np.minimum(thr, max_deg)
-    ok = ang <= thr
-    alive = np.ones(len(cyc), bool)
-    valid = cyc.edges >= 0
-    flat, bad_rep = cyc.edges[valid], np.broadcast_to(~ok[:, None], cyc.edges.shape)[valid]
-    n_c = np.bincount(flat, minlength=M)
-    n_b = np.bincount(flat[bad_rep], minlength=M)
-    ptr, through = edge_cycles(cyc, M)
-    bad_idx = np.flatnonzero(~ok)
-    bptr, bthrough = edge_cycles(Cycles(cyc.edges[bad_idx], cyc.forward[bad_idx], cyc.length[bad_idx]), M)
-    bthrough = bad_idx[bthrough]
-    padded = np.where(cyc.edges >= 0, cyc.edges, M)
-    frac = np.append(frac_of(n_b, n_c), -1.0)
-    removed = []
-    n_c_at, n_b_at = n_c.copy(), n_b.copy()
+    st = CycleRounds.start(edges, R_rel, n_cameras, sigma_deg, max_len=max_len, k_sigma=k_sigma, min_deg=min_deg,
+                           max_deg=max_deg, calibrate=calibrate, active=active, max_four_cycles=max_four_cycles)
+    alive, n_c, n_b, kept = st.alive, st.n_c, st.n_b, st.kept
+    M = len(kept)
+    _, bptr, bthrough, padded = st.inconsistent()
+    frac = np.append(_fraction(n_b, n_c), -1.0)
     while True:
         c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction))
         best = _first_blamed_ref(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, padded, alive, frac)
         if best < 0:
             break
-        n_c_at[best], n_b_at[best] = n_c[best], n_b[best]
-        kept[best] = False
-        removed.append(best)
-        dead = through[ptr[best]:ptr[best + 1]]
-        dead = dead[alive[dead]]
-        alive[dead] = False
-        e = cyc.edges[dead]
-        m = e >= 0
-        n_c -= np.bincount(e[m], minlength=M)
-        n_b -= np.bincount(e[m & ~ok[dead, None]], minlength=M)
-        changed = np.unique(e[m])
-        frac[changed] = frac_of(n_b[changed], n_c[changed])
-    confirmed = np.zeros(M, bool)
-    ce = cyc.edges[alive & ok]
-    confirmed[ce[ce >= 0]] = True
-    confirm_deg = np.full(M, np.inf)
-    np.minimum.at(confirm_deg, ce[ce >= 0], np.broadcast_to(ang[alive & ok][:, None], ce.shape)[ce >= 0])
-    n_c_at[kept], n_b_at[kept] = n_c[kept], n_b[kept]
-    return dict(kept=kept, removed=removed, n_cycles=n_c_at, n_bad=n_b_at, kappa2=kappa2, confirmed=confirmed & kept,
-                consistent=ok, alive=alive, angles=ang, confirm_deg=np.where(confirmed & kept, confirm_deg, np.inf))
+        _, changed = st.drop(best)
+        frac[changed] = _fraction(n_b[changed], n_c[changed])
+    r = st.result()
+    return dict(kept=r.kept, removed=r.removed, n_cycles=r.n_cycles, n_bad=r.n_bad, kappa2=r.kappa2,
+                confirmed=r.confirmed, consistent=r.consistent, alive=r.alive, angles=r.angles,
+                confirm_deg=r.confirm_deg)
 
 
 def _random_graph(rng, n, p, n_out, noise_deg=1.0):

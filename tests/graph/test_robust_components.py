@@ -10,16 +10,14 @@ from pipeline.averaging.irls import IRLSConfig
 from pipeline.averaging.solve import average
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.graph.checks import GraphChecks, ViewGraphConfig, _reject, _robust_filter
+from pipeline.graph.checks import GraphChecks, ViewGraphConfig, _reject, _robust_filter, _robust_subgraph
 
 
 def _reference(vg, chk, sigma_weak_deg, cfg):
     """The step before: a subgraph for every component, trees (lone cameras too) skipped after it was built."""
     if not chk.kept.any():
         return 0
-    keep = np.flatnonzero(chk.kept | (cfg.robust_unconfirmed & (chk.step == "unconfirmed")))
-    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep],
-                    inliers=None if vg.inliers is None else vg.inliers[keep], allow_isolated=True)
+    keep, sub = _robust_subgraph(vg, chk, cfg)
     labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
     for c in range(int(labels.max()) + 1):
