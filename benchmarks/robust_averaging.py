@@ -9,7 +9,10 @@ degrees after the ℓ2 alignment of ``pipeline.evaluate``, every ratio from this
     --gt <truth> --out RUNS/<scene>`` wrote, with the truth named in the run's ``metrics.json``). Methods: ``colmap-ra``, ours
     (``irls``, ``irls-h``), the robust SDP (default calibrated cost, and ``cost=raw``),
     and the methods as they were before issue 15 (``irls`` with the Talwar polish and the
-    ℓ1 start, ``irls-h`` with one global scale), timed in the same run.
+    ℓ1 start, ``irls-h`` with one global scale), timed in the same run; with GTSAM installed
+    also GTSAM as its users would run it on our graph (``gtsam_rows``: Shonan averaging, then
+    Levenberg–Marquardt with H as each factor's information, plain, Huber and Cauchy, from
+    Shonan's rotations and from IRLS-ℓ½'s).
     Acceptance 2 (ours ≤ colmap-ra in median and mean; IRLS-H ≤ IRLS-ℓ½) and 4 (robust
     SDP-cSO(3) within 1.2× of IRLS-H's error on castle-P30, its certificate naming the
     edge set).
@@ -70,6 +73,7 @@ import numpy as np  # noqa: E402
 from pipeline.averaging import average  # noqa: E402
 from pipeline.averaging.colmap_ra import have_pycolmap  # noqa: E402
 from pipeline.averaging.kernel import LaplacianSolver  # noqa: E402
+from pipeline.averaging.peers import have_gtsam  # noqa: E402
 from pipeline.averaging.polish import reweighted  # noqa: E402
 from pipeline.averaging.stopping import StopRule  # noqa: E402
 from pipeline.core.atomic import write_json  # noqa: E402
@@ -119,6 +123,7 @@ def real(runs: Path, repeat: int) -> dict[str, Any]:
         ref = read_reference(json.loads((d / "metrics.json").read_text())["input"]["gt"])
         R_true, mask = match_reference(list(vg.names), ref.names, ref.R)
         rows: dict[str, Any] = {}
+        rows_R: dict[str, np.ndarray] = {}
         plan = [("colmap-ra", "colmap-ra", {}), ("irls", "irls", {}), ("irls-h", "irls-h", {}),
                 *[(k, m, o) for k, (m, o) in BEFORE.items()],
                 ("sdp (robust, calibrated cost)", "sdp", {}), ("sdp (robust, raw H)", "sdp", {"cost": "raw"})]
@@ -127,10 +132,13 @@ def real(runs: Path, repeat: int) -> dict[str, Any]:
                 continue
             n = 1 if method == "sdp" else repeat
             res, dt = timed(vg, method, n, **opts)
+            rows_R[label] = res.R
             rows[label] = {**errors(res.R, R_true, mask), "time_s": dt, "certificate": cert_of(res),
                            "selected": res.stats.get("selected"), "n_kept": res.stats.get("n_kept")}
             print(f"  {scene:13s} {label:32s} {rows[label]['median_deg']:8.4f} {rows[label]['mean_deg']:8.4f} "
                   f"{dt:8.3f}s  {rows[label]['certificate']['verdict']}", flush=True)
+        if have_gtsam():
+            rows.update(gtsam_rows(vg, R_true, mask, rows_R))
         out[scene] = {"n_cameras": vg.n_cameras, "n_edges": vg.n_edges, "methods": rows}
         c, o, h = rows.get("colmap-ra"), rows["irls"], rows["irls-h"]
         out[scene]["acceptance"] = {
@@ -146,6 +154,30 @@ def real(runs: Path, repeat: int) -> dict[str, Any]:
             "time_irls_h_over_before": h["time_s"] / rows["irls-h (before)"]["time_s"],
         }
     return out
+
+
+#: GTSAM as its users would run it on our view graph (H as each factor's information): Shonan
+#: averaging (isotropic, certifiable, every edge), then Levenberg–Marquardt on the anisotropic cost,
+#: plain and with GTSAM's robust kernels (thresholds in H's standard deviations: Huber's usual
+#: 1.345, Cauchy 1); and the robust LM from IRLS-ℓ½'s rotations, IRLS-H's own start, so that only
+#: the cost differs from IRLS-H.
+GTSAM_LM = (("gtsam lm-H", None), ("gtsam lm-H huber", ("huber", 1.345)), ("gtsam lm-H cauchy", ("cauchy", 1.0)))
+
+
+def gtsam_rows(vg: ViewGraph, R_true: np.ndarray, mask: np.ndarray, ours: dict[str, np.ndarray]) -> dict[str, Any]:
+    from pipeline.averaging.peers import lm_anisotropic, shonan  # noqa: PLC0415
+
+    rows: dict[str, Any] = {}
+    R_sh, lam, t_sh = shonan(vg)
+    rows["gtsam shonan"] = {**errors(R_sh, R_true, mask), "time_s": t_sh, "lambda_min": lam}
+    starts = {"shonan start": (R_sh, t_sh), "irls start": (ours["irls"], None)}
+    for start, (R0, t0) in starts.items():
+        for label, robust in GTSAM_LM:
+            R, t, it = lm_anisotropic(vg, R0, robust=robust)
+            rows[f"{label} ({start})"] = {**errors(R, R_true, mask), "time_s": t + (t0 or 0.0), "iterations": it}
+    for label, r in rows.items():
+        print(f"  {'':13s} {label:32s} {r['median_deg']:8.4f} {r['mean_deg']:8.4f} {r['time_s']:8.3f}s", flush=True)
+    return rows
 
 
 # ------------------------------------------------------------------------------------- knn

@@ -4,7 +4,9 @@
   registered method ``colmap-ra``;
 - :func:`shonan`: GTSAM's ``ShonanAveraging3`` (certifiable, isotropic);
 - :func:`lm_anisotropic`: GTSAM ``BetweenFactorRot3`` with ``Gaussian.Information(H)``
-  refined by Levenberg–Marquardt (local, anisotropic).
+  refined by Levenberg–Marquardt (local, anisotropic), optionally with one of GTSAM's robust
+  kernels on the whitened error (what a GTSAM user does with our view graph: Shonan's isotropic
+  solution as the start, then robust anisotropic LM).
 
 GTSAM is optional (the ``bench`` extra): :func:`have_gtsam` tells whether it is there.
 GTSAM's Rot3 is world_from_cam, so camera i is ``X_i = R_iᵀ`` and its
@@ -24,7 +26,7 @@ import numpy as np
 from pipeline.averaging.colmap_ra import run_pycolmap
 from pipeline.core.viewgraph import ViewGraph
 
-__all__ = ["run_colmap", "have_gtsam", "shonan", "lm_anisotropic"]
+__all__ = ["run_colmap", "have_gtsam", "shonan", "lm_anisotropic", "ROBUST_KERNELS"]
 
 
 def run_colmap(vg: ViewGraph, **opts: Any) -> tuple[np.ndarray, np.ndarray, float, bool]:
@@ -71,17 +73,34 @@ def shonan(vg: ViewGraph, seed: int = 0) -> tuple[np.ndarray, float, float]:
     return R, float(lam), time.perf_counter() - t0
 
 
-def lm_anisotropic(vg: ViewGraph, R0: np.ndarray) -> tuple[np.ndarray, float, int]:
+#: GTSAM's robust kernels by name, as ``lm_anisotropic(robust=(name, k))`` takes them.
+ROBUST_KERNELS = ("huber", "cauchy", "geman-mcclure", "tukey")
+
+
+def lm_anisotropic(vg: ViewGraph, R0: np.ndarray, robust: tuple[str, float] | None = None) -> tuple[np.ndarray, float, int]:
     """GTSAM BetweenFactorRot3 + Gaussian.Information(H) refined by Levenberg–Marquardt (local).
 
+    ``robust=(kernel, k)`` wraps each factor's noise model in GTSAM's robust kernel of that name
+    (:data:`ROBUST_KERNELS`) with threshold ``k`` in whitened units (standard deviations of H).
     Returns (R (N,3,3), wall s, iterations).
     """
     import gtsam
 
+    make = None
+    if robust is not None:
+        kernels = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+                   "geman-mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
+                   "tukey": gtsam.noiseModel.mEstimator.Tukey}
+        if robust[0] not in kernels:
+            raise ValueError(f"unknown robust kernel {robust[0]!r}; expected one of {', '.join(ROBUST_KERNELS)}")
+        make = kernels[robust[0]].Create
     t0 = time.perf_counter()
     graph = gtsam.NonlinearFactorGraph()
     for (i, j), R, H in zip(vg.edges, vg.R_rel, vg.H):
-        graph.add(gtsam.BetweenFactorRot3(int(i), int(j), gtsam.Rot3(R.T), gtsam.noiseModel.Gaussian.Information(H)))
+        noise = gtsam.noiseModel.Gaussian.Information(H)
+        if make is not None:
+            noise = gtsam.noiseModel.Robust.Create(make(float(robust[1])), noise)
+        graph.add(gtsam.BetweenFactorRot3(int(i), int(j), gtsam.Rot3(R.T), noise))
     graph.add(gtsam.PriorFactorRot3(0, gtsam.Rot3(R0[0].T), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
     init = gtsam.Values()
     for i in range(vg.n_cameras):
