@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.averaging.certificate import VERIFIED, certify
+from pipeline.averaging.certificate import UNDECIDED, VERIFIED, certify
 from pipeline.averaging.certificate.newton import polish
 from pipeline.averaging.certificate.problem import diag_blocks
 from pipeline.averaging.sdp.certificate import edge_cost, relative_gap, resolution_check
@@ -68,16 +68,27 @@ def dual_certificate_gap(vg: ViewGraph, C: np.ndarray, scale: float, R: np.ndarr
             without those constraints, SDP-O(3)-ANISO, whose dual has no such multipliers).
     """
     # the certificate's cost is Σ 2 (tr M_e − ⟨M_e R̃_e, Q_e⟩): twice the SDP's residual cost, scaled
-    f_res = 2.0 * (edge_cost(vg.edges, C, R) + float(np.trace(_metrics(vg, C), axis1=1, axis2=2).sum()))
-    if not (np.isfinite(f_res) and f_res > 0 and target > 0):
+    M = _metrics(vg, C)
+    trace = 2.0 * float(np.trace(M, axis1=1, axis2=2).sum())
+    f_res = 2.0 * edge_cost(vg.edges, C, R) + trace
+    want = 0.9 * 2.0 * target / scale  # 0.9: a verified bound stays clear of the target
+    if not (np.isfinite(f_res) and f_res > 0 and want > 0):
         return None
-    gap_tol = min(0.9 * 2.0 * target / scale / f_res, 0.5)  # 0.9: a verified bound stays clear of the target
-    try:
-        cert, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, R, np.ones(vg.n_edges), _metrics(vg, C),
-                          gap_tol=gap_tol, do_polish=False, k_margin=0, use_lmi=use_lmi)
-    except (np.linalg.LinAlgError, RuntimeError, ValueError):
-        return None
-    return float(cert.gap_bound * scale / 2.0) if cert.verdict == VERIFIED else None
+    # certify proves gap_tol · f_res plus its cost's rounding level (1e3·ε·Σ_i tr D_i, Σ_i tr D_i = 2 Σ_e tr M_e):
+    # first ask for what is left of the target after that level; where S's own rounding floor keeps that from
+    # being proven, the whole target still gives a proven bound (above the target, but maybe below the solver's)
+    room = want - 1e3 * np.finfo(float).eps * trace
+    for tol in dict.fromkeys(min(t / f_res, 0.5) for t in (room, want) if t > 0):
+        try:
+            cert, _ = certify(vg.n_cameras, vg.edges, vg.R_rel, R, np.ones(vg.n_edges), M, gap_tol=tol,
+                              do_polish=False, k_margin=0, use_lmi=use_lmi)
+        except (np.linalg.LinAlgError, RuntimeError, ValueError):
+            return None
+        if cert.verdict == VERIFIED:
+            return float(cert.gap_bound * scale / 2.0)
+        if cert.verdict != UNDECIDED:  # "not verified": a negative direction, which another η does not remove
+            return None
+    return None
 
 
 def verified_start(start: np.ndarray, vg: ViewGraph, C: np.ndarray, scale: float, offset: float, cso3: bool,

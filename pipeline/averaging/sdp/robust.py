@@ -134,8 +134,11 @@ def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
         f"NOT certified (rank {st['rank']}, gap {st['gap_vs_resolution']:.2g}× the cost's resolution, "
         f"{cfg.cert_kappa:g}× needed): a rounding of the relaxation, not a proven optimum")
     gap = f"proven suboptimality ≤ {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
-    if st["certified"] and st["gap_vs_resolution"] > cfg.cert_kappa:
-        gap += f" (the data are fitted exactly: within the cost's rounding {st['cost_rounding']:.3g})"
+    if st["certified"] and st["gap_vs_resolution"] > cfg.cert_kappa:  # allowed by the cost's rounding level
+        gap += (f" (the data are fitted exactly: within the cost's rounding {st['cost_rounding']:.3g})"
+                if cfg.cert_kappa * st["resolution"] <= 0.01 * st["cost_rounding"] else
+                f" (within {cfg.cert_kappa:g}× the resolution plus the cost's rounding level {st['cost_rounding']:.3g}, "
+                "below which its value is not resolved)")
     # On the calibrated cost the SDP solves the robust stage's own final problem: its optimum within a
     # hair of the robust rotations certifies those too (where the IRLS certificate's fixed multipliers cannot).
     same = (f"; {robust.method}'s own rotations are within {agree:.2g}° of this optimum"
