@@ -132,6 +132,11 @@ class Runner:
         if not self.plan.quiet:
             print(f"{_number(name)} {title}: not run ({why})", file=sys.stderr, flush=True)
 
+    def say(self, name: str, what: str) -> None:
+        """A line in the place of step ``name`` (a default method it leaves out: ``[8/13] SDP-cSO(3) not run ...``)."""
+        if not self.plan.quiet:
+            print(f"{_number(name)} {what}", file=sys.stderr, flush=True)
+
     def skipped(self, name: str, title: str) -> bool:
         """Whether the plan leaves the step out (``plan.skipped``); if it does, :meth:`skip` says so."""
         why = self.plan.skipped.get(name)
@@ -163,6 +168,8 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
     if not specs:
         specs, why = registry.default_methods(vg, plan.run, plan.yaml, plan.overrides)
         plan.notes.extend(why)
+        for w in why:
+            runner.say("averaging", w)
 
     def solve_all() -> dict[str, dict]:
         from tqdm import tqdm  # noqa: PLC0415

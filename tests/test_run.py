@@ -271,3 +271,15 @@ def test_bad_config_key(tmp_path, scene):
         run.main(scene, tmp_path / "out", config=p, quiet=True)
 
 
+
+
+def test_a_default_method_left_out_is_said_on_the_console(run_copy, tiny_scene, tmp_path, capsys):
+    """Over run.sdp_max_n cameras the default SDP-cSO(3) does not run: the report's notes said so, the console (which
+    names every step that does not run) said nothing, and its table simply had no SDP row."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("run:\n  plots: false\n  refine: false\n  reference: false\n  sdp_max_n: 3\n"
+                   "features:\n  workers: 1\nmatching:\n  workers: 1\ntwo_view:\n  workers: 1\ntwo_view_ba:\n  workers: 1\n")
+    capsys.readouterr()
+    run.main(tiny_scene, run_copy, config=cfg, gt=tiny_scene / "cameras.txt")
+    err = capsys.readouterr().err.splitlines()
+    assert "[8/13] SDP-cSO(3) not run by default: N=6 > run.sdp_max_n=3" in err, err
