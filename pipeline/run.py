@@ -63,7 +63,7 @@ from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
+from pipeline.evaluation.assemble import evaluate_run, withdraw_reports, write_metrics, write_report_md  # noqa: E402
 from pipeline.evaluation.flags import DISAGREEMENT_DEG  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
@@ -306,6 +306,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     plan = prepare(images, out, config, methods, gt, K, reference, overwrite, quiet, database, executor, scheduler)
     with folder_lock(plan.out), plan.executors():
         remove_stale_temporaries(plan.out)
+        withdraw_reports(plan.out)
         runner = Runner(plan)
         work = plan.work
         runner.stage(plan.features)
