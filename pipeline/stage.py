@@ -38,7 +38,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 from pipeline.core.atomic import check_writable, remove_stale_temporaries, write_json
 from pipeline.core.config import Config
-from pipeline.core.errors import CacheError, InputFileError, OutputError
+from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.readers import read_json
 
 __all__ = ["Stage", "StageRecord", "read_record", "fingerprint_of", "file_fingerprint", "output_digest", "check_output",
@@ -256,13 +256,12 @@ class Stage(abc.ABC, Generic[C]):
             raise InputFileError(f"{blocking} is a file, not a folder: {self.name} writes its results into "
                                  f"{self.folder}; pass a folder (or remove the file)")
         try:  # before the work: a result it could not write would be lost
-            check_writable(self.folder)
-        except OSError as exc:
+            check_writable(self.folder, f"{self.name} writes its results there")
+        except OSError:
             for p in made:
                 with contextlib.suppress(OSError):
                     p.rmdir()
-            raise OutputError(f"{' '.join(str(exc).split('; ')[:1])}: {self.name} writes its results there; choose "
-                              "a writable folder") from None
+            raise
         remove_stale_temporaries(self.folder)
         t0 = time.perf_counter()
         try:

@@ -45,18 +45,19 @@ def _cannot_write(path: Path, exc: OSError) -> OutputError:
     return OutputError(f"cannot write {path} ({exc.strerror or exc}); choose a writable location")
 
 
-def check_writable(folder: str | os.PathLike) -> None:
+def check_writable(folder: str | os.PathLike, what: str = "") -> None:
     """Create ``folder`` if needed and a file in it (removed at once): before the work that writes there.
 
     Raises:
-        OutputError: naming ``folder``, where either cannot be done.
+        OutputError: naming ``folder`` (and ``what`` writes there), where either cannot be done.
     """
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".probe{TMP_TAG}")
     except OSError as exc:
-        raise OutputError(f"cannot write to {folder} ({exc.strerror or exc}); choose a writable folder") from None
+        raise OutputError(f"cannot write to {folder} ({exc.strerror or exc}){': ' + what if what else ''}; choose a "
+                          "writable folder") from None
     os.close(fd)
     os.unlink(tmp)
 
