@@ -63,7 +63,7 @@ from pipeline.core.errors import PipelineError  # noqa: E402
 from pipeline.core.lock import folder_lock  # noqa: E402
 from pipeline.core.parallel import BACKENDS  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
-from pipeline.evaluation.assemble import evaluate_run, write_metrics, write_report_md  # noqa: E402
+from pipeline.evaluation.assemble import evaluate_run, withdraw_reports, write_metrics, write_report_md  # noqa: E402
 from pipeline.evaluation.flags import DISAGREEMENT_DEG  # noqa: E402
 from pipeline.frontend.feature_stage import load_manifest  # noqa: E402
 from pipeline.frontend.loop_stage import FrontEnd, loop_note, run_front_end  # noqa: E402
@@ -132,6 +132,11 @@ class Runner:
         if not self.plan.quiet:
             print(f"{_number(name)} {title}: not run ({why})", file=sys.stderr, flush=True)
 
+    def say(self, name: str, what: str) -> None:
+        """A line in the place of step ``name`` (a default method it leaves out: ``[8/13] SDP-cSO(3) not run ...``)."""
+        if not self.plan.quiet:
+            print(f"{_number(name)} {what}", file=sys.stderr, flush=True)
+
     def skipped(self, name: str, title: str) -> bool:
         """Whether the plan leaves the step out (``plan.skipped``); if it does, :meth:`skip` says so."""
         why = self.plan.skipped.get(name)
@@ -163,6 +168,8 @@ def _averaging(plan: Plan, runner: Runner, vg: Any, upstream: tuple[str, Path, N
     if not specs:
         specs, why = registry.default_methods(vg, plan.run, plan.yaml, plan.overrides)
         plan.notes.extend(why)
+        for w in why:
+            runner.say("averaging", w)
 
     def solve_all() -> dict[str, dict]:
         from tqdm import tqdm  # noqa: PLC0415
@@ -299,6 +306,7 @@ def main(images: Path | None = None, out: Path | None = None, config: Path | Non
     plan = prepare(images, out, config, methods, gt, K, reference, overwrite, quiet, database, executor, scheduler)
     with folder_lock(plan.out), plan.executors():
         remove_stale_temporaries(plan.out)
+        withdraw_reports(plan.out)
         runner = Runner(plan)
         work = plan.work
         runner.stage(plan.features)

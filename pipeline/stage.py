@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
-from pipeline.core.atomic import remove_stale_temporaries, write_json
+from pipeline.core.atomic import check_writable, remove_stale_temporaries, write_json
 from pipeline.core.config import Config
 from pipeline.core.errors import CacheError, InputFileError
 from pipeline.core.readers import read_json
@@ -255,7 +255,13 @@ class Stage(abc.ABC, Generic[C]):
         if blocking is not None:  # mkdir would say only "[Errno 17] File exists"
             raise InputFileError(f"{blocking} is a file, not a folder: {self.name} writes its results into "
                                  f"{self.folder}; pass a folder (or remove the file)")
-        self.folder.mkdir(parents=True, exist_ok=True)
+        try:  # before the work: a result it could not write would be lost
+            check_writable(self.folder, f"{self.name} writes its results there")
+        except OSError:
+            for p in made:
+                with contextlib.suppress(OSError):
+                    p.rmdir()
+            raise
         remove_stale_temporaries(self.folder)
         t0 = time.perf_counter()
         try:

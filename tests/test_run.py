@@ -271,3 +271,39 @@ def test_bad_config_key(tmp_path, scene):
         run.main(scene, tmp_path / "out", config=p, quiet=True)
 
 
+
+
+def test_a_default_method_left_out_is_said_on_the_console(run_copy, tiny_scene, tmp_path, capsys):
+    """Over run.sdp_max_n cameras the default SDP-cSO(3) does not run: the report's notes said so, the console (which
+    names every step that does not run) said nothing, and its table simply had no SDP row."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("run:\n  plots: false\n  refine: false\n  reference: false\n  sdp_max_n: 3\n"
+                   "features:\n  workers: 1\nmatching:\n  workers: 1\ntwo_view:\n  workers: 1\ntwo_view_ba:\n  workers: 1\n")
+    capsys.readouterr()
+    run.main(tiny_scene, run_copy, config=cfg, gt=tiny_scene / "cameras.txt")
+    err = capsys.readouterr().err.splitlines()
+    assert "[8/13] SDP-cSO(3) not run by default: N=6 > run.sdp_max_n=3" in err, err
+
+
+def test_an_interrupted_rerun_leaves_no_report_of_the_run_before(run_copy, tiny_scene, tiny_config, tmp_path,
+                                                                 monkeypatch):
+    """A re-run with another averaging option, stopped by Ctrl-C after the averaging: rotations/irls-l0.5.txt was the
+    new run's (0.0178° from the truth) while report.md and metrics.json still gave the run before's figures
+    (0.014°) for it."""
+    from pipeline.averaging.stage import AveragingStage
+
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(tiny_config.read_text() + "averaging:\n  refine: false\n")
+    real = AveragingStage.run
+
+    def then_interrupted(self, *a, **k):
+        real(self, *a, **k)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(AveragingStage, "run", then_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run.main(tiny_scene, run_copy, config=cfg, gt=tiny_scene / "cameras.txt", quiet=True, reference=False)
+    assert not (run_copy / "report.md").exists() and not (run_copy / "metrics.json").exists()
+    monkeypatch.undo()
+    run.main(tiny_scene, run_copy, config=cfg, gt=tiny_scene / "cameras.txt", quiet=True, reference=False)
+    assert (run_copy / "report.md").is_file() and (run_copy / "metrics.json").is_file()

@@ -21,8 +21,10 @@ from typing import IO, Any, Iterator
 
 import numpy as np
 
+from pipeline.core.errors import OutputError
+
 __all__ = ["atomic_path", "atomic_open", "atomic_dir", "write_json", "finite_json", "save_npz", "save_npz_uncompressed",
-           "save_figure", "remove_stale_temporaries", "TMP_TAG"]
+           "save_figure", "remove_stale_temporaries", "check_writable", "TMP_TAG"]
 
 TMP_TAG = ".rotavg-tmp-"
 
@@ -38,6 +40,28 @@ def _publish(tmp: Path, path: Path, mode: int = 0o666) -> None:
     os.replace(tmp, path)
 
 
+def _cannot_write(path: Path, exc: OSError) -> OutputError:
+    """The error of an output whose temporary cannot be made beside it: it names the output, not the temporary."""
+    return OutputError(f"cannot write {path} ({exc.strerror or exc}); choose a writable location")
+
+
+def check_writable(folder: str | os.PathLike, what: str = "") -> None:
+    """Create ``folder`` if needed and a file in it (removed at once): before the work that writes there.
+
+    Raises:
+        OutputError: naming ``folder`` (and ``what`` writes there), where either cannot be done.
+    """
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".probe{TMP_TAG}")
+    except OSError as exc:
+        raise OutputError(f"cannot write to {folder} ({exc.strerror or exc}){': ' + what if what else ''}; choose a "
+                          "writable folder") from None
+    os.close(fd)
+    os.unlink(tmp)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; rename it onto ``path`` on success.
@@ -48,9 +72,12 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
             writers such as ``np.savez`` that append their own extension.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}",
-                               suffix=suffix if suffix is not None else path.suffix)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}",
+                                   suffix=suffix if suffix is not None else path.suffix)
+    except OSError as exc:
+        raise _cannot_write(path, exc) from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -66,8 +93,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
 def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary folder beside ``path``; it replaces ``path`` (and anything there) on success."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}"))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}{TMP_TAG}"))
+    except OSError as exc:
+        raise _cannot_write(path, exc) from None
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())

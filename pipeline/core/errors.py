@@ -19,3 +19,7 @@ class ConfigError(PipelineError, ValueError):
 
 class CacheError(PipelineError):
     """A cached output that is missing, truncated or inconsistent: it is recomputed, never trusted."""
+
+
+class OutputError(PipelineError, OSError):
+    """An output that cannot be written where it was asked for (a missing or read-only location), named."""

@@ -26,8 +26,8 @@ from pipeline.evaluation.console import intrinsics_console, summary_table
 from pipeline.evaluation.report import report_data, write_report
 from pipeline.reference.types import Reference
 
-__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "pairs_section", "finite_json",
-           "OUR_PATH", "UNITS"]
+__all__ = ["RunEvaluation", "evaluate_run", "write_report_md", "write_metrics", "withdraw_reports", "pairs_section",
+           "finite_json", "OUR_PATH", "UNITS"]
 
 # the stages of our own path, from images to the refined rotations (what a time ratio against a peer counts)
 OUR_PATH = ("features", "matching", "cameras", "two_view", "two_view_ba", "loop_closure", "viewgraph", "averaging",
@@ -243,3 +243,11 @@ def _unsolved_line(left_out: dict[str, str], limit: int = 5) -> str:
     more = f" and {len(names) - limit} more" if len(names) > limit else ""
     return (f"WARNING: {len(names)} image(s) not solved in this frame: {', '.join(names[:limit])}{more} (why: "
             "metrics.json input.left_out_why)")
+
+
+def withdraw_reports(out: Path) -> None:
+    """Remove the report and metrics of an earlier run in ``out`` (and in its component folders) as a run starts: one
+    that does not finish then leaves none, rather than figures of files it has since replaced."""
+    for folder in (Path(out), *sorted(Path(out).glob("component-*"))):
+        for name in ("report.md", "metrics.json"):
+            (folder / name).unlink(missing_ok=True)

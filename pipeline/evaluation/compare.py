@@ -39,7 +39,8 @@ from pipeline.reference.types import Reference
 logger = logging.getLogger(__name__)
 
 __all__ = ["SUBSET_PREFIX", "EvaluationConfig", "match_reference", "summarize_against", "truth_on_registered",
-           "subset_prefix", "subset_label", "peer_metrics", "evaluate_all", "evaluate_files", "main_cli"]
+           "subset_prefix", "subset_label", "peer_metrics", "evaluate_all", "evaluate_files", "too_few_in_common",
+           "main_cli"]
 
 CERTIFICATE_KEYS = ("certified", "rank", "gap", "gap_residual", "lower_bound", "primal_cost", "cost_offset", "status",
                     "solver", "fallback")
@@ -84,6 +85,12 @@ def _rows(names: list[str], ref: Reference) -> tuple[np.ndarray, np.ndarray]:
     return match_reference(names, ref.names, ref.R, what=f"the reference '{ref.label or ref.source}'")
 
 
+def too_few_in_common(n: int) -> str:
+    """Why no error is given where ``n`` (< 2) cameras are in common with a reference."""
+    return ("no camera in common with the reference" if n == 0 else "only one camera in common with the reference: "
+            "the global alignment makes its error 0 by construction")
+
+
 def summarize_against(names: list[str], R: np.ndarray, ref: Reference, align: str, vg: ViewGraph | None = None
                       ) -> tuple[dict[str, Any], np.ndarray]:
     """The :func:`pipeline.evaluation.metrics.summarize` of (N, 3, 3) ``R`` against ``ref`` and the (N,) errors (deg).
@@ -92,8 +99,8 @@ def summarize_against(names: list[str], R: np.ndarray, ref: Reference, align: st
     same order; cameras the reference lacks are listed under ``not_in_reference``.
     """
     R_ref, mask = _rows(names, ref)
-    if not mask.any():
-        return {"n_cameras": len(names), "n_evaluated": 0, "note": "no camera in common with the reference"}, \
+    if mask.sum() < 2:  # one camera's error is 0 after the alignment, by construction: no figure to give
+        return {"n_cameras": len(names), "n_evaluated": int(mask.sum()), "note": too_few_in_common(int(mask.sum()))}, \
             np.full(len(names), np.nan)
     use_vg = vg if (vg is not None and vg.H is not None and list(vg.names) == list(names)) else None
     s = mt.summarize(R, R_ref, mask, align=align, vg=use_vg)
@@ -262,11 +269,18 @@ def evaluate_files(reference: str | os.PathLike, rotations: str | os.PathLike | 
         if not np.any(m_vg):
             raise ValueError(f"no camera of {viewgraph} matches a name in {reference} (e.g. {vg.names[:3]} vs {ref.names[:3]})")
         edge_summary = mt.edge_stats(vg, R_vg, m_vg)
+        if not edge_summary["n_evaluated"]:
+            raise ValueError(f"no edge of {viewgraph} has both its cameras in {reference} (which holds "
+                             f"{int(m_vg.sum())} of its {len(vg.names)} cameras); give a reference of its cameras")
     if rotations is not None:
         names, R_est = read_rotations(rotations)
         R_ref, m = match_reference(names, ref.names, ref.R, what=str(reference))
         if not np.any(m):
             raise ValueError(f"no camera of {rotations} matches a name in {reference} (e.g. {names[:3]} vs {ref.names[:3]})")
+        if m.sum() < 2:
+            raise ValueError(f"only one camera of {rotations} ({names[int(np.flatnonzero(m)[0])]}) is in {reference}: "
+                             "the global alignment makes one camera's error 0 by construction; give a reference "
+                             "holding at least two of its cameras")
         vg_ordered = _reindexed(vg, names) if vg is not None and vg.H is not None else None
         out = mt.summarize(R_est, R_ref, m, align, vg=vg_ordered)
         out["n_reference"] = len(ref.names)

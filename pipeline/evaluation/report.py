@@ -187,7 +187,7 @@ def report_data(metrics: dict[str, Any], refs: list[Reference], camera_errors: d
                 if r.label == "truth" or r.label.startswith(subset_prefix(label)):
                     table[r.label][row] = p
         for other, s in (p.get("references") or {}).items():  # against the other peers, on the images both register
-            if other in table and s.get("n_evaluated"):
+            if other in table and "median_deg" in s:  # not where fewer than 2 images are in common
                 table[other][row] = s | {"time_s": p.get("time_s"), "times": p.get("times")}
     edge_vals: dict[str, np.ndarray] = {}
     if refs and refs[0].label in edge_errors and "ba" in edge_errors[refs[0].label]:

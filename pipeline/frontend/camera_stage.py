@@ -141,7 +141,8 @@ class CamerasStage(Stage[CamerasConfig]):
     name = NAME
     title = "cameras (intrinsics, distortion)"
     config_cls = CamerasConfig
-    version = 2  # 2: a focal estimated from no pair is not 'determined'
+    version = 3  # 2: a focal estimated from no pair is not 'determined'; 3: the view-graph calibration keeps the
+    # pairs of images whose names hold a space
 
     def inputs(self) -> dict[str, str]:
         # the first round's matches: a loop-closure round (pipeline.frontend.loop_stage) adds pairs, not cameras

@@ -379,8 +379,9 @@ def main(work: Path, config: Path | None = None, loop_config: LoopClosureConfig 
                      loop_config or stage_config(LoopClosureConfig, data), progress)
     loop = LoopClosureStage(work, front)
     if not loop.applies():
-        raise InputFileError(f"no loop-closure round in {work}: it follows retrieval or sequential pairs of our own "
-                             f"features (matching.pairs={front.matching.pairs!r}) with loop_closure.enabled")
+        raise InputFileError(f"no loop-closure round in {work} ({loop.why_not()}): it follows retrieval or sequential "
+                             f"pairs of our own features (matching.pairs={front.matching.pairs!r}) with "
+                             "loop_closure.enabled")
     run_front_end(Path(work), front, overwrite=overwrite)
     return Path(work) / OUTPUT
 

@@ -61,6 +61,7 @@ def read_pairs(path: str | os.PathLike, names: list[str]) -> np.ndarray:
     except UnicodeDecodeError as exc:
         raise InputFileError(f"pairs file {path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     rows: list[tuple[int, str, str]] = []
+    extra: set[int] = set()  # lines of more than two fields (a score, or a name holding spaces, unquoted)
     for ln_no, line in enumerate(text.splitlines(), 1):
         tok = split_fields(line, f"{path} line {ln_no}")
         if not tok:
@@ -68,6 +69,8 @@ def read_pairs(path: str | os.PathLike, names: list[str]) -> np.ndarray:
         if len(tok) < 2:
             raise InputFileError(f"{path} line {ln_no}: expected 'name_a name_b', got {line.strip()[:80]!r}")
         rows.append((ln_no, tok[0], tok[1]))
+        if len(tok) > 2:
+            extra.add(ln_no)
     if not rows:
         raise InputFileError(f"{path} lists no pair of two different images")
     wanted = sorted({t for _, a, b in rows for t in (a, b)})
@@ -78,7 +81,9 @@ def read_pairs(path: str | os.PathLike, names: list[str]) -> np.ndarray:
             if idx[t] < 0:
                 raise InputFileError(
                     f"{path} line {ln_no}: image {t!r} is not among the {len(names)} images with features "
-                    f"(e.g. {', '.join(names[:3])}); was it skipped as unreadable, or are the pairs from another folder?")
+                    f"(e.g. {', '.join(names[:3])}); was it skipped as unreadable, or are the pairs from another folder?"
+                    + (" (a name holding spaces is written in double quotes: \"IMG 0001.jpg\")" if ln_no in extra
+                       else ""))
         if idx[a] != idx[b]:
             out.append(sorted((int(idx[a]), int(idx[b]))))
     if not out:

@@ -138,12 +138,13 @@ def calibrate_focals(names: list[str], sizes: np.ndarray, starts: list[np.ndarra
         shutil.rmtree(stale, ignore_errors=True)
     out = []
     with tempfile.TemporaryDirectory(prefix=TMP_PREFIX, dir=folder) as tmp:
-        verified, pairs_path = Path(tmp) / "verified.db", Path(tmp) / "pairs.txt"
+        verified = Path(tmp) / "verified.db"
         ids = _write_database(pc, verified, names, sizes, starts[0], prior, keypoints, pairs, matches)
-        pairs_path.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in np.asarray(pairs).tolist()))
         vopts = pc.TwoViewGeometryOptions()
         vopts.ransac.random_seed = int(seed)  # seeded: the same images give the same focal lengths
-        pc.verify_matches(str(verified), str(pairs_path), vopts)
+        # every matched pair of the database, with no pairs file: its 'NAME1 NAME2' lines cannot hold a name with
+        # a space, and pycolmap dropped every pair of such an image (the same geometries as verify_matches otherwise)
+        pc.geometric_verification(str(verified), two_view_geometry_options=vopts)
         edges, F, inl = _read_geometries(pc, verified, ids)
         pos = {iid: k for k, iid in enumerate(ids)}
         for K0 in starts:

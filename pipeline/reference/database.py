@@ -19,7 +19,6 @@ import contextlib
 import json
 import logging
 import sqlite3
-import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -165,10 +164,8 @@ def build_database(pc: Any, db_path: Path, images: Path, names: list[str], Ks: n
         _import_our_matches(pc, db_path, images, names, reader, mode, work)
         times["extract_s"] = time.perf_counter() - t0
         t1 = time.perf_counter()
-        with tempfile.TemporaryDirectory() as tmp:
-            pairs_path = Path(tmp) / "pairs.txt"
-            _write_pairs_from_db(pc, db_path, pairs_path)
-            pc.verify_matches(db_path, pairs_path, _verification(pc, cfg))
+        # every matched pair, with no pairs file: its 'NAME1 NAME2' lines cannot hold a name with a space
+        pc.geometric_verification(str(db_path), two_view_geometry_options=_verification(pc, cfg))
         times["match_s"] = time.perf_counter() - t1
     else:
         ext = pc.FeatureExtractionOptions()
@@ -230,20 +227,6 @@ def _import_our_matches(pc: Any, db_path: Path, images: Path, names: list[str], 
             db.write_matches(ids[fs.names[i]], ids[fs.names[j]], np.ascontiguousarray(np.asarray(m, dtype=np.uint32)))
     finally:
         db.close()
-
-
-def _write_pairs_from_db(pc: Any, db_path: Path, pairs_path: Path) -> None:
-    db = pc.Database.open(db_path)
-    try:
-        names = {img.image_id: img.name for img in db.read_all_images()}
-        pair_ids, _ = db.read_all_matches()
-    finally:
-        db.close()
-    lines = []
-    for pid in pair_ids:
-        a, b = pc.pair_id_to_image_pair(pid) if hasattr(pc, "pair_id_to_image_pair") else split_pair_id(pid)
-        lines.append(f"{names[a]} {names[b]}\n")
-    pairs_path.write_text("".join(lines))
 
 
 def split_pair_id(pid: int) -> tuple[int, int]:

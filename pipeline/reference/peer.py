@@ -170,6 +170,7 @@ class PeerStage(Stage[PeerConfig]):
         if self.config.use_our_matches:
             for up in ("features", "matching"):
                 out[up] = self.upstream(up, self.work).fingerprint
+            out["verification"] = "2"  # 2: every matched pair, with no pairs file (names with spaces kept their pairs)
         return out
 
     def _keys(self, inputs: dict[str, str]) -> tuple[str, str]:

@@ -203,6 +203,10 @@ class RefineStage(Stage[RefineConfig]):
             if methods is None:
                 methods = sorted(p.name[:-len(".record.json")] for p in self.rot_dir.glob("*.record.json")
                                  if "+" not in p.name)
+                if not methods:
+                    raise InputFileError(f"no averaged rotations to refine in {self.rot_dir}: run run.py with --out "
+                                         f"{self.folder}, or `python -m pipeline.average {self.work}/viewgraph.npz "
+                                         f"--out {self.rot_dir}/irls-l0.5.txt` (a method's label as the file name)")
             self.start, self.start_why = recommended_start(methods)
         else:
             self.start, self.start_why = self.config.start, f"{self.config.start}: configured"

@@ -44,7 +44,7 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
-from pipeline.core.atomic import atomic_open, atomic_path, save_npz, write_json
+from pipeline.core.atomic import atomic_open, atomic_path, check_writable, save_npz, write_json
 from pipeline.core.errors import InputFileError
 from pipeline.synthetic.large_layouts import LAYOUTS, LargeSceneConfig, make_scene
 from pipeline.synthetic.render import supersampled_grid, write_cameras_txt
@@ -326,7 +326,7 @@ def render_large(config: LargeSceneConfig, out: Path | None, seed: int = 0) -> d
     noise_rng = np.random.default_rng([seed, 13])
     if out is not None:
         out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
+        check_writable(out)
     vis_idx, vis_z, images, depths = [], [], [], []
     t_render = t_write = 0.0
     for i in range(N):

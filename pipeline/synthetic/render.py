@@ -40,7 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.core.atomic import atomic_open, atomic_path
+from pipeline.core.atomic import atomic_open, atomic_path, check_writable
 from pipeline.core.errors import PipelineError
 from pipeline.geometry.epipolar import essential_from_Rt, normalize, sampson_distance  # noqa: F401 - essential_from_Rt: old import path
 from pipeline.synthetic.scene import Plane, look_at, make_planes, procedural_texture, ring_cameras  # noqa: F401
@@ -266,6 +266,8 @@ def render_scene(n_views: int = 12, seed: int = 0, out: str | Path | None = None
     cfg = dataclasses.replace(cfg, n_views=int(n_views))
     if noise_sigma is not None:
         cfg = dataclasses.replace(cfg, noise_sigma=float(noise_sigma))
+    if out is not None:
+        check_writable(out)  # before the rendering
     rng = np.random.default_rng(seed)
     planes = make_planes(int(rng.integers(2**31)), cfg.texture_px_per_unit)
     K, R, t = ring_cameras(cfg, np.random.default_rng(int(rng.integers(2**31))))
@@ -284,7 +286,6 @@ def render_scene(n_views: int = 12, seed: int = 0, out: str | Path | None = None
     scene = RenderedScene(names, images, K, R, t, points, depths)
     if out is not None:
         out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
         for name, img in zip(names, images):
             with atomic_path(out / name, suffix=".png") as tmp:
                 if not cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):

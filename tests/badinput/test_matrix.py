@@ -733,6 +733,20 @@ def test_average_refuses_an_output_that_is_a_folder_before_any_work(cli, graphs,
     assert not (tmp_path / "s.txt").exists() and list((tmp_path / "adir").iterdir()) == []  # nothing written first
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="a folder even root cannot write: /proc")
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(cli, graphs, tiny_scene, tmp_path):
+    """`--out /proc/rot.txt`: /proc exists, so the averaging ran and then failed writing, naming its temporary
+    ('/proc/.rot.txt.rotavg-tmp-…'); `--work /proc/w` said "[Errno 2] No such file or directory: '/proc/w'"."""
+    r = cli("-m", "pipeline.average", graphs / "good.npz", "--out", "/proc/rotavg-test-rot.txt")
+    refused(r, r"cannot write to /proc \(.*\): averaging writes its results there; choose a writable folder")
+    assert "IRLS" not in r.stderr and TMP_TAG not in r.stderr  # before the work
+    r = cli("-m", "pipeline.features", "--images", tiny_scene, "--work", "/proc/rotavg-test-w")
+    refused(r, r"cannot write to /proc/rotavg-test-w \(.*\): features writes its results there")
+    line = refused(cli("-m", "pipeline.convert", graphs / "good.npz", "/proc/rotavg-test.g2o", "-q"),
+                   r"cannot write /proc/rotavg-test.g2o")
+    assert TMP_TAG not in line
+
+
 def test_evaluate_names_a_file_that_is_not_utf8(cli, tiny_scene, tmp_path):  # issue: decode errors name the file
     rot = tmp_path / "rot.txt"
     rot.write_bytes(b"view_000.png \xff\xfe 0 0 0 1 0 0 0 1\n")

@@ -45,3 +45,20 @@ def test_what_is_not_json_still_raises(tmp_path) -> None:
     with pytest.raises(TypeError, match="set is not JSON serializable"):
         write_json(tmp_path / "x.json", {"a": {1, 2}})
     assert not list(tmp_path.iterdir())
+
+
+def test_an_output_that_cannot_be_written_is_named_not_its_temporary(tmp_path) -> None:
+    """`pipeline.convert g.npz /proc/g.g2o`, `pipeline.evaluate --json /proc/e.json`: the one error line was
+    "[Errno 2] No such file or directory: '/proc/.e.json.rotavg-tmp-wl4czp85.json'", a file the user never named."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")  # no folder can be made under a file, even by root
+    targets = [blocker / "out.json"] + ([Path("/proc/rotavg-test-out.json")] if Path("/proc/self").is_dir() else [])
+    for target in targets:
+        with pytest.raises(OSError) as exc:
+            write_json(target, {"a": 1})
+        msg = str(exc.value)
+        assert f"cannot write {target}" in msg and TMP_TAG not in msg, msg
+        with pytest.raises(OSError) as exc:
+            with atomic.atomic_dir(target.with_suffix("")):
+                pass
+        assert f"cannot write {target.with_suffix('')}" in str(exc.value) and TMP_TAG not in str(exc.value)

@@ -76,6 +76,32 @@ def test_cli_errors_are_one_line(tmp_path) -> None:
         assert len(lines) == 1 and re.search(match, lines[0]), out.stderr
 
 
+def test_one_camera_in_common_is_no_evaluation(tmp_path) -> None:
+    """The global alignment absorbs one camera's rotation: its error is 0 by construction. The command printed
+    'evaluated 1, median error 0, 100% under 1°' for 12 estimated cameras and a reference holding one of them
+    (run.py --gt refuses such a truth); a run's summary must not give such figures either."""
+    from pipeline.evaluation.compare import summarize_against
+
+    rng = np.random.default_rng(3)
+    names = [f"{k:04d}.jpg" for k in range(5)]
+    R = so3.random_rotations(5, rng)
+    est = write_rotations(tmp_path / "est.txt", names, R)
+    ref = write_rotations(tmp_path / "ref.txt", names[:1], so3.random_rotations(1, rng))
+    out = subprocess.run([sys.executable, "-m", "pipeline.evaluate", "--rotations", str(est), "--reference", str(ref)],
+                         capture_output=True, text=True, timeout=60)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "only one camera" in lines[0] and "ref.txt" in lines[0], \
+        out.stderr + out.stdout
+    vg = ViewGraph.from_absolute(names, R, [(0, 1), (1, 2), (2, 3), (3, 4)]).save(tmp_path / "vg.npz")
+    out = subprocess.run([sys.executable, "-m", "pipeline.evaluate", "--viewgraph", str(vg), "--reference", str(ref)],
+                         capture_output=True, text=True, timeout=60)  # no edge with both ends: it printed NaN, exit 0
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1 and "no edge of" in lines[0], out.stderr + out.stdout
+    s, errs = summarize_against(names, R, Reference(names[:1], so3.random_rotations(1, rng), source="rotations"), "l2")
+    assert s["n_evaluated"] == 1 and "median_deg" not in s and "only one camera" in s["note"]
+    assert np.isnan(errs).all()
+
+
 @pytest.mark.data
 def test_lu_sphinx_edge_table(shared_data, tmp_path) -> None:
     mat = shared_data / "lu_sphinx" / "lu_sphinx.mat"

@@ -99,6 +99,17 @@ def test_pairs_file(tmp_path):
         read_pairs(tmp_path / "none.txt", names)
 
 
+def test_pairs_file_with_an_unquoted_name_holding_spaces(tmp_path):
+    """'IMG 0001.jpg b.jpg' is four fields; the error said only that image 'IMG' is not among the images."""
+    names = ["IMG 0001.jpg", "b.jpg"]
+    f = tmp_path / "pairs.txt"
+    f.write_text("IMG 0001.jpg b.jpg\n")
+    with pytest.raises(InputFileError, match=r"'IMG' is not among .*double quotes"):
+        read_pairs(f, names)
+    f.write_text('"IMG 0001.jpg" b.jpg\n')
+    np.testing.assert_array_equal(read_pairs(f, names), [[0, 1]])
+
+
 def test_main_resume_and_incremental(scene, tmp_path):
     images = tmp_path / "img"
     shutil.copytree(scene.out, images)

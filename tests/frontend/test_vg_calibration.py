@@ -107,6 +107,18 @@ def test_no_database_is_left_behind(cams, tmp_path) -> None:
     assert not list(tmp_path.glob(f"{vgc.TMP_PREFIX}*"))
 
 
+def test_image_names_with_spaces_keep_their_pairs(cams, calibrated, tmp_path) -> None:
+    """Names as users have them ('IMG 0001 (copy).JPG'): COLMAP's pairs file is 'NAME1 NAME2' lines, so pycolmap's
+    verification through one dropped every pair of such an image ("Image IMG does not exist") and the calibrator
+    gave it no focal."""
+    sizes, K, start, kps, pairs, matches = cams
+    names = [f"IMG {k} (copy) é.JPG" if k % 2 else f"im{k}.png" for k in range(len(sizes))]
+    cal = vgc.calibrate_focals(names, sizes, [start], np.zeros(len(sizes), bool), kps, pairs, matches, tmp_path)[0]
+    np.testing.assert_array_equal(cal.edges, calibrated.edges)
+    np.testing.assert_array_equal(cal.F, calibrated.F)
+    np.testing.assert_array_equal(cal.f, calibrated.f)
+
+
 def _stage_call(cams, tmp_path, monkeypatch, focal: np.ndarray | None, group: np.ndarray | None = None):
     """The cameras stage's choice on these cameras; ``focal``: what the calibrator is made to return; ``group``:
     the group focal lengths (K) the stage holds (default: the start values)."""

@@ -190,6 +190,28 @@ def test_reuse_our_matches(scene6, tmp_path):
     assert summarize(res.R, R_ref, mask)["median_deg"] < 0.5
 
 
+@pytest.mark.slow
+def test_our_matches_of_images_named_with_spaces_are_verified(scene6, tmp_path):
+    """COLMAP's pairs file is 'NAME1 NAME2' lines: verified through one, every pair of 'view 001 (copy).png' was
+    dropped ("Image view does not exist") and the image left without a verified pair."""
+    import pycolmap
+
+    from pipeline import features, matching
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for k, p in enumerate(sorted(scene6.glob("*.png"))):
+        shutil.copy(p, images / (f"view {k:03d} (copy).png" if k % 2 else p.name))
+    work = tmp_path / "work"
+    features.main(images, work, progress=False)
+    matching.main(work, progress=False)
+    names = sorted(p.name for p in images.glob("*.png"))
+    db = tmp_path / "db.db"
+    database.build_database(pycolmap, db, images, names, None, database.DatabaseConfig(use_our_matches=True), work)
+    degree, _ = database.verified_degree(pycolmap, db)
+    assert all(degree[nm] >= 3 for nm in names), degree
+
+
 def test_reuse_our_matches_needs_work(scene6, tmp_path):
     from pipeline.core.errors import PipelineError
 

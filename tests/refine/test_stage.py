@@ -137,6 +137,17 @@ def test_help_and_one_line_error(tmp_path):
     assert r.returncode == 2 and r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1
 
 
+def test_no_rotations_to_refine_names_the_folder_and_how_to_fill_it(tmp_path):
+    """The README's stage chain writes `pipeline.average ... --out irls.txt`; `pipeline.refine --out OUT` then said
+    only 'no averaged rotations to refine: run an averaging method first', not where it looked nor how to put a
+    method's rotations there."""
+    r = subprocess.run([sys.executable, "-m", "pipeline.refine", "--out", str(tmp_path / "OUT"), "--work",
+                        str(tmp_path / "work")], capture_output=True, text=True)
+    line = r.stderr.strip()
+    assert r.returncode == 2 and len(line.splitlines()) == 1, r.stderr
+    assert str(tmp_path / "OUT" / "rotations") in line and "pipeline.average" in line and "irls-l0.5.txt" in line, line
+
+
 def test_tracks_come_only_from_the_pairs_the_checked_view_graph_kept(rendered_run, tmp_path):
     from pipeline.core.viewgraph import ViewGraph
     from pipeline.refine.stage import load_inputs
