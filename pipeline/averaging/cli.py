@@ -30,7 +30,7 @@ from typing import Any
 
 from pipeline.averaging.registry import DEFAULT_METHOD, check_sections, methods, parse_method, tokens_help
 from pipeline.averaging.stage import AveragingStage
-from pipeline.core.atomic import write_json
+from pipeline.core.atomic import check_writable, write_json
 from pipeline.core.cli import add_config_args, run_cli
 from pipeline.core.config import load_yaml
 from pipeline.core.errors import ConfigError, InputFileError
@@ -92,6 +92,8 @@ def main(input_path: str | Path, out_path: str | Path, json_path: str | Path | N
                           "with H, or use a method without H (e.g. 'irls')")
     if init_file is not None and not spec.method.takes_init:
         raise ConfigError(f"method {spec.name!r} takes no start; drop --init")
+    if json_path is not None:  # --out's folder the stage checks before its work; --json's here, before it too
+        check_writable(Path(json_path).parent, f"--json {json_path}")
     label = out_path.name[: -len(out_path.suffix)] if out_path.suffix else out_path.name
     stage = AveragingStage(out_path.parent, spec, input_path, label=label, rotations=out_path, init=init_file,
                            rotation_tol=rotation_tol)

@@ -154,3 +154,13 @@ def test_a_start_at_a_local_minimum_is_not_taken_and_the_conic_program_is_solved
     good = _solve(vg, cfg, {}, R_true)
     assert good.stats["solver"] == "none" and good.stats["certified"]
     assert rotation_errors_deg(good.R, R_true).max() < 1e-6
+
+
+def test_a_graph_without_redundancy_says_its_resolution_is_zero_not_an_infinite_ratio():
+    """Two cameras, one edge: the cost's resolution is 0 (nothing to check the edge against), and the certificate's
+    statement says so instead of 'proven suboptimality ≤ 0 = inf × the cost's resolution'."""
+    g = paper2_graph(2, 1.0, eig_range=(1e3, 1e4), seed=0)
+    st = average(g.vg, "sdp").stats
+    text = st["certificate"]["statement"]
+    assert "inf" not in text and "nan" not in text, text
+    assert "the cost's resolution is 0" in text

@@ -740,6 +740,10 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(cli,
     r = cli("-m", "pipeline.average", graphs / "good.npz", "--out", "/proc/rotavg-test-rot.txt")
     refused(r, r"cannot write to /proc \(.*\): averaging writes its results there; choose a writable folder")
     assert "IRLS" not in r.stderr and TMP_TAG not in r.stderr  # before the work
+    r = cli("-m", "pipeline.average", graphs / "good.npz", "--out", tmp_path / "rot.txt", "--json",
+            "/proc/rotavg-test-json/e.json")  # --json's folder too, before the averaging
+    refused(r, r"cannot write to /proc/rotavg-test-json \(.*\): --json /proc/rotavg-test-json/e.json")
+    assert not (tmp_path / "rot.txt").exists()
     r = cli("-m", "pipeline.features", "--images", tiny_scene, "--work", "/proc/rotavg-test-w")
     refused(r, r"cannot write to /proc/rotavg-test-w \(.*\): features writes its results there")
     line = refused(cli("-m", "pipeline.convert", graphs / "good.npz", "/proc/rotavg-test.g2o", "-q"),

@@ -133,8 +133,11 @@ def solve_robust(vg: ViewGraph, cfg: Any, settings: dict[str, Any],
     head = f"globally optimal{by}" if st["certified"] else (
         f"NOT certified (rank {st['rank']}, gap {st['gap_vs_resolution']:.2g}× the cost's resolution, "
         f"{cfg.cert_kappa:g}× needed): a rounding of the relaxation, not a proven optimum")
-    gap = f"proven suboptimality ≤ {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
-    if st["certified"] and st["gap_vs_resolution"] > cfg.cert_kappa:  # allowed by the cost's rounding level
+    gap = (f"proven suboptimality ≤ {st['gap_abs']:.3g} = {st['gap_vs_resolution']:.2g} × the cost's resolution"
+           if np.isfinite(st["gap_vs_resolution"]) else
+           f"proven suboptimality ≤ {st['gap_abs']:.3g}; the cost's resolution is 0 (no redundant edge, or every edge "
+           "fitted exactly)")
+    if st["certified"] and np.isfinite(st["gap_vs_resolution"]) and st["gap_vs_resolution"] > cfg.cert_kappa:
         gap += (f" (the data are fitted exactly: within the cost's rounding {st['cost_rounding']:.3g})"
                 if cfg.cert_kappa * st["resolution"] <= 0.01 * st["cost_rounding"] else
                 f" (within {cfg.cert_kappa:g}× the resolution plus the cost's rounding level {st['cost_rounding']:.3g}, "
