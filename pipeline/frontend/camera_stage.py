@@ -281,10 +281,11 @@ class CamerasStage(Stage[CamerasConfig]):
         choice = choose_focal_lengths(cals, list(starts), list(starts.values()), K, kp, list(fs.names), focal_set,
                                       fitted, cfg.per_image_level, cfg.rotation_loss_deg, guessed)
         estimate["per_image"] = choice.record
+        rec = choice.record
         logger.info("cameras: view-graph calibration (%d pairs): rotation consistency %s with per-image focal "
-                    "lengths, %.4g with the group ones (F %.3g vs %.3g): %s", choice.record["n_pairs"],
-                    " / ".join(f"{v['consistency']:.4g}" for v in choice.record["calibrations"].values()),
-                    choice.record["consistency_group"], choice.record["F"], choice.record["F_critical"],
+                    "lengths, %.4g with the group ones (%s): %s", rec["n_pairs"],
+                    " / ".join(f"{v['consistency']:.4g}" for v in rec["calibrations"].values()), rec["consistency_group"],
+                    f"F {rec['F']:.3g} vs {rec['F_critical']:.3g}" if rec["no_test"] is None else f"no F test: {rec['no_test']}",
                     "per-image kept" if choice.chosen else "group focal lengths kept")
         changed_names = {fs.names[k] for k in choice.changed}
         for g in estimate["groups"]:

@@ -271,8 +271,13 @@ def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str
         if guessed is not None and np.any(use & np.asarray(guessed, bool)):
             level = guess_level
         chosen, F, crit = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra, level)
+    no_test = None if np.isfinite(F) else (  # why there is no F to compare, in words (the log said "F nan vs nan")
+        "no calibration gave per-image focal lengths" if best is None else
+        f"the per-image focal lengths are not more consistent ({best[0]:.4g} vs {c_group:.4g})"
+        if not (np.isfinite(c_group) and best[0] < c_group) else "too few pairs for the extra focal lengths")
     record = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
               "consistency_group": c_group, "calibrations": tried, "F": F, "F_critical": crit, "level": level,
+              "no_test": no_test,
               "n_guessed": 0 if guessed is None or best is None else int(np.sum(best[3] & np.asarray(guessed, bool))),
               "chosen": f"per-image (from the {best[1]} focal lengths)" if chosen and best else "group"}
     if not chosen or best is None:

@@ -234,3 +234,18 @@ def test_guessed_focal_lengths_need_no_high_significance(cams, calibrated, monke
     assert vgc.choose_focal_lengths(*args, level=0.999, guessed=some).record["n_guessed"] == 2 and levels[-1] == 0.5
     none = vgc.choose_focal_lengths(*args, level=0.999, guessed=np.zeros(len(sizes), bool))
     assert levels[-1] == 0.999 and none.record["n_guessed"] == 0
+
+
+def test_a_choice_without_an_F_test_says_why(cams, calibrated) -> None:
+    """Where the per-image set is no more consistent than the group focal lengths there is no F to compare: the
+    record (and the log line built from it, which printed 'F nan vs nan') says so in words."""
+    sizes, K, start, kps, pairs, matches = cams
+    names = [f"im{k}.png" for k in range(len(sizes))]
+    tested = vgc.choose_focal_lengths([calibrated], ["start"], [start], start, kps, names, np.ones(len(sizes), bool),
+                                      [None] * len(sizes))
+    assert np.isfinite(tested.record["F"]) and tested.record["no_test"] is None
+    worse = K.copy()  # the group focal lengths at the truth: the calibration's own set cannot be more consistent
+    rec = vgc.choose_focal_lengths([calibrated], ["start"], [start], worse, kps, names, np.ones(len(sizes), bool),
+                                   [None] * len(sizes)).record
+    assert not np.isfinite(rec["F"]) and rec["chosen"] == "group"
+    assert rec["no_test"].startswith("the per-image focal lengths are not more consistent"), rec["no_test"]
