@@ -90,3 +90,50 @@ def test_diagonal_cg_gives_the_generic_loops_iterates_to_the_bit():
                     n_solved += 1
                     assert fast[0].shape == b.shape and np.array_equal(fast[0], plain[0])
     assert n_solved > 40  # most systems were solved, not all stopped at the cap
+
+
+def test_converged_takes_the_median_only_where_it_decides():
+    from pipeline.averaging import stopping
+    from pipeline.averaging.stopping import StopRule, converged, robust_scale
+
+    rng = np.random.default_rng(7)
+    taken = []
+    real = stopping.robust_scale
+    stopping.robust_scale = lambda th: taken.append(1) or real(th)
+    try:
+        for _ in range(400):
+            theta = np.abs(rng.standard_normal(50)) * 10.0 ** rng.uniform(-4, -1)
+            f = float(rng.uniform(1, 2))
+            f_prev = f * (1 + float(rng.choice([0.0, 1e-7, 1e-6, 1e-4, 1e-2])))
+            step = float(10.0 ** rng.uniform(-12, -1))
+            rule = StopRule(1e-5, 0.05, None if rng.random() < 0.8 else 1e-3, 100)
+            taken.clear()
+            lazy = converged(f_prev, f, step, rule, theta=theta)
+            assert lazy == converged(f_prev, f, step, rule, robust_scale(theta))
+            settled = abs(f_prev - f) <= rule.ftol * abs(f) or step <= stopping.XTOL_FLOOR
+            assert len(taken) == int(settled and rule.tol_rad is None)
+    finally:
+        stopping.robust_scale = real
+
+
+def test_em_update_gives_the_inner_fit_then_the_terms_at_its_scale_to_the_bit():
+    from pipeline.averaging.mixture import MixtureModel, _fit, em_update, log_haar, mixture_terms
+
+    rng = np.random.default_rng(11)
+    for trial in range(20):
+        M = int(rng.integers(50, 30000))
+        theta = np.abs(rng.standard_normal(M)) * np.deg2rad(rng.uniform(0.1, 3))
+        bad = rng.random(M) < rng.uniform(0, 0.4)
+        theta[bad] = rng.uniform(0, np.pi, int(bad.sum()))
+        m = np.ones(M) if trial % 2 else np.exp(rng.uniform(-1, 1, M))  # isotropic, and with per-edge trust
+        q, hl = m * theta * theta, 1.5 * np.log(m)
+        model = MixtureModel(float(rng.choice([1.0, 3.0, 32.0])), float(np.deg2rad(rng.uniform(0.2, 2))),
+                             float(rng.uniform(0.01, 0.3)), 0.0, np.ones(M))
+        n = int(rng.integers(10, 300))
+        for inner in (1, 2, 10):
+            w, got = em_update(q, hl, theta, model, n, inner=inner)
+            lh = log_haar(theta)  # the reference: the inner EM, then the terms evaluated again at its (s, ε)
+            ref = _fit(q, hl, lh, n, (model.nu,), inner - 1, model.s, max(model.eps, 1e-4), 0.3) if inner > 1 else model
+            ll, g, u = mixture_terms(q, hl, lh, ref.s, ref.nu, ref.eps)
+            assert np.array_equal(w, g * u / (ref.s * ref.s))
+            assert np.array_equal(got.gamma, g) and got.loglik == float(ll.mean()) and got.nu == ref.nu
