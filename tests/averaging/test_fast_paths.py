@@ -137,3 +137,20 @@ def test_em_update_gives_the_inner_fit_then_the_terms_at_its_scale_to_the_bit():
             ll, g, u = mixture_terms(q, hl, lh, ref.s, ref.nu, ref.eps)
             assert np.array_equal(w, g * u / (ref.s * ref.s))
             assert np.array_equal(got.gamma, g) and got.loglik == float(ll.mean()) and got.nu == ref.nu
+
+
+def test_l1_step_objective_is_that_of_its_answer():
+    from pipeline.averaging.kernel import LaplacianSolver
+    from pipeline.averaging.l1 import l1_step
+
+    rng = np.random.default_rng(13)
+    n, m = 60, 500
+    e = rng.integers(0, n, (m, 2))
+    e = np.unique(np.sort(e[e[:, 0] != e[:, 1]], axis=1), axis=0)
+    e = np.unique(np.vstack([e, np.stack([np.arange(n - 1), np.arange(1, n)], 1)]), axis=0)
+    S = LaplacianSolver(e, n)
+    S.factor(np.ones(e.shape[0]))
+    r = rng.standard_normal((e.shape[0], 3)) * 0.01
+    for its in (0, 1, 7, 10):
+        st = l1_step(S, r, max_iterations=its)
+        assert st.objective == float(np.abs(S.A @ st.x - r).sum())
