@@ -58,9 +58,13 @@ DENSE_PATTERN = 0.05
 DENSE_MAX_SIZE = 6000
 #: Below this many rows the dense factor runs with one BLAS thread: OpenBLAS's threads gain nothing on a small
 #: matrix and then spin, taking the core from the rest of the iteration (measured, 2 cores, the 247-camera graph
-#: above: the whole IRLS run 0.89 s with threaded BLAS against 0.44 s with one thread; from about 1500 rows on,
-#: two threads factor faster).
-DENSE_SINGLE_THREAD_SIZE = 1500
+#: above: the whole IRLS run 0.89 s with threaded BLAS against 0.44 s with one thread). On an idle machine two
+#: threads factor faster from about 1500 rows on, but on a shared one a thread that waits for a core another job
+#: holds makes the factor 10–20 times slower (measured, 2 cores, one busy: 2000 rows 0.06–0.13 s with one thread,
+#: 0.2–2.8 s with two; 4000 rows 0.44–0.67 s against 5.8–6.0 s). Every dense factor of the averaging itself
+#: (:data:`DENSE_MAX_SIZE`) and the certificate bound's N×N Cholesky up to this size take one thread; the
+#: certificate's larger 3N-row factors keep the threads (a Piccadilly-size graph's: 7500 rows).
+DENSE_SINGLE_THREAD_SIZE = 6500
 #: Above this many rows a dense factor runs with one BLAS thread too: OpenBLAS's threaded Cholesky (its ``dsyrk``
 #: threads) dies with a segmentation fault on this machine from about 16,000 rows (scipy's and numpy's builds alike:
 #: 16,000 and 16,300 rows crash, 15,500 and below do not), where one thread factors 16,300 rows in 28–32 s. The
@@ -107,8 +111,9 @@ def _one_blas_thread() -> Iterator[None]:
 
 
 def blas_threads(n: int) -> contextlib.AbstractContextManager[Any]:
-    """The BLAS threads for a dense factor of n rows (its solves take one, :meth:`DenseCholesky.solve`): one below :data:`DENSE_SINGLE_THREAD_SIZE` (threads
-    gain nothing there) and above :data:`BLAS_THREADS_MAX_SIZE` (threads crash there), all of them between."""
+    """The BLAS threads for a dense factor of n rows (its solves take one, :meth:`DenseCholesky.solve`): one below
+    :data:`DENSE_SINGLE_THREAD_SIZE` (threads gain little there, and lose much on a shared machine) and above
+    :data:`BLAS_THREADS_MAX_SIZE` (threads crash there), all of them between."""
     one = n < DENSE_SINGLE_THREAD_SIZE or n > BLAS_THREADS_MAX_SIZE
     return _one_blas_thread() if one else contextlib.nullcontext()
 

@@ -154,3 +154,25 @@ def test_l1_step_objective_is_that_of_its_answer():
     for its in (0, 1, 7, 10):
         st = l1_step(S, r, max_iterations=its)
         assert st.objective == float(np.abs(S.A @ st.x - r).sum())
+
+
+def test_the_averagings_dense_factors_take_one_blas_thread_at_every_size_they_come_in():
+    """A 2000-camera expander's factors (and any up to DENSE_MAX_SIZE rows) run on one thread: on a shared machine a
+    second thread that waits for a core makes the factor 10–20 times slower."""
+    seen: list[set[int]] = []
+    real = la.cho_factor
+
+    def spy(*args, **kwargs):
+        seen.append(_blas_counts())
+        return real(*args, **kwargs)
+
+    assert kernel.DENSE_SINGLE_THREAD_SIZE > kernel.DENSE_MAX_SIZE
+    rng = np.random.default_rng(17)
+    n = 2000
+    X = rng.standard_normal((n, 50))
+    la.cho_factor = spy
+    try:
+        DenseCholesky(X @ X.T + np.eye(n))
+    finally:
+        la.cho_factor = real
+    assert seen == [{1}]
