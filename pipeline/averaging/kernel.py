@@ -274,6 +274,19 @@ class FactorState:
         return self._factor.fills
 
 
+def _unique_keys(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True)`` of integer keys in [0, size): the same two arrays; where the range is
+    small against the keys (a dense view graph's Laplacian pattern: 247 cameras, 80k keys), by a mask and its running
+    count instead of a sort (1 ms against 9 ms)."""
+    if size > 16 * keys.size:
+        return np.unique(keys, return_inverse=True)
+    present = np.zeros(size, dtype=bool)
+    present[keys] = True
+    rank = np.cumsum(present, dtype=np.intp)
+    rank -= 1
+    return np.flatnonzero(present), rank[keys]
+
+
 class LaplacianSolver(FactorState):
     """Factor and solve gauge-fixed weighted Laplacians ``Aᵀ diag(w) A`` on a fixed pattern.
 
@@ -309,7 +322,7 @@ class LaplacianSolver(FactorState):
         rows = np.concatenate([i, j, i, j, np.arange(n)])
         cols = np.concatenate([i, j, j, i, np.arange(n)])
         keys = cols * n + rows  # CSC order: by column, then row
-        ukeys, inv = np.unique(keys, return_inverse=True)
+        ukeys, inv = _unique_keys(keys, n * n)
         self._pos = inv[: 4 * M]
         self._sign = np.repeat([1.0, 1.0, -1.0, -1.0], M)
         self._edge_of = np.tile(np.arange(M), 4)
@@ -320,7 +333,7 @@ class LaplacianSolver(FactorState):
         # Where no two edges join the same cameras (no parallel edge), each off-diagonal entry is one edge's −w
         # and each diagonal one the sum of its camera's weights, in the order of (i, j)'s concatenation: written so
         # (``_off``, ``_ends``) the entries are those of the full scatter below to the bit, in half its time.
-        self._off = inv[2 * M : 4 * M] if np.unique(inv[2 * M : 4 * M]).size == 2 * M else None
+        self._off = inv[2 * M : 4 * M] if M == 0 or np.bincount(inv[2 * M : 4 * M]).max() == 1 else None
         self._ends = np.concatenate([i, j])
         self._w2 = np.empty(2 * M)
         self._keep: tuple[bytes, np.ndarray] | None = None

@@ -176,3 +176,35 @@ def test_the_averagings_dense_factors_take_one_blas_thread_at_every_size_they_co
     finally:
         la.cho_factor = real
     assert seen == [{1}]
+
+
+def test_unique_keys_is_numpys_unique_with_its_inverse():
+    rng = np.random.default_rng(19)
+    for size, count in ((10, 1), (61009, 80000), (61009, 300), (4_000_000, 80000), (50, 5000)):
+        keys = rng.integers(0, size, count)
+        u, inv = kernel._unique_keys(keys, size)
+        u0, inv0 = np.unique(keys, return_inverse=True)
+        assert np.array_equal(u, u0) and np.array_equal(inv, inv0) and u.dtype == u0.dtype and inv.dtype == inv0.dtype
+
+
+def test_laplacian_pattern_is_that_of_the_sorted_unique_entries(monkeypatch):
+    from pipeline.averaging.kernel import LaplacianSolver
+
+    rng = np.random.default_rng(23)
+    for n, m, parallel in ((247, 20000, False), (40, 300, True), (2000, 20000, False)):
+        e = rng.integers(0, n, (m, 2))
+        e = e[e[:, 0] != e[:, 1]]
+        if not parallel:
+            e = np.unique(np.sort(e, 1), axis=0)
+        fast = LaplacianSolver(e, n, ref=1)
+        with monkeypatch.context() as mp:  # the reference: numpy's unique throughout
+            mp.setattr(kernel, "_unique_keys", lambda keys, size: np.unique(keys, return_inverse=True))
+            mp.setattr(np, "bincount", lambda a, *args, **kw: np.ones(np.unique(a).size, int)
+                       if np.unique(a).size == a.size else np.full(1, 2))
+            ref = LaplacianSolver(e, n, ref=1)
+        for name in ("_pos", "_row", "_col", "_diag", "_indices", "_indptr"):
+            assert np.array_equal(getattr(fast, name), getattr(ref, name)), name
+        assert (fast._off is None) == (ref._off is None) == parallel
+        w = rng.uniform(0.1, 2.0, e.shape[0])
+        A, B = fast.matrix(w), ref.matrix(w)
+        assert np.array_equal(A.data, B.data) and np.array_equal(A.indices, B.indices)
