@@ -22,6 +22,7 @@ functions and classes on arrays: no I/O, no logging.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -57,9 +58,13 @@ DENSE_PATTERN = 0.05
 DENSE_MAX_SIZE = 6000
 #: Below this many rows the dense factor runs with one BLAS thread: OpenBLAS's threads gain nothing on a small
 #: matrix and then spin, taking the core from the rest of the iteration (measured, 2 cores, the 247-camera graph
-#: above: the whole IRLS run 0.89 s with threaded BLAS against 0.44 s with one thread; from about 1500 rows on,
-#: two threads factor faster).
-DENSE_SINGLE_THREAD_SIZE = 1500
+#: above: the whole IRLS run 0.89 s with threaded BLAS against 0.44 s with one thread). On an idle machine two
+#: threads factor faster from about 1500 rows on, but on a shared one a thread that waits for a core another job
+#: holds makes the factor 10–20 times slower (measured, 2 cores, one busy: 2000 rows 0.06–0.13 s with one thread,
+#: 0.2–2.8 s with two; 4000 rows 0.44–0.67 s against 5.8–6.0 s). Every dense factor of the averaging itself
+#: (:data:`DENSE_MAX_SIZE`) and the certificate bound's N×N Cholesky up to this size take one thread; the
+#: certificate's larger 3N-row factors keep the threads (a Piccadilly-size graph's: 7500 rows).
+DENSE_SINGLE_THREAD_SIZE = 6500
 #: Above this many rows a dense factor runs with one BLAS thread too: OpenBLAS's threaded Cholesky (its ``dsyrk``
 #: threads) dies with a segmentation fault on this machine from about 16,000 rows (scipy's and numpy's builds alike:
 #: 16,000 and 16,300 rows crash, 15,500 and below do not), where one thread factors 16,300 rows in 28–32 s. The
@@ -82,20 +87,33 @@ __all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "D
            "well_conditioned", "effective_weights", "edge_residuals", "graph_residuals", "apply_update",
            "LaplacianSolver", "check_graph", "factor_symmetric", "DenseCholesky", "SymmetricFactorizer", "FactorState"]
 
-_BLAS: list[Any] = []  # threadpoolctl's controller, made once (0.25 ms per threadpool_limits call, 6 µs per limit)
+_BLAS_LIBS: list[Any] | None = None  # the BLAS libraries' threadpoolctl controllers, found at the first use
 
 
-def _one_blas_thread() -> contextlib.AbstractContextManager[Any]:
-    if not _BLAS:
+@contextlib.contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """One BLAS thread within it, each library's own count restored after: the libraries' controllers set directly
+    (under 1 µs) rather than through threadpoolctl's ``limit`` (15 µs a call, a fifth of a 247-row solve)."""
+    global _BLAS_LIBS
+    if _BLAS_LIBS is None:
         from threadpoolctl import ThreadpoolController  # noqa: PLC0415
 
-        _BLAS.append(ThreadpoolController())
-    return _BLAS[0].limit(limits=1, user_api="blas")
+        _BLAS_LIBS = list(ThreadpoolController().select(user_api="blas").lib_controllers)
+    libs = _BLAS_LIBS
+    before = [lib.get_num_threads() for lib in libs]
+    for lib in libs:
+        lib.set_num_threads(1)
+    try:
+        yield
+    finally:
+        for lib, k in zip(libs, before):
+            lib.set_num_threads(k)
 
 
 def blas_threads(n: int) -> contextlib.AbstractContextManager[Any]:
-    """The BLAS threads for a dense factor or solve of n rows: one below :data:`DENSE_SINGLE_THREAD_SIZE` (threads
-    gain nothing there) and above :data:`BLAS_THREADS_MAX_SIZE` (threads crash there), all of them between."""
+    """The BLAS threads for a dense factor of n rows (its solves take one, :meth:`DenseCholesky.solve`): one below
+    :data:`DENSE_SINGLE_THREAD_SIZE` (threads gain little there, and lose much on a shared machine) and above
+    :data:`BLAS_THREADS_MAX_SIZE` (threads crash there), all of them between."""
     one = n < DENSE_SINGLE_THREAD_SIZE or n > BLAS_THREADS_MAX_SIZE
     return _one_blas_thread() if one else contextlib.nullcontext()
 
@@ -165,7 +183,10 @@ class DenseCholesky:
             self._c = la.cho_factor(dense, lower=True, overwrite_a=True, check_finite=False)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        with blas_threads(self.shape[0]):
+        # One thread whatever the size: the two triangular solves read the factor once for a few right-hand sides
+        # (memory-bound), and a woken thread waits for a core a shared machine's other jobs hold (2000 rows, two
+        # cores, one busy: 23 ms a solve against 5 ms). The solution does not depend on the thread count (tested).
+        with _one_blas_thread():
             return la.cho_solve(self._c, np.asarray(b, dtype=np.float64), check_finite=False)
 
 
@@ -253,6 +274,19 @@ class FactorState:
         return self._factor.fills
 
 
+def _unique_keys(keys: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_inverse=True)`` of integer keys in [0, size): the same two arrays; where the range is
+    small against the keys (a dense view graph's Laplacian pattern: 247 cameras, 80k keys), by a mask and its running
+    count instead of a sort (1 ms against 9 ms)."""
+    if size > 16 * keys.size:
+        return np.unique(keys, return_inverse=True)
+    present = np.zeros(size, dtype=bool)
+    present[keys] = True
+    rank = np.cumsum(present, dtype=np.intp)
+    rank -= 1
+    return np.flatnonzero(present), rank[keys]
+
+
 class LaplacianSolver(FactorState):
     """Factor and solve gauge-fixed weighted Laplacians ``Aᵀ diag(w) A`` on a fixed pattern.
 
@@ -288,7 +322,7 @@ class LaplacianSolver(FactorState):
         rows = np.concatenate([i, j, i, j, np.arange(n)])
         cols = np.concatenate([i, j, j, i, np.arange(n)])
         keys = cols * n + rows  # CSC order: by column, then row
-        ukeys, inv = np.unique(keys, return_inverse=True)
+        ukeys, inv = _unique_keys(keys, n * n)
         self._pos = inv[: 4 * M]
         self._sign = np.repeat([1.0, 1.0, -1.0, -1.0], M)
         self._edge_of = np.tile(np.arange(M), 4)
@@ -299,7 +333,7 @@ class LaplacianSolver(FactorState):
         # Where no two edges join the same cameras (no parallel edge), each off-diagonal entry is one edge's −w
         # and each diagonal one the sum of its camera's weights, in the order of (i, j)'s concatenation: written so
         # (``_off``, ``_ends``) the entries are those of the full scatter below to the bit, in half its time.
-        self._off = inv[2 * M : 4 * M] if np.unique(inv[2 * M : 4 * M]).size == 2 * M else None
+        self._off = inv[2 * M : 4 * M] if M == 0 or np.bincount(inv[2 * M : 4 * M]).max() == 1 else None
         self._ends = np.concatenate([i, j])
         self._w2 = np.empty(2 * M)
         self._keep: tuple[bytes, np.ndarray] | None = None

@@ -113,6 +113,7 @@ def l1_step(
     converged = False
     k = 0
     x = np.zeros((solver.n, 3))
+    Ax = None
     for k in range(1, max_iterations + 1):
         q = r + z
         q -= u
@@ -147,7 +148,7 @@ def l1_step(
         elif s_dual > 10.0 * r_pri:
             rho /= 2.0
             u *= 2.0
-    obj = float(np.abs(A @ x - r).sum())
+    obj = float(np.abs((A @ x if Ax is None else Ax) - r).sum())  # the last iteration's A x is the final x's
     return L1StepResult(x=x, iterations=k, objective=obj, z=z, u=u, rho=rho, converged=converged)
 
 

@@ -118,6 +118,13 @@ def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cam
 def _fit(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, n_cameras: int | None, nus: tuple[float, ...],
          iterations: int, s0: float | None, eps0: float, eps_max: float) -> MixtureModel:
     """:func:`fit_mixture`'s EM on all the edges given, with the outlier densities ``lh`` = :func:`log_haar` (θ)."""
+    return _fit_terms(q, half_logdet, lh, n_cameras, nus, iterations, s0, eps0, eps_max)[0]
+
+
+def _fit_terms(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, n_cameras: int | None,
+               nus: tuple[float, ...], iterations: int, s0: float | None, eps0: float, eps_max: float
+               ) -> tuple[MixtureModel, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`_fit`, and the chosen ν's :func:`mixture_terms` (M,) at the fitted (s, ε): (ll, γ, u)."""
     q = q[None]
     hl = half_logdet[None]
     lh = lh[None]
@@ -134,9 +141,10 @@ def _fit(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, n_cameras: int 
         s, eps = s_new, eps_new
         if settled:  # EM has converged on these residuals: further iterations change nothing visible
             break
-    ll, g, _ = mixture_terms(q, hl, lh, s, nu, eps)
+    ll, g, u = mixture_terms(q, hl, lh, s, nu, eps)
     k = int(np.argmax(ll.mean(1)))
-    return MixtureModel(float(nu[k, 0]), float(s[k, 0]), float(eps[k, 0]), float(ll[k].mean()), g[k])
+    model = MixtureModel(float(nu[k, 0]), float(s[k, 0]), float(eps[k, 0]), float(ll[k].mean()), g[k])
+    return model, (ll[k], g[k], u[k])
 
 
 def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: MixtureModel,
@@ -156,9 +164,11 @@ def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: 
     q = np.asarray(q, dtype=np.float64)
     half_logdet = np.asarray(half_logdet, dtype=np.float64)
     lh = log_haar(np.asarray(theta, dtype=np.float64))  # once, for the inner EM and the step's weights
-    if inner > 1:
-        model = _fit(q, half_logdet, lh, n_cameras, (model.nu,), inner - 1, model.s, max(model.eps, 1e-4), eps_max)
-    ll, g, u = mixture_terms(q, half_logdet, lh, model.s, model.nu, model.eps)
+    if inner > 1:  # the inner EM ends with the terms at its (s, ε), which are the step's: not evaluated again
+        model, (ll, g, u) = _fit_terms(q, half_logdet, lh, n_cameras, (model.nu,), inner - 1, model.s,
+                                       max(model.eps, 1e-4), eps_max)
+    else:
+        ll, g, u = mixture_terms(q, half_logdet, lh, model.s, model.nu, model.eps)
     w = g * u / (model.s * model.s)
     dof = dof_factor(g, n_cameras) if n_cameras else 1.0
     s = max(float(np.sqrt(dof * np.sum(g * u * q) / (3.0 * max(float(g.sum()), 1e-12)))), 1e-12)

@@ -88,7 +88,7 @@ def reweighted(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, weight_fn:
         step = float(norms.max())
         history.append({"stage": stage, "cost": f, "mean_step_rad": float(norms.mean()), "max_step_rad": step,
                         "time_s": time.perf_counter() - t0})
-        if converged(f_prev, f, step, rule, robust_scale(theta)):
+        if converged(f_prev, f, step, rule, theta=theta):
             return R, it, True
         f_prev = f
     return R, it, False

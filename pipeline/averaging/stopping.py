@@ -54,15 +54,23 @@ class StopRule:
         return self.tol_rad if self.tol_rad is not None else max(XTOL_FLOOR, self.xtol_scale * sigma_rad)
 
 
-def converged(f_prev: float, f: float, max_step_rad: float, rule: StopRule, sigma_rad: float = 0.0) -> bool:
+def converged(f_prev: float, f: float, max_step_rad: float, rule: StopRule, sigma_rad: float = 0.0,
+              theta: np.ndarray | None = None) -> bool:
     """True when ``max_step_rad ≤ rule.xtol(sigma_rad)`` and the cost has settled, ``|f_prev − f| ≤ ftol·|f|``.
 
     A largest step of at most :data:`XTOL_FLOOR` also counts as settled: on exact data the
     cost falls towards 0 by a large factor every step, so its relative decrease never
     settles while nothing moves any more.
+
+    With the residual angles ``theta`` given, σ̂ is :func:`robust_scale` of them, taken only where the answer needs
+    it (a settled cost and no ``tol_rad``): a median of every edge's residual, which most iterations can skip.
     """
     settled = abs(f_prev - f) <= rule.ftol * max(abs(f), 1e-300) or max_step_rad <= XTOL_FLOOR
-    return bool(settled and max_step_rad <= rule.xtol(sigma_rad))
+    if not settled:
+        return False
+    if theta is not None and rule.tol_rad is None:
+        sigma_rad = robust_scale(theta)
+    return bool(max_step_rad <= rule.xtol(sigma_rad))
 
 
 def robust_scale(theta: np.ndarray) -> float:
