@@ -15,7 +15,9 @@ the focal length in 35 mm film, rounded to a whole millimetre as cameras round i
 to 1.5%). The twin without the lens (the same JPEG re-encoding and EXIF) isolates what the distortion costs.
 The copies have square pixels, as a camera's have: Strecha's K has ``fy/fx`` = 1.0017, which no single-focal model
 (SIMPLE_RADIAL, ours or pycolmap's) fits, so every row is resampled by ``fx/fy`` (``--source-pixels`` keeps the
-source's pixels; section ``handheld-source-pixels``).
+source's pixels; section ``handheld-source-pixels``). ``--centred-pp`` shifts the copies so that their principal
+point (and the lens's centre) is the image centre, where COLMAP's mappers hold it and where a camera's usually is
+(Strecha's is 0.7% of the side off it); section ``handheld-centred``.
 
 **Internet** (``--kind internet``): ``--n-internet`` images of the scene, each as a different camera gives it
 (seeded): a zoom (a crop of 60–100% of the width and, independently, of the height about the centre, moved by up
@@ -65,13 +67,15 @@ EXIF_IFD, MAKE, MODEL, FOCAL_35MM = 0x8769, 0x010F, 0x0110, 0xA405
 MAX_SHIFT = 0.01
 
 
-def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool = True) -> dict:
+def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool = True, centred: bool = False) -> dict:
     """JPEGs of ``src``'s images through a SIMPLE_RADIAL lens (``K``, ``k1``; none when 0) with camera EXIF.
 
     ``square``: resample the rows by ``fx/fy`` first, so that the copies have square pixels as cameras do (Strecha's
     K has ``fy/fx`` = 1.0017, which no single-focal model such as SIMPLE_RADIAL fits: 2.5 px at the edge of a
     3072-px image); the rotations and ``fx`` are unchanged, ``cy`` stays where it is. False keeps the source's pixels.
-    Returns the lens and the EXIF prior's focal (px) for the record.
+    ``centred``: shift the copies so that their principal point (and the lens's centre) is the image centre
+    ((w − 1)/2, (h − 1)/2), where COLMAP's mappers hold it (Strecha's is 15–17 px off; a strip of that width at one
+    edge stays black). Returns the lens and the EXIF prior's focal (px) for the record.
     """
     from PIL import Image  # noqa: PLC0415 - Pillow comes with matplotlib
 
@@ -79,13 +83,15 @@ def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool =
     names = sorted(p for p in src.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     h, w = cv2.imread(str(names[0]), cv2.IMREAD_UNCHANGED).shape[:2]
     f35 = round(float(K[0, 0]) / max(w, h) * 36.0)  # cameras write whole millimetres
-    cam = simple_radial(float(K[0, 0]), K[:2, 2], k1, w, h)
+    pp = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) if centred else K[:2, 2]  # the copy's principal point
+    cam = simple_radial(float(K[0, 0]), pp, k1, w, h)
     aspect = float(K[1, 1] / K[0, 0]) if square else 1.0
     maps = None
-    if k1 != 0.0 or aspect != 1.0:  # every pixel of the copy samples the source where the lens took it from
+    if k1 != 0.0 or aspect != 1.0 or centred:  # every pixel of the copy samples the source where the lens took it from
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
         xu = undistort_points(cam, np.column_stack([xx.ravel(), yy.ravel()]))
-        xu[:, 1] = K[1, 2] + (xu[:, 1] - K[1, 2]) * aspect  # a square-pixel row → the source's row
+        xu[:, 0] = K[0, 2] + (xu[:, 0] - pp[0])  # the copy's principal point → the source's
+        xu[:, 1] = K[1, 2] + (xu[:, 1] - pp[1]) * aspect  # and a square-pixel row → the source's row
         maps = (xu[:, 0].reshape(h, w).astype(np.float32), xu[:, 1].reshape(h, w).astype(np.float32))
     for p in names:
         out = dst / (p.stem + ".jpg")
@@ -102,6 +108,7 @@ def handheld_copy(src: Path, dst: Path, K: np.ndarray, k1: float, square: bool =
         pil.save(tmp, quality=95, exif=exif.tobytes())
         tmp.replace(out)
     return {"k1": k1, "square_pixels": bool(square), "source_aspect": float(K[1, 1] / K[0, 0]), "focal_35mm": f35,
+            "principal_point_px": [float(v) for v in pp], "centred": bool(centred),
             "exif_focal_px": f35 / 36.0 * max(w, h), "true_focal_px": float(K[0, 0]),
             "size": [w, h], "n_images": len(names)}
 
@@ -224,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--k1", type=float, default=-0.06, help="handheld: the lens's SIMPLE_RADIAL k1 (barrel below 0)")
     ap.add_argument("--source-pixels", dest="square", action="store_false",
                     help="handheld: keep the source's non-square pixels (Strecha: fy/fx 1.0017) instead of square ones")
+    ap.add_argument("--centred-pp", action="store_true",
+                    help="handheld: shift the copies so that the principal point is the image centre (section "
+                         "handheld-centred)")
     ap.add_argument("--n-internet", type=int, default=10, help="internet: images per scene")
     ap.add_argument("--seed", type=int, default=0, help="internet: the cameras' draw")
     ap.add_argument("--max-shift", type=float, default=MAX_SHIFT, help="internet: largest crop shift (share of side)")
@@ -242,12 +252,14 @@ def main(argv: list[str] | None = None) -> int:
             if "handheld" in a.kind:
                 rows = {}
                 for tag, k1 in (("no lens", 0.0), (f"k1 = {a.k1:g}", a.k1)):
-                    folder = root / scene / (("plain" if k1 == 0.0 else "lens") + ("" if a.square else "-source"))
+                    folder = root / scene / (("plain" if k1 == 0.0 else "lens") + ("" if a.square else "-source")
+                                             + ("-centred" if a.centred_pp else ""))
                     tag += "" if a.square else f" (source pixels, fy/fx {K[1, 1] / K[0, 0]:.4f})"
-                    info = handheld_copy(d / "images", folder / "images", K, k1, a.square)
+                    info = handheld_copy(d / "images", folder / "images", K, k1, a.square, a.centred_pp)
                     rows[tag] = r = {**info, **run_one(folder / "images", folder / "out", gt)}
                     _print(scene, tag, r, f"EXIF f {info['exif_focal_px']:.0f} px (true {info['true_focal_px']:.0f}); ")
-                result.setdefault("handheld" if a.square else "handheld-source-pixels", {})[scene] = rows
+                section = ("handheld" if a.square else "handheld-source-pixels") + ("-centred" if a.centred_pp else "")
+                result.setdefault(section, {})[scene] = rows
             if "internet" in a.kind:
                 lens = tuple(a.internet_k1) != (0.0, 0.0)
                 tag = f" k1 {a.internet_k1[0]:g}..{a.internet_k1[1]:g}" if lens else ""

@@ -369,12 +369,17 @@ def main(argv: list[str] | None = None) -> int:
         print("protocols: ours vs COLMAP, median / mean (deg)")
         done = [r for r in (out.get("protocols") or {}).get("rows", []) if r["protocol"] not in a.protocols]
         out["protocols"] = {"rows": done + protocols(a.sizes, a.seeds, a.protocols)["rows"]}
+    # a section run again keeps the earlier runs it holds beside its rows (at_<commit>, notes); its rows before
+    # this run go to "previous_rows"
+    keep = lambda key: {k: v for k, v in (out.get(key) or {}).items() if k not in ("rows", "previous_rows")} | (  # noqa: E731
+        {"previous_rows": out[key]["rows"]} if (out.get(key) or {}).get("rows") else {})
     if "dense" in a.sections:
         print("dense 1DSfM-like graphs: ours vs COLMAP, median / mean (deg)")
-        out["dense"] = dense(list(range(5)) if not a.quick else a.seeds, a.repeat)
+        out["dense"] = keep("dense") | dense(list(range(5)) if not a.quick else a.seeds, a.repeat)
     if "dense-large" in a.sections:
         print("dense graphs at 1DSfM's larger sizes: ours vs pycolmap, median / mean (deg), time")
-        out["dense_large"] = dense_large(a.seeds, tuple(tuple(int(v) for v in x.split("x")) for x in a.large_sizes))
+        out["dense_large"] = keep("dense_large") | dense_large(
+            a.seeds, tuple(tuple(int(v) for v in x.split("x")) for x in a.large_sizes))
     out["wall_s"] = time.perf_counter() - t0
     write_json(a.out, out)
     print(f"wrote {a.out}")

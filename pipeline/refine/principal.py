@@ -26,14 +26,17 @@ the figures either way.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import replace
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.refine.covariance import residual_sigma_px
+from pipeline.refine.covariance import camera_covariances_and_sigma, principal_point_sd, residual_sigma_px
 
-__all__ = ["probe_principal_points", "principal_point_entry", "CHI2_2DOF_999"]
+__all__ = ["probe_principal_points", "principal_point_check", "principal_point_entry", "CHI2_2DOF_999"]
+
+logger = logging.getLogger(__name__)
 
 #: χ²₂'s 99.9% point: a principal point this far (squared Mahalanobis distance) from the held one is off it.
 CHI2_2DOF_999 = 13.8155
@@ -46,6 +49,61 @@ def principal_point_entry(cam: Any, sd: float, limit: float, cov: np.ndarray | N
     C = None if cov is None else cov[np.ix_(idx, idx)]
     return {"px": [cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], "sd_px": sd, "max_sd_px": limit,
             "cov_px2": C.tolist() if C is not None and np.all(np.isfinite(C)) else None}
+
+
+def principal_point_check(pc: Any, rec: Any, ba: Any, const: np.ndarray, cfg: Any, radial: bool,
+                          stats: dict[str, Any]) -> tuple[dict[int, Any] | None, tuple[str, str, Any, Any] | None]:
+    """After a run that refined the principal points: is each determined, and far enough from the image centre?
+
+    Fills ``stats["principal_point"]`` (and ``residual_sigma_px``). With ``principal_point: auto``, a camera whose
+    principal point the model does not determine (standard deviation over ``max_principal_point_sd`` of the side)
+    sends the refinement again without the radial term that trades against it, then with it fixed at the image
+    centre; and where every camera's refined principal point is within ``min_principal_point_offset`` of the side
+    of the centre, they are all held there, as COLMAP's mappers hold them. That test is on the offset itself, not
+    on pycolmap's covariance: rendered-from-real copies of fountain-P11 and castle-P30 whose principal point *is* the
+    centre refined it 3.9 / 6.3 px (fountain, without and with a lens) and 0.95 px (castle) off it, 8–9 of the
+    standard deviations pycolmap's covariance claims, and those offsets cost fountain's rotations 1.5–2.3× (0.029
+    → 0.045°, 0.032 → 0.074°); Strecha's true principal points are 0.7% of the side off the centre, temple's 2.7%
+    (``notes/issue-13.md``).
+
+    Returns:
+        the cameras' covariances (None where they failed) and None to keep the run, or the arguments of its
+        ``again(message, stats key, rejected, config)``.
+    """
+    try:
+        covs, stats["residual_sigma_px"] = camera_covariances_and_sigma(pc, rec, ba, const)
+        sd = principal_point_sd(pc, rec, ba, const, covs)
+    except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
+        logger.warning("refine: the principal points' covariance failed (%s)", " ".join(str(exc).split())[:100])
+        covs = None
+        sd = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not const[i - 1]}
+    cams = {cid: rec.camera(cid) for cid in sd}
+    limit = {cid: cfg.max_principal_point_sd * max(c.width, c.height) for cid, c in cams.items()}
+    entries = {str(cid): principal_point_entry(c, sd[cid], limit[cid], (covs or {}).get(cid))
+               for cid, c in cams.items()}  # our pixel convention (centres at integers)
+    stats["principal_point"] = entries
+    if cfg.principal_point != "auto" or not cams:
+        return covs, None
+    loose = [cid for cid in sd if not sd[cid] <= limit[cid]]
+    if loose:  # not determined: again, without what trades against it (the radial term first, then it)
+        msg = (f"the principal point of {len(loose)} camera(s) is not determined by the model (standard deviation "
+               f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px)" +
+               (" with a radial term: refined again without one (SIMPLE_PINHOLE)" if radial else
+                ": every principal point kept at the image centre"))
+        return covs, (msg, "principal_point_rejected", entries,
+                      replace(cfg, radial="off") if radial else replace(cfg, principal_point="fixed"))
+    off = {cid: float(np.hypot(entries[str(cid)]["px"][0] - (c.width - 1) / 2.0,
+                               entries[str(cid)]["px"][1] - (c.height - 1) / 2.0)) for cid, c in cams.items()}
+    near = {cid: off[cid] <= cfg.min_principal_point_offset * max(c.width, c.height) for cid, c in cams.items()}
+    for cid in cams:
+        entries[str(cid)]["offset_px"] = off[cid]
+    if all(near.values()):
+        msg = (f"the principal point of every camera was refined to within {max(off.values()):.1f} px of the image "
+               f"centre (≤ {cfg.min_principal_point_offset:g} of the side; pycolmap's covariance claims "
+               f"{max(sd.values()):.2g} px, a small share of its real error): held at the centre, as COLMAP's "
+               "mappers hold it")
+        return covs, (msg, "principal_point_near_centre", entries, replace(cfg, principal_point="fixed"))
+    return covs, None
 
 
 def _mahalanobis2(d: np.ndarray, C: Any) -> float:

@@ -50,9 +50,8 @@ from pipeline.core.config import Config, option
 from pipeline.core.errors import ConfigError
 from pipeline.refine import mapper
 from pipeline.refine.checks import checked_rotations, focal_check, kept_averaged
-from pipeline.refine.covariance import (camera_covariances, camera_covariances_and_sigma,
-                                       principal_point_sd, radial_corner_sd)
-from pipeline.refine.principal import principal_point_entry, probe_principal_points
+from pipeline.refine.covariance import camera_covariances, radial_corner_sd
+from pipeline.refine.principal import principal_point_check, probe_principal_points
 from pipeline.refine.model import (camera_groups, check_inputs, correspondence_cache, radial_terms,
                                    starting_reconstruction)
 from pipeline.refine import tracks as tk
@@ -129,6 +128,10 @@ class RefineConfig(Config):
              "(notes/issue-13.md)", ge=1)
     max_principal_point_sd: float = option(0.01, "principal_point auto: largest standard deviation of a refined "
                                                  "principal point, as a fraction of the image's longest side", gt=0)
+    min_principal_point_offset: float = option(
+        0.004, "principal_point auto: a refined principal point nearer the image centre than this fraction of the "
+               "image's longest side is held at the centre, as COLMAP's mappers hold it (0: kept wherever determined); "
+               "its real error is several times what pycolmap's covariance claims (notes/issue-13.md)", ge=0)
     max_focal_sd: float = option(0.01, "principal points not refined: a focal length whose one standard deviation "
                                         "moves the image corner by more than this share of the image's longest side "
                                         "is weakly determined (a warning, stats['focal_loose']); it stays refined", gt=0)
@@ -287,12 +290,14 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
         return refine_rotations(names, K_again, sizes, keypoints, edges, match_offsets, matches, cam2_from_cam1, t,
                                 R_init, known, cfg_again, scratch, k1, hold_again, R_start)
 
-    def again(msg: str, key: str, rejected: Any, cfg_again: RefineConfig, hold_again: np.ndarray = hold
-              ) -> RefineResult:
-        """The refinement run again without what the model did not determine (``msg`` says what; ``stats[key]``)."""
-        res = rerun(K, hold_again, cfg_again)
-        logger.warning("refine: %s", msg)
-        res.warnings.insert(0, msg)
+    def again(msg: str, key: str, rejected: Any, cfg_again: RefineConfig, hold_again: np.ndarray = hold,
+              warn: bool = True, K_again: np.ndarray | None = None) -> RefineResult:
+        """The refinement run again without what the model did not determine (``msg`` says what; ``stats[key]``;
+        ``warn``: also a warning, else a note in the log and the record alone; ``K_again``: other starting K)."""
+        res = rerun(K if K_again is None else K_again, hold_again, cfg_again)
+        logger.log(logging.WARNING if warn else logging.INFO, "refine: %s", msg)
+        if warn:
+            res.warnings.insert(0, msg)
         res.stats[key] = rejected
         res.stats["times"]["total"] = time.perf_counter() - t_all
         return res
@@ -377,26 +382,14 @@ def refine_rotations(names: Sequence[str], K: np.ndarray, sizes: np.ndarray, key
     rec = state["rec"]
     covs = None  # pycolmap's covariance of every refined camera, estimated once for the checks below
     if refine_pp:
-        try:
-            covs, stats["residual_sigma_px"] = camera_covariances_and_sigma(pc, rec, ba, const)
-            sd = principal_point_sd(pc, rec, ba, const, covs)
-        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # no covariance: not shown to be determined
-            logger.warning("refine: the principal points' covariance failed (%s)", " ".join(str(exc).split())[:100])
-            covs = None
-            sd = {int(rec.image(i).camera_id): float("inf") for i in rec.reg_image_ids() if not const[i - 1]}
-        cams = {cid: rec.camera(cid) for cid in sd}
-        limit = {cid: cfg.max_principal_point_sd * max(c.width, c.height) for cid, c in cams.items()}
-        stats["principal_point"] = {str(cid): principal_point_entry(c, sd[cid], limit[cid], (covs or {}).get(cid))
-                                    for cid, c in cams.items()}  # our pixel convention (centres at integers)
-        loose = [cid for cid in sd if not sd[cid] <= limit[cid]]
-        if loose and cfg.principal_point == "auto":  # not determined: again, without what trades against it
-            # first without the radial term, which trades against the principal point; then with it fixed
-            msg = (f"the principal point of {len(loose)} camera(s) is not determined by the model (standard deviation "
-                   f"{max(sd[c] for c in loose):.1f} px > {min(limit[c] for c in loose):.1f} px)" +
-                   (" with a radial term: refined again without one (SIMPLE_PINHOLE)" if radial else
-                    ": every principal point kept at the image centre"))
-            return again(msg, "principal_point_rejected", stats["principal_point"],
-                         replace(cfg, radial="off") if radial else replace(cfg, principal_point="fixed"))
+        covs, verdict = principal_point_check(pc, rec, ba, const, cfg, radial, stats)
+        if verdict is not None:  # not determined (a warning), or too near the image centre to be told from it
+            msg, key, rejected, cfg_again = verdict
+            if key == "principal_point_rejected":
+                return again(msg, key, rejected, cfg_again)
+            K_centre = K.copy()  # held at the image centre, whatever the start (the cameras stage's is the centre)
+            K_centre[~known, 0, 2], K_centre[~known, 1, 2] = (sizes[~known, 0] - 1) / 2.0, (sizes[~known, 1] - 1) / 2.0
+            return again(msg, key, rejected, cfg_again, warn=False, K_again=K_centre)
     if radial:  # k1 kept only where the model determines it
         try:
             covs = camera_covariances(pc, rec, ba, const) if covs is None else covs

@@ -192,7 +192,9 @@ class RefineStage(Stage[RefineConfig]):
     name = "refine"
     title = "multi-view refinement (pycolmap)"
     config_cls = RefineConfig
-    version = 3  # 2: no BA σ for a camera it did not refine; 3: no covariance where pycolmap's is not finite (a warning)
+    # 2: no BA σ for a camera it did not refine; 3: no covariance where pycolmap's is not finite (a warning);
+    # 4: a principal point refined to near the image centre is held there (refine.min_principal_point_offset)
+    version = 4
 
     def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
                  methods: Sequence[str] | None = None) -> None:
@@ -335,6 +337,7 @@ def refine_stats(res: RefineResult, names: list[str], rows: np.ndarray, stage: R
             "focal_refined": not bool(np.all(stage.known_K)) if stage.known_K is not None else None,
             "principal_point": s.get("principal_point"), "principal_point_rejected": s.get("principal_point_rejected"),
             "principal_point_fixed_why": s.get("principal_point_fixed_why"),
+            "principal_point_near_centre": s.get("principal_point_near_centre"),
             "principal_point_probe": {k: v for k, v in (s.get("principal_point_probe") or {}).items() if k != "cameras"}
             or None,
             "model": MODEL if res.reconstruction is not None else None, "n_points": int(s.get("n_points", 0)),
@@ -379,6 +382,11 @@ def refine_notes(results: dict[str, dict[str, Any]]) -> list[str]:
                          + (f"; probed: {probe}" if probe else ""))
         elif probe:
             notes.append(f"{label}: {probe}")
+        if s.get("principal_point_near_centre"):
+            off = max(float(pp.get("offset_px", 0.0)) for pp in s["principal_point_near_centre"].values())
+            notes.append(f"{label}: principal points held at the image centres, as COLMAP's mappers hold them: refined, "
+                         f"they came within {off:.1f} px of the centre (refine.min_principal_point_offset), nearer "
+                         "than their real error")
         for cid, pp in (s.get("principal_point") or {}).items():
             sd = pp.get("sd_px")  # null where it is not finite (a singular covariance)
             notes.append(f"{label}: principal point of camera {cid} refined to ({pp['px'][0]:.1f}, {pp['px'][1]:.1f}) "

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+
+
 import numpy as np
 import pytest
 
@@ -295,11 +297,17 @@ def _shifted_intrinsics(inp: dict) -> np.ndarray:
 
 
 def test_unknown_principal_point_is_refined_where_the_model_determines_it(problem0):
-    """Unknown K: one focal length and k1 (SIMPLE_RADIAL; the problem has no lens, so k1 stays near 0) and the
-    principal point refined back to the truth, kept because its standard deviation is small; fixed at the given
-    one, the rotations are worse."""
+    """Unknown K, the true principal point 25 px off the image centre (every keypoint moved by (20, −15) px), the
+    start at the centre with the focal 3% off: one focal length and k1 (SIMPLE_RADIAL; no lens, so k1 stays near 0)
+    and the principal point refined to the truth, kept because its standard deviation is small and it is off the
+    centre by more than min_principal_point_offset; fixed at the centre, the rotations are worse."""
     inp, R_true = problem0
-    K = _shifted_intrinsics(inp)
+    shift = np.array([20.0, -15.0])
+    inp = dict(inp, keypoints=[k + shift for k in inp["keypoints"]])
+    K = inp["K"].copy()
+    K[:, 0, 0] *= 1.03
+    K[:, 1, 1] *= 1.03
+    true_pp = inp["K"][0, :2, 2] + shift
     err = lambda res: np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1)).max()  # noqa: E731
     auto = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
     fixed = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
@@ -311,13 +319,33 @@ def test_unknown_principal_point_is_refined_where_the_model_determines_it(proble
     assert abs(cam.params[3]) < 0.005 and auto.stats["radial"]["1"]["k1"] == cam.params[3]
     assert 0 < auto.stats["radial"]["1"]["corner_sd_px"] < auto.stats["radial"]["1"]["max_sd_px"] == 0.01 * 1024
     pp = auto.stats["principal_point"]["1"]
-    true_pp = inp["K"][0, :2, 2]
     assert np.abs(np.array(pp["px"]) - true_pp).max() < 2.0, pp  # 20 and 15 px off at the start
     assert 0 < pp["sd_px"] < pp["max_sd_px"] == pytest.approx(0.01 * 1024)
+    assert pp["offset_px"] > 0.004 * 1024 and "principal_point_near_centre" not in auto.stats
     (cam_fixed,) = fixed.reconstruction.cameras.values()
     np.testing.assert_allclose([cam_fixed.principal_point_x - 0.5, cam_fixed.principal_point_y - 0.5], K[0, :2, 2])
     assert "principal_point" not in fixed.stats
     assert err(auto) < 0.5 * err(fixed)
+
+
+def test_a_principal_point_refined_to_near_the_image_centre_is_held_there(problem0):
+    """The true principal point at the image centre, the start 25 px off it: refined, it comes back to within
+    min_principal_point_offset (0.4% of the side) of the centre, so it is held at the centre, as COLMAP's mappers
+    hold it (its real error would be several times what the covariance claims), with a note and no warning; the
+    rotations are as good as the refined run's. With the offset test off (0) it stays refined."""
+    inp, R_true = problem0
+    K = _shifted_intrinsics(inp)
+    err = lambda res: np.degrees(np.linalg.norm(aligned_residuals(res.R, R_true), axis=1)).max()  # noqa: E731
+    held = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
+    free = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False,
+                            config=dataclasses.replace(ONE_THREAD, min_principal_point_offset=0.0))
+    assert held.status == free.status == "ok" and not held.warnings, held.warnings
+    near = held.stats["principal_point_near_centre"]["1"]
+    assert near["offset_px"] < 0.004 * 1024 and "principal_point" not in held.stats
+    (cam,) = held.reconstruction.cameras.values()
+    np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], [511.5, 383.5])
+    assert "principal_point_near_centre" not in free.stats and free.stats["principal_point"]["1"]["offset_px"] < 4
+    assert err(held) <= 1.2 * err(free) + 1e-3
 
 
 def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
@@ -360,12 +388,12 @@ def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
 
 def test_principal_point_whose_covariance_fails_is_kept_at_the_given_one(problem0, monkeypatch):
     """pycolmap's covariance raising is no proof that the principal point is determined: it is fixed, not a crash."""
-    from pipeline.refine import refine as refine_module
+    from pipeline.refine import principal as principal_module
 
     def failing(*args, **kwargs):
         raise RuntimeError("Ceres: the problem is rank deficient")
 
-    monkeypatch.setattr(refine_module, "principal_point_sd", failing)
+    monkeypatch.setattr(principal_module, "principal_point_sd", failing)
     inp, R_true = problem0
     K = _shifted_intrinsics(inp)
     res = refine_rotations(**dict(inp, K=K), R_init=R_true, known_K=False, config=ONE_THREAD)
