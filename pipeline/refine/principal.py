@@ -60,8 +60,8 @@ def principal_point_check(pc: Any, rec: Any, ba: Any, const: np.ndarray, cfg: An
     sends the refinement again without the radial term that trades against it, then with it fixed at the image
     centre; and where every camera's refined principal point is within ``min_principal_point_offset`` of the side
     of the centre, they are all held there, as COLMAP's mappers hold them. That test is on the offset itself, not
-    on pycolmap's covariance: rendered-from-real copies of fountain-P11 and castle-P30 whose principal point *is* the
-    centre refined it 3.9 / 6.3 px (fountain, without and with a lens) and 0.95 px (castle) off it, 8–9 of the
+    on pycolmap's covariance: copies of fountain-P11's and castle-P30's images resampled so that their principal
+    point *is* the centre refined it 3.9 / 6.3 px (fountain, without and with a lens) and 0.95 px (castle) off it, 8–9 of the
     standard deviations pycolmap's covariance claims, and those offsets cost fountain's rotations 1.5–2.3× (0.029
     → 0.045°, 0.032 → 0.074°); Strecha's true principal points are 0.7% of the side off the centre, temple's 2.7%
     (``notes/issue-13.md``).

@@ -20,7 +20,8 @@ mappers model an unknown camera; ``radial: off`` gives SIMPLE_PINHOLE), k1 from 
 undistorted keypoints, or, where that stage estimated a lens, from its k1 on the measured keypoints (``lens:
 measured``: the lens about the principal point BA refines, not the image centre). With ``principal_point: auto``
 the principal point is refined when every such camera has ``min_principal_point_images`` images and kept where
-the model determines it (``max_principal_point_sd``), else fixed at the image centre; cameras of fewer images
+the model determines it (``max_principal_point_sd``) and it lies more than ``min_principal_point_offset`` off the
+image centre, else fixed at the image centre; cameras of fewer images
 (internet photos) are probed (:mod:`pipeline.refine.principal`). With them held, a focal length COLMAP's test
 calls bogus is held at the cameras stage's estimate in a second run; one merely weakly determined
 (``max_focal_sd``) stays refined, with a warning. Figures: ``notes/issue-13.md``.
