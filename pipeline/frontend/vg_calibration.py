@@ -7,7 +7,7 @@ internet photos of many sizes (each its own group, with no pair inside it, so ea
 
 Here pycolmap's ``calibrate_view_graph`` (GLOMAP's view-graph calibrator, a maintained solver) estimates every
 image's focal from the fundamental matrices of all pairs. It runs on a temporary COLMAP database made of our
-keypoints and putative matches, which pycolmap verifies (``verify_matches``: F, E or H per pair). A K read from a
+keypoints and putative matches, which pycolmap verifies (``geometric_verification``: F, E or H per pair). A K read from a
 file, and an EXIF focal, go in as the camera's prior.
 
 The per-image focals replace the group ones only where the view graph clearly prefers them
@@ -39,7 +39,7 @@ from pipeline.frontend.focal import rotation_consistency_cost
 from pipeline.geometry.epipolar import pose_from_essential
 
 __all__ = ["ViewGraphCalibration", "PerImageChoice", "calibrate_focals", "consistency_cost", "choose_focal_lengths",
-           "per_image_test", "TMP_PREFIX"]
+           "per_image_test", "no_F_test", "TMP_PREFIX"]
 
 logger = logging.getLogger(__name__)
 
@@ -188,6 +188,20 @@ def consistency_cost(cal: ViewGraphCalibration, K: np.ndarray, keypoints: list[n
     return float(rotation_consistency_cost(R_rel, cal.edges, len(K), loss_deg)[0])
 
 
+def _dofs(n_edges: int, n_images: int, n_extra: int) -> tuple[int, int]:
+    """:func:`per_image_test`'s degrees of freedom: the extra focal lengths', the residual's."""
+    d1 = max(int(n_extra), 1)
+    return d1, 3 * int(n_edges) - 3 * (int(n_images) - 1) - d1
+
+
+def no_F_test(c_group: float, c_img: float, d2: int) -> str | None:
+    """Why :func:`per_image_test` has no F to compare (None: it has one), in words: costs not finite or the
+    per-image set not more consistent, or no residual degrees of freedom (``d2``) left."""
+    if not (np.isfinite(c_group) and np.isfinite(c_img)) or c_group <= c_img:
+        return f"the per-image focal lengths are not more consistent ({c_img:.4g} vs {c_group:.4g})"
+    return "too few pairs for the extra focal lengths" if d2 <= 0 else None
+
+
 def per_image_test(c_group: float, c_img: float, n_edges: int, n_images: int, n_extra: int, level: float = 0.999
                    ) -> tuple[bool, float, float]:
     """Whether per-image focal lengths fit the pairs' rotations significantly better than the group ones.
@@ -204,8 +218,8 @@ def per_image_test(c_group: float, c_img: float, n_edges: int, n_images: int, n_
     """
     from scipy.stats import f as f_dist  # noqa: PLC0415
 
-    d1, d2 = max(int(n_extra), 1), 3 * int(n_edges) - 3 * (int(n_images) - 1) - max(int(n_extra), 1)
-    if not (np.isfinite(c_group) and np.isfinite(c_img)) or d2 <= 0 or c_group <= c_img:
+    d1, d2 = _dofs(n_edges, n_images, n_extra)
+    if no_F_test(c_group, c_img, d2) is not None:
         return False, float("nan"), float("nan")
     F = ((c_group - c_img) / d1) / max(c_img / d2, 1e-300)
     crit = float(f_dist.ppf(level, d1, d2))
@@ -264,17 +278,15 @@ def choose_focal_lengths(cals: list[ViewGraphCalibration], start_names: list[str
                                  "focal": {names[k]: float(cal.f[k]) for k in np.flatnonzero(use)}}
         if np.isfinite(cost) and (best is None or cost < best[0]):
             best = (cost, name, K_img, use, cal)
-    chosen, F, crit = False, float("nan"), float("nan")
+    chosen, F, crit, no_test = False, float("nan"), float("nan"), "no calibration gave per-image focal lengths"
     if best is not None:
         use = best[3]
         n_extra = int(use.sum()) - len({fitted_group[k] for k in np.flatnonzero(use)} - {None})
         if guessed is not None and np.any(use & np.asarray(guessed, bool)):
             level = guess_level
         chosen, F, crit = per_image_test(c_group, best[0], len(cals[0].edges), int(in_graph.sum()), n_extra, level)
-    no_test = None if np.isfinite(F) else (  # why there is no F to compare, in words (the log said "F nan vs nan")
-        "no calibration gave per-image focal lengths" if best is None else
-        f"the per-image focal lengths are not more consistent ({best[0]:.4g} vs {c_group:.4g})"
-        if not (np.isfinite(c_group) and best[0] < c_group) else "too few pairs for the extra focal lengths")
+        # why there is no F to compare, in words (the log said "F nan vs nan"): per_image_test's own reasons
+        no_test = no_F_test(c_group, best[0], _dofs(len(cals[0].edges), int(in_graph.sum()), n_extra)[1])
     record = {"method": "pycolmap calibrate_view_graph", "n_pairs": int(len(cals[0].edges)),
               "consistency_group": c_group, "calibrations": tried, "F": F, "F_critical": crit, "level": level,
               "no_test": no_test,
