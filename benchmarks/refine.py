@@ -1,6 +1,11 @@
 """Our refined rotations against pycolmap's global (GLOMAP) and incremental SfM, with the true K (issue 14).
 
     python benchmarks/refine.py [--only fountain,castle,temple] [--data DIR] [--keep DIR] [--repeat K]
+    python benchmarks/refine.py --only castle-0-18,castle-11-29,castle-even,castle-0-9,castle-10-19,castle-20-29
+
+The ``castle-*`` subsets are smaller scenes cut from castle-P30 (the images named, linked into a folder of their
+own with ``K.txt``): courtyards of 10–19 images with the repeated façades and outlier pairs of the whole, as the
+held-out Strecha scenes (castle-P19, entry-P10) are; each is a scene of its own for every method and peer.
 
 One run per scene, in a fresh folder, with the true K given to everyone (Strecha
 ``images/K.txt``, Middlebury ``templeSR_par.txt``), kept constant in every bundle
@@ -62,6 +67,23 @@ SCENES = {  # name: (images, truth, K), relative to the data folder
     "temple": ("middlebury-templeSparseRing", "middlebury-templeSparseRing/templeSR_par.txt",
                "middlebury-templeSparseRing/templeSR_par.txt"),
 }
+#: Scenes cut from castle-P30: name → the image numbers (0000.jpg …) it keeps.
+SUBSETS = {"castle-0-18": range(0, 19), "castle-11-29": range(11, 30), "castle-even": range(0, 30, 2),
+           "castle-0-9": range(0, 10), "castle-10-19": range(10, 20), "castle-20-29": range(20, 30)}
+
+
+def scene_paths(name: str, data: Path, root: Path) -> tuple[Path, Path, Path]:
+    """(images, truth, K) of a scene; a subset's images are links in ``root/images-<name>`` beside a copy of K."""
+    if name not in SUBSETS:
+        return tuple(data / p for p in SCENES[name])
+    images, gt, K = (data / p for p in SCENES["castle"])
+    folder = root / f"images-{name}"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for k in SUBSETS[name]:
+        (folder / f"{k:04d}.jpg").symlink_to(images / f"{k:04d}.jpg")
+    shutil.copyfile(K, folder / "K.txt")
+    return folder, gt, folder / "K.txt"
 
 
 def cpu_s() -> float:
@@ -85,7 +107,8 @@ def scored_on_common(a, b, truth) -> dict:
     return out
 
 
-def timed_paths(name: str, data: Path, out: Path, config: Path, yaml_data: dict) -> tuple[dict, dict]:
+def timed_paths(name: str, paths: tuple[Path, Path, Path], out: Path, config: Path, yaml_data: dict
+                ) -> tuple[dict, dict]:
     """Our path (fresh, without the peers) then GLOMAP's, in ``out``: their times and CPU times."""
     from pipeline import run
     from pipeline.core.config import stage_config
@@ -93,7 +116,7 @@ def timed_paths(name: str, data: Path, out: Path, config: Path, yaml_data: dict)
     from pipeline.reference import ReferenceConfig, load_reference
     from pipeline.reference import global_mapping as glomap
 
-    images, gt, K = (data / p for p in SCENES[name])
+    images, gt, K = paths
     shutil.rmtree(out, ignore_errors=True)
     load0 = os.getloadavg()[0]
     c0, t0 = cpu_s(), time.perf_counter()
@@ -128,12 +151,13 @@ def run_scene(name: str, data: Path, root: Path, config: Path, yaml_data: dict, 
     from pipeline.reference import Reference, load_reference
     from pipeline.reference.truth import read_reference
 
-    images, gt, K = (data / p for p in SCENES[name])
+    paths = scene_paths(name, data, root)
+    images, gt, K = paths
     out = root / name
     if repeat > 1:  # untimed: the first run of a process pays for both what only it pays (module loading, caches)
-        timed_paths(name, data, root / f"{name}-warmup", config, yaml_data)
-    ours, glo = timed_paths(name, data, out, config, yaml_data)
-    reps = [(ours, glo)] + [timed_paths(name, data, root / f"{name}-time{k}", config, yaml_data)
+        timed_paths(name, paths, root / f"{name}-warmup", config, yaml_data)
+    ours, glo = timed_paths(name, paths, out, config, yaml_data)
+    reps = [(ours, glo)] + [timed_paths(name, paths, root / f"{name}-time{k}", config, yaml_data)
                             for k in range(1, repeat)]
     m = _json(run.main(images, out, config=config, gt=gt, K=K, quiet=True))  # ours and GLOMAP reused
     truth = read_reference(gt).replace(label="truth")
@@ -182,41 +206,42 @@ def _json(path: Path) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    lines = [f"{'scene':<9} {'pair':<22} {'common':>6} {'ours med°':>10} {'peer med°':>10} {'peer reg':>9}",
-             "-" * 72]
+    lines = [f"{'scene':<13} {'pair':<22} {'common':>6} {'ours med°':>10} {'peer med°':>10} {'peer reg':>9}",
+             "-" * 76]
     for r in rows:
         for key, p in r["peers"].items():
             pw = p["pairwise"]
-            lines.append(f"{r['scene']:<9} {'ours vs ' + key:<22} {pw['n_common']:>6} {pw['ours']['median_deg']:>10.4f} "
+            lines.append(f"{r['scene']:<13} {'ours vs ' + key:<22} {pw['n_common']:>6} {pw['ours']['median_deg']:>10.4f} "
                          f"{pw[key]['median_deg']:>10.4f} {p['n_registered']:>4}/{r['n_images']:<4}")
         s = r["refined"]
-        lines.append(f"{'':<9} refined {s['n_evaluated']}/{r['n_images']} images ({r['status']}): median "
+        lines.append(f"{'':<13} refined {s['n_evaluated']}/{r['n_images']} images ({r['status']}): median "
                      f"{s['median_deg']:.4f}° (start {r['start']['median_deg']:.4f}°), predicted σ "
                      f"{s['sigma_median_deg'] or float('nan'):.4f}°")
         g = r["peers"]["glomap"]
-        lines.append(f"{'':<9} time: our path {r['ours']['path_s']:.1f} s / GLOMAP {g['time_s']:.1f} s = "
+        lines.append(f"{'':<13} time: our path {r['ours']['path_s']:.1f} s / GLOMAP {g['time_s']:.1f} s = "
                      f"{r['time_ratio']:.2f} (CPU {r['ours']['cpu_path_s']:.1f} / {g['cpu_s']:.1f} s = "
                      f"{r['cpu_ratio'] or float('nan'):.2f}; with every averaging method "
                      f"{r['time_ratio_all_methods']:.2f}); acceptance {r['accept']}")
         if r.get("time_repeats"):
             ratios = ", ".join(f"{t['ratio']:.2f}" for t in r["time_repeats"])
-            lines.append(f"{'':<9} time ratio over {len(r['time_repeats'])} repeats: {ratios} "
+            lines.append(f"{'':<13} time ratio over {len(r['time_repeats'])} repeats: {ratios} "
                          f"(median {r['time_ratio_median']:.2f})")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--only", default="fountain,castle,temple", help="comma-separated: fountain,castle,temple")
+    ap.add_argument("--only", default="fountain,castle,temple",
+                    help=f"comma-separated, of {', '.join([*SCENES, *SUBSETS])}")
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data", help="the shared data folder")
     ap.add_argument("--keep", type=Path, default=None, help="keep the run folders here (default: a temp folder)")
     ap.add_argument("--repeat", type=int, default=1, help="measure the time this many times per scene (median), "
                     "after one untimed warm-up of both paths")
     a = ap.parse_args(argv)
     names = [n for n in a.only.split(",") if n]
-    unknown = [n for n in names if n not in SCENES]
+    unknown = [n for n in names if n not in SCENES and n not in SUBSETS]
     if unknown:
-        print(f"error: unknown scene(s) {unknown}; choose from {', '.join(SCENES)}", file=sys.stderr)
+        print(f"error: unknown scene(s) {unknown}; choose from {', '.join([*SCENES, *SUBSETS])}", file=sys.stderr)
         return 2
     root = a.keep or Path(tempfile.mkdtemp(prefix="bench_refine_"))
     if a.keep is None:  # a temp folder of runs is removed at exit (--keep keeps them)
@@ -229,11 +254,12 @@ def main(argv: list[str] | None = None) -> int:
     prev = _json(RESULTS) if RESULTS.exists() else {}
     rows = {r["scene"]: r for r in prev.get("scenes", [])}
     for n in names:
-        if not (a.data / SCENES[n][0]).is_dir():
-            print(f"skipping {n}: {a.data / SCENES[n][0]} not found")
+        source = SCENES["castle" if n in SUBSETS else n][0]
+        if not (a.data / source).is_dir():
+            print(f"skipping {n}: {a.data / source} not found")
             continue
         rows[n] = run_scene(n, a.data, root, config, yaml_data, a.repeat)
-    result = {"scenes": [rows[n] for n in SCENES if n in rows], "machine": {"cores": os.cpu_count()},
+    result = {"scenes": [rows[n] for n in [*SCENES, *SUBSETS] if n in rows], "machine": {"cores": os.cpu_count()},
               "note": "one run per scene with the true K; ours, then GLOMAP, then the incremental reference, in one "
                       "process; each pair scored on the images both register (l2 alignment)"}
     write_json(RESULTS, result)
