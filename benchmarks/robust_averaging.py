@@ -66,7 +66,7 @@ import logging  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
+from typing import Any, Sequence  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -115,9 +115,10 @@ def cert_of(res: Any) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------------------------ real
-def real(runs: Path, repeat: int) -> dict[str, Any]:
-    out: dict[str, Any] = {"source": f"{runs}/<scene>/viewgraph.npz (the checked view graphs run.py wrote there)"}
-    for scene in SCENES:
+def real(runs: Path, repeat: int, scenes: Sequence[str] = SCENES) -> dict[str, Any]:
+    """Each scene's checked view graph ``runs/<scene>/viewgraph.npz`` (run.py's, with the truth it was run with)."""
+    out: dict[str, Any] = {}
+    for scene in scenes:
         d = runs / scene
         vg = ViewGraph.load(d / "viewgraph.npz")
         ref = read_reference(json.loads((d / "metrics.json").read_text())["input"]["gt"])
@@ -139,7 +140,8 @@ def real(runs: Path, repeat: int) -> dict[str, Any]:
                   f"{dt:8.3f}s  {rows[label]['certificate']['verdict']}", flush=True)
         if have_gtsam():
             rows.update(gtsam_rows(vg, R_true, mask, rows_R))
-        out[scene] = {"n_cameras": vg.n_cameras, "n_edges": vg.n_edges, "methods": rows}
+        out[scene] = {"source": str(d / "viewgraph.npz"), "n_cameras": vg.n_cameras, "n_edges": vg.n_edges,
+                      "methods": rows}
         c, o, h = rows.get("colmap-ra"), rows["irls"], rows["irls-h"]
         out[scene]["acceptance"] = {
             "irls_le_colmap": None if c is None else bool(o["median_deg"] <= c["median_deg"]
@@ -343,6 +345,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sections", nargs="+", default=["real", "knn", "protocols", "dense"],
                    choices=["real", "knn", "protocols", "dense", "dense-large"])
     p.add_argument("--runs", type=Path, default=Path("/work/runs"), help="folder with <scene>/viewgraph.npz")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES),
+                   help="the real section's run folders under --runs (e.g. those of benchmarks/refine.py --keep DIR "
+                        "for castle-P30's smaller scenes); the scenes not named keep their last figures")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--protocols", nargs="+", default=list(PROTOCOLS), choices=list(PROTOCOLS))
     p.add_argument("--sizes", type=int, nargs="+", default=[500, 2000])
@@ -361,7 +366,11 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if "real" in a.sections:
         print("real view graphs: median / mean error (deg), time")
-        out["real"] = real(a.runs, a.repeat)
+        prev = dict(out.get("real") or {})
+        source = str(prev.pop("source", "")).split(" ")[0]  # runs before per-scene sources: "<runs>/<scene>/..."
+        old = {k: {"source": source.replace("<scene>", k), **v} if source and "source" not in v else v
+               for k, v in prev.items()}  # a scene not run keeps its rows
+        out["real"] = old | real(a.runs, a.repeat, a.scenes)
     if "knn" in a.sections:
         print("kNN protocol")
         out["knn"] = knn(a.seeds, 2000, a.repeat)
