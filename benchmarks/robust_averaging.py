@@ -80,7 +80,8 @@ from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.errors import ViewGraphError  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
-from pipeline.evaluation.metrics import rotation_errors_deg  # noqa: E402
+from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: E402
+from pipeline.evaluation.metrics import edge_errors_deg, rotation_errors_deg  # noqa: E402
 from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.synthetic.protocols import PROTOCOLS, dense_graph, make_protocol  # noqa: E402
@@ -141,7 +142,7 @@ def real(runs: Path, repeat: int, scenes: Sequence[str] = SCENES) -> dict[str, A
         if have_gtsam():
             rows.update(gtsam_rows(vg, R_true, mask, rows_R))
         out[scene] = {"source": str(d / "viewgraph.npz"), "n_cameras": vg.n_cameras, "n_edges": vg.n_edges,
-                      "methods": rows}
+                      "pairs": pair_truth(d, vg, ref), "methods": rows}
         c, o, h = rows.get("colmap-ra"), rows["irls"], rows["irls-h"]
         out[scene]["acceptance"] = {
             "irls_le_colmap": None if c is None else bool(o["median_deg"] <= c["median_deg"]
@@ -155,6 +156,22 @@ def real(runs: Path, repeat: int, scenes: Sequence[str] = SCENES) -> dict[str, A
             "time_irls_over_before": o["time_s"] / rows["irls (before)"]["time_s"],
             "time_irls_h_over_before": h["time_s"] / rows["irls-h (before)"]["time_s"],
         }
+    return out
+
+
+def pair_truth(run: Path, vg: ViewGraph, ref: Any) -> dict[str, Any]:
+    """How many pairs the two-view BA verified and the checked view graph kept, and how many of each are more than
+    5° from the truth (the verified ones: ``run/work``'s two-view BA graph)."""
+    out: dict[str, Any] = {}
+    graphs = {"kept": vg}
+    if (run / "work").is_dir():
+        graphs = {"two_view_ba": load_ba_viewgraph(run / "work"), **graphs}
+    for key, g in graphs.items():
+        R_ref, mask = match_reference(list(g.names), ref.names, ref.R)
+        e = edge_errors_deg(g, R_ref, mask)
+        e = e[np.isfinite(e)]
+        out[key] = {"n": g.n_edges, "n_scored": int(e.size), "n_over_5deg": int(np.sum(e > 5.0)),
+                    "max_deg": float(e.max()) if e.size else None}
     return out
 
 
