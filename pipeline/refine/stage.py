@@ -193,8 +193,9 @@ class RefineStage(Stage[RefineConfig]):
     title = "multi-view refinement (pycolmap)"
     config_cls = RefineConfig
     # 2: no BA σ for a camera it did not refine; 3: no covariance where pycolmap's is not finite (a warning);
-    # 4: a principal point refined to near the image centre is held there (refine.min_principal_point_offset)
-    version = 4
+    # 4: a principal point refined to near the image centre is held there (refine.min_principal_point_offset);
+    # 5: the principal-point probe is one bundle adjustment of the held run's model, not a second refinement
+    version = 5
 
     def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
                  methods: Sequence[str] | None = None) -> None:

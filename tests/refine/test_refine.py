@@ -367,7 +367,7 @@ def test_undetermined_principal_point_is_kept_at_the_given_one(problem0):
 def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
     """Every image its own camera (a K each, as internet photos without EXIF): on this scene one image does not
     separate its principal point from its pose (standard deviations near 100 px), and refining them barely lowers
-    the residuals, so 'auto' keeps every principal point after its probe; 'refined' still refines them."""
+    the residuals, so 'auto' keeps every principal point after its probe's screen; 'refined' still refines them."""
     inp, R_true = problem0
     K = _shifted_intrinsics(inp)
     K[:, 0, 0] += np.arange(len(K))  # a different focal per image: one camera each
@@ -377,7 +377,7 @@ def test_principal_point_of_a_one_image_camera_is_not_refined(problem0):
     assert "1 image(s)" in auto.stats["principal_point_fixed_why"]
     probe = auto.stats["principal_point_probe"]
     assert probe["ratio"] < 1.3 and probe["decision"].startswith("held at the image centres")
-    assert not any(c["determined"] or c["refined"] for c in probe["cameras"].values())
+    assert "the probe's run was not needed" in probe["decision"]  # its screen found no misfit
     for cid, cam in auto.reconstruction.cameras.items():
         assert cam.model.name == "SIMPLE_RADIAL"  # one focal length and k1 per image, as COLMAP's mappers
         np.testing.assert_allclose([cam.principal_point_x - 0.5, cam.principal_point_y - 0.5], K[0, :2, 2])
@@ -541,7 +541,7 @@ def test_principal_points_at_the_centre_stay_held_and_the_result_is_the_held_run
                             config=dataclasses.replace(ONE_THREAD, principal_point_misfit=None))
     probe = auto.stats["principal_point_probe"]
     assert probe["ratio"] < 1.1 and "principal_point_misfit = 1.3" in probe["decision"]
-    assert not any(c["refined"] for c in probe["cameras"].values())
+    assert probe["screen_ratio"] == probe["ratio"] and "the probe's run was not needed" in probe["decision"]
     np.testing.assert_allclose(auto.R, held.R, rtol=0, atol=1e-12)
     assert auto.warnings == held.warnings
 
@@ -555,6 +555,7 @@ def test_the_probes_decision_and_a_failed_second_run(monkeypatch):
     from pipeline.refine import principal
 
     monkeypatch.setattr(principal, "residual_sigma_px", lambda *a: 0.5)
+    monkeypatch.setattr(principal, "free_sigma", lambda *a: 0.25)  # the screen: a misfit, so the probe runs
     cam = SimpleNamespace(principal_point_x=100.5, principal_point_y=80.5, mean_focal_length=lambda: 480.0)
     rec = SimpleNamespace(reg_image_ids=lambda: [1, 2], camera=lambda cid: cam, exists_image=lambda iid: True,
                           image=lambda iid: SimpleNamespace(camera_id=iid, has_pose=True))
@@ -582,3 +583,37 @@ def test_the_probes_decision_and_a_failed_second_run(monkeypatch):
     res, info = principal.probe_principal_points(*args, lambda K, h, c: run(K, h, c, failed))
     assert res is None and "the refinement that way failed (global positioning failed" in info["decision"]
     assert info["decision"].startswith("held at the image centres")
+
+
+def test_the_probes_screen_spares_its_run_where_the_centre_is_no_misfit(monkeypatch):
+    """The screen (one bundle adjustment with every principal point free) below principal_point_misfit: the held run
+    stands and the probe's run never starts; above it, or where the screen fails, the probe runs as before."""
+    from types import SimpleNamespace
+
+    from pipeline.refine import principal
+
+    monkeypatch.setattr(principal, "residual_sigma_px", lambda *a: 0.5)
+    calls = []
+    probe = SimpleNamespace(reconstruction=None, warnings=["global positioning failed"], stats={})
+
+    def run(K, hold, cfg):
+        calls.append(cfg.principal_point)
+        return probe
+
+    args = (None, None, None, np.zeros(2, bool), np.tile(np.eye(3), (2, 1, 1)), np.zeros(2, bool), np.zeros(2, bool),
+            RefineConfig(), ["a", "b"], run)
+    monkeypatch.setattr(principal, "free_sigma", lambda *a: 0.45)  # 1.11× < 1.3
+    res, info = principal.probe_principal_points(*args)
+    assert res is None and not calls and info["screen_ratio"] == info["ratio"] == pytest.approx(0.5 / 0.45)
+    assert info["decision"].startswith("held at the image centres: the residuals with them held are 1.11×")
+    assert "the probe's run was not needed" in info["decision"]
+    monkeypatch.setattr(principal, "free_sigma", lambda *a: 0.3)  # 1.67×: the probe's run decides
+    res, info = principal.probe_principal_points(*args)
+    assert res is None and calls == ["refined"] and "the probe failed (global positioning failed)" in info["decision"]
+
+    def no_fit(*a):
+        raise RuntimeError("ceres: the problem is not finite")
+
+    monkeypatch.setattr(principal, "free_sigma", no_fit)  # not screened: the probe runs
+    res, info = principal.probe_principal_points(*args)
+    assert calls == ["refined", "refined"] and info["screen_failed"] == "ceres: the problem is not finite"
