@@ -194,7 +194,7 @@ class RefineStage(Stage[RefineConfig]):
     config_cls = RefineConfig
     # 2: no BA σ for a camera it did not refine; 3: no covariance where pycolmap's is not finite (a warning);
     # 4: a principal point refined to near the image centre is held there (refine.min_principal_point_offset);
-    # 5: the principal-point probe is one bundle adjustment of the held run's model, not a second refinement
+    # 5: the principal-point probe's screen (one bundle adjustment) spares its run where the centre is no misfit
     version = 5
 
     def __init__(self, folder: Path, config: RefineConfig | None = None, *, work: Path | None = None,
