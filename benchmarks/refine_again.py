@@ -4,9 +4,10 @@
 
 Each RUN is an ``OUT`` folder of ``run.py`` (``--keep`` of ``real_photos.py``, ``refine.py``, ...) run with a truth
 (``metrics.json``'s ``input.gt``). It is copied to a temporary folder, ``python -m pipeline.refine --out COPY
---overwrite [REFINE OPTIONS]`` runs there in a fresh process (the code on ``PYTHONPATH`` or the installed one: run it once with an older
-checkout on ``PYTHONPATH`` for a "before" label), and the refined rotations are scored against the truth (median
-error after the ℓ2 alignment, on the images refined or placed). Nothing in RUN is changed.
+--overwrite [REFINE OPTIONS]`` runs there in a fresh process (the code on ``PYTHONPATH`` or the installed one: run
+it once with an older checkout on ``PYTHONPATH`` for a "before" label), and the refined rotations are scored
+against the truth (median error after the ℓ2 alignment, on the images refined or placed). Nothing in RUN is
+changed.
 
 Reported per run: the refined median and count, the refine stage's own time and the process's wall time, and the
 principal-point probe's ratio and decision where it ran. Rows go to ``--json`` (default
@@ -75,7 +76,8 @@ def again(run: Path, work: Path, options: list[str]) -> dict:
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         return {"run": str(run), "error": (done.stderr.strip().splitlines() or ["?"])[-1][:200], "wall_s": wall}
-    scored = subprocess.run([sys.executable, "-c", SCORE, str(copy)], capture_output=True, text=True, check=True, cwd=work)
+    scored = subprocess.run([sys.executable, "-c", SCORE, str(copy)], capture_output=True, text=True, check=True,
+                            cwd=work)
     row = {"run": str(run), "wall_s": wall, **json.loads(scored.stdout)}
     row["commit"] = commit_of(Path(row["code"]))
     return row
@@ -100,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
             row = again(run.resolve(), Path(tmp), options)
             rows.append(row)
             print(f"  {run}: " + (f"error {row['error']}" if "error" in row else
-                                  f"median {row['median_deg']:.4f}° on {row['n_scored']}, refine {row['refine_s']:.1f} s "
-                                  f"(wall {row['wall_s']:.1f} s), probe {row['probe_ratio']}"), flush=True)
+                                  f"median {row['median_deg']:.4f}° on {row['n_scored']}, refine "
+                                  f"{row['refine_s']:.1f} s (wall {row['wall_s']:.1f} s), probe {row['probe_ratio']}"),
+                  flush=True)
     from pipeline.core.atomic import write_json  # noqa: PLC0415
 
     out = json.loads(a.json.read_text()) if a.json.is_file() else {}

@@ -80,8 +80,8 @@ from pipeline.core.atomic import write_json  # noqa: E402
 from pipeline.core.errors import ViewGraphError  # noqa: E402
 from pipeline.core.viewgraph import ViewGraph  # noqa: E402
 from pipeline.evaluation.compare import match_reference  # noqa: E402
-from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: E402
 from pipeline.evaluation.metrics import edge_errors_deg, rotation_errors_deg  # noqa: E402
+from pipeline.geometry.ba_stage import load_ba_viewgraph  # noqa: E402
 from pipeline.reference.truth import read_reference  # noqa: E402
 from pipeline.synthetic.graphs import knn_graph  # noqa: E402
 from pipeline.synthetic.protocols import PROTOCOLS, dense_graph, make_protocol  # noqa: E402
