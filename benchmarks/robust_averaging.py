@@ -383,11 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if "real" in a.sections:
         print("real view graphs: median / mean error (deg), time")
-        prev = dict(out.get("real") or {})
-        source = str(prev.pop("source", "")).split(" ")[0]  # runs before per-scene sources: "<runs>/<scene>/..."
-        old = {k: {"source": source.replace("<scene>", k), **v} if source and "source" not in v else v
-               for k, v in prev.items()}  # a scene not run keeps its rows
-        out["real"] = old | real(a.runs, a.repeat, a.scenes)
+        out["real"] = (out.get("real") or {}) | real(a.runs, a.repeat, a.scenes)  # a scene not run keeps its rows
     if "knn" in a.sections:
         print("kNN protocol")
         out["knn"] = knn(a.seeds, 2000, a.repeat)
