@@ -227,6 +227,10 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     if not converged and cfg.max_iterations > 0:
         logger.warning("IRLS-%s stopped at the iteration cap (%d) with largest step %.3g rad",
                        lossf.name, cfg.max_iterations, history[-1]["max_step_rad"])
+    polish_it, polish_ok = fits[trust_used][5:] if model is not None else (0, True)
+    if not polish_ok:
+        logger.warning("IRLS-%s's polish stopped at its iteration cap (refine_iterations = %d) with largest step "
+                       "%.3g rad", lossf.name, cfg.refine_iterations, history[-1]["max_step_rad"])
     stats: dict[str, Any] = {
         "loss": lossf.name, "alpha_deg": float(cfg.alpha_deg),
         "gradient_norm": float(np.sqrt(np.square(grad).sum())),
@@ -238,6 +242,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         "refine_threshold_deg": None if tau is None else float(np.rad2deg(tau)),
         "polish_model": None if model is None else {
             "trust": trust_used, "nu": model.nu, "s_deg": float(np.rad2deg(model.s)), "eps": model.eps,
+            "iterations": polish_it, "converged": polish_ok,
             "loglik": {k: v[1].loglik for k, v in fits.items()}, "n_outliers": int(np.sum(model.gamma < 0.5))},
         "normalized_residuals": None if model is None else normalized.tolist(),
         "rescue": rescue_stats,
@@ -274,12 +279,12 @@ def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSCon
     R_iso = R
     for name, m in trusts.items():  # "iso" first; the trusted polish starts from its answer
         hist: list[dict[str, float]] = []
-        Rt, model, w, gamma = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1)
-        fits[name] = (Rt, model, hist, w, gamma)
+        Rt, model, w, gamma, it, ok = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1)
+        fits[name] = (Rt, model, hist, w, gamma, it, ok)
         if name == "iso":
             R_iso = Rt
     best = max(fits, key=lambda k: fits[k][1].loglik)
-    R, model, hist, w, gamma = fits[best]
+    R, model, hist, w, gamma = fits[best][:5]
     history.extend(hist)
     return R, model, best, w, gamma, fits, trusts[best]
 

@@ -96,7 +96,7 @@ def reweighted(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, weight_fn:
 
 def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust: np.ndarray | None, rule: StopRule,
                    t0: float, history: History, stage: str = "refine", nus: tuple[float, ...] = NU_GRID,
-                   refit: bool = True) -> tuple[np.ndarray, MixtureModel, np.ndarray, np.ndarray]:
+                   refit: bool = True) -> tuple[np.ndarray, MixtureModel, np.ndarray, np.ndarray, int, bool]:
     """EM for the t + Haar residual mixture with isotropic per-edge trust ``trust`` (M,) or 1.
 
     The E-step weights ``γ u m / s²`` drive the scalar IRLS step; (s, ε) are re-estimated
@@ -107,7 +107,8 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
     Returns:
         The rotations; the fitted model at them (``loglik``: mean per-edge log-likelihood,
         to compare polishes); the final problem's weights (M,), i.e. those the next step
-        would use, of which the rotations are the fixed point; the inlier posteriors (M,).
+        would use, of which the rotations are the fixed point; the inlier posteriors (M,);
+        the iterations taken and whether the rule was met (False: stopped at its cap).
     """
     n = vg.n_cameras
     m = np.ones(vg.n_edges) if trust is None else np.asarray(trust, dtype=np.float64)
@@ -119,14 +120,15 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
         w, state["model"] = em_update(m * theta * theta, hl, theta, state["model"], n)
         return w * m
 
-    R, _, _ = reweighted(vg, R, solver, weights, lambda theta: -state["model"].loglik * theta.size, rule, stage, t0,
-                         history)
+    R, it, ok = reweighted(vg, R, solver, weights, lambda theta: -state["model"].loglik * theta.size, rule, stage, t0,
+                           history)
     th = residual_angles(vg, R)
     w_final = weights(th)
     last = state["model"]
     if not refit:
-        return R, last, w_final, last.gamma
-    return R, fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3)), w_final, last.gamma
+        return R, last, w_final, last.gamma, it, ok
+    return (R, fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3)), w_final, last.gamma,
+            it, ok)
 
 
 def talwar_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, min_deg: float, rule: StopRule, t0: float,

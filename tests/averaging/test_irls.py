@@ -130,6 +130,20 @@ def test_iteration_cap_is_respected():
     assert res.iterations == 2 and not res.stats["converged"]
 
 
+def test_a_polish_stopped_at_its_cap_says_so(caplog):
+    """The polish (the t + Haar mixture EM after IRLS) records its iterations and whether its stopping rule was met;
+    stopped at its cap, it says so in the stats and in a warning, as the IRLS stage does."""
+    vg, _, _ = _graph(15, 0.6, sigma_deg=2.0, outlier_frac=0.2, seed=11)
+    done = average(vg, "irls")
+    model = done.stats["polish_model"]
+    assert model["converged"] and 1 <= model["iterations"] < 50
+    with caplog.at_level("WARNING", logger="pipeline.averaging.irls"):
+        capped = average(vg, "irls", refine_iterations=2, rescue=False)
+    model = capped.stats["polish_model"]
+    assert model["iterations"] == 2 and not model["converged"]
+    assert "polish stopped at its iteration cap (refine_iterations = 2)" in caplog.text
+
+
 def test_redescending_loss_with_isolated_camera_does_not_fail():
     """Talwar gives weight 0 to every edge of a camera whose edges are all outliers."""
     vg, R, _ = _graph(12, 0.6, sigma_deg=0.5, seed=11)
