@@ -57,7 +57,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
@@ -227,7 +227,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     if not converged and cfg.max_iterations > 0:
         logger.warning("IRLS-%s stopped at the iteration cap (%d) with largest step %.3g rad",
                        lossf.name, cfg.max_iterations, history[-1]["max_step_rad"])
-    polish_it, polish_ok = fits[trust_used][5:] if model is not None else (0, True)
+    polish_it, polish_ok = (fits[trust_used].iterations, fits[trust_used].converged) if model is not None else (0, True)
     if not polish_ok:
         logger.warning("IRLS-%s's polish stopped at its iteration cap (refine_iterations = %d) with largest step "
                        "%.3g rad", lossf.name, cfg.refine_iterations, history[-1]["max_step_rad"])
@@ -243,7 +243,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         "polish_model": None if model is None else {
             "trust": trust_used, "nu": model.nu, "s_deg": float(np.rad2deg(model.s)), "eps": model.eps,
             "iterations": polish_it, "converged": polish_ok,
-            "loglik": {k: v[1].loglik for k, v in fits.items()}, "n_outliers": int(np.sum(model.gamma < 0.5))},
+            "loglik": {k: v.model.loglik for k, v in fits.items()}, "n_outliers": int(np.sum(model.gamma < 0.5))},
         "normalized_residuals": None if model is None else normalized.tolist(),
         "rescue": rescue_stats,
         "n_kept": int(kept.sum()), "solve_s": t_solve,
@@ -267,6 +267,19 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
         history=history, stats=stats)
 
 
+class PolishFit(NamedTuple):
+    """One mixture polish of :func:`_mixture`: its rotations, fitted model, history, final weights, inlier
+    posteriors, iterations and whether its stopping rule was met."""
+
+    R: np.ndarray
+    model: Any
+    history: list[dict[str, float]]
+    weights: np.ndarray
+    gamma: np.ndarray
+    iterations: int
+    converged: bool
+
+
 def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSConfig, rule: StopRule, t0: float,
              history: list[dict[str, float]]
              ) -> tuple[np.ndarray, Any, str, np.ndarray, np.ndarray, dict[str, Any], np.ndarray | None]:
@@ -275,16 +288,17 @@ def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSCon
     if cfg.trust_inliers and vg.inliers is not None:
         n_in = np.maximum(np.asarray(vg.inliers, dtype=np.float64), 1.0)
         trusts["inliers"] = n_in / np.median(n_in)
-    fits: dict[str, Any] = {}
+    fits: dict[str, PolishFit] = {}
     R_iso = R
     for name, m in trusts.items():  # "iso" first; the trusted polish starts from its answer
         hist: list[dict[str, float]] = []
         Rt, model, w, gamma, it, ok = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1)
-        fits[name] = (Rt, model, hist, w, gamma, it, ok)
+        fits[name] = PolishFit(Rt, model, hist, w, gamma, it, ok)
         if name == "iso":
             R_iso = Rt
-    best = max(fits, key=lambda k: fits[k][1].loglik)
-    R, model, hist, w, gamma = fits[best][:5]
+    best = max(fits, key=lambda k: fits[k].model.loglik)
+    f = fits[best]
+    R, model, hist, w, gamma = f.R, f.model, f.history, f.weights, f.gamma
     history.extend(hist)
     return R, model, best, w, gamma, fits, trusts[best]
 
