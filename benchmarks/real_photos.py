@@ -303,14 +303,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", type=Path, help="work folder to keep (default: a temporary one, removed)")
     ap.add_argument("--json", type=Path, default=RESULTS)
     a = ap.parse_args(argv)
+    kinds = set(a.kind.split(","))
+    if kinds - {"handheld", "internet", "dark"}:
+        ap.error(f"--kind {a.kind}: expected handheld, internet and/or dark, separated by commas")
+    try:
+        if not all(len(lv.split(":")) == 2 and all(float(v) >= 0 for v in lv.split(":"))
+                   for lv in a.dark_levels.split(",")):
+            raise ValueError
+    except ValueError:
+        ap.error(f"--dark-levels {a.dark_levels}: expected BLUR:GAIN pairs of numbers ≥ 0 separated by commas, "
+                 "e.g. 1:0.5,2:0.35")
+    needed = ([DATA / "strecha" / sc for sc in a.scenes.split(",")] if kinds & {"handheld", "internet"} else []) + (
+        [DATA / "middlebury-templeSparseRing"] if "dark" in kinds else [])
+    missing = [str(d) for d in needed if not d.is_dir()]
+    if missing:
+        ap.error(f"not found: {', '.join(missing)} (the shared data belongs beside the repository: ../shared/data)")
     root = a.keep or Path(tempfile.mkdtemp(prefix="real-photos-"))
     result: dict = json.loads(a.json.read_text()) if a.json.is_file() else {}
     try:
-        for scene in a.scenes.split(","):
+        for scene in a.scenes.split(",") if kinds & {"handheld", "internet"} else []:
             d = DATA / "strecha" / scene
             K = np.loadtxt(d / "images" / "K.txt").reshape(3, 3)  # for the lens and the scoring only
             gt = d / "gt_dense_cameras"
-            if "handheld" in a.kind:
+            if "handheld" in kinds:
                 rows = {}
                 for tag, k1 in (("no lens", 0.0), (f"k1 = {a.k1:g}", a.k1)):
                     folder = root / scene / (("plain" if k1 == 0.0 else "lens") + ("" if a.square else "-source")
@@ -321,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
                     _print(scene, tag, r, f"EXIF f {info['exif_focal_px']:.0f} px (true {info['true_focal_px']:.0f}); ")
                 section = ("handheld" if a.square else "handheld-source-pixels") + ("-centred" if a.centred_pp else "")
                 result.setdefault(section, {})[scene] = rows
-            if "internet" in a.kind:
+            if "internet" in kinds:
                 lens = tuple(a.internet_k1) != (0.0, 0.0)
                 tag = f" k1 {a.internet_k1[0]:g}..{a.internet_k1[1]:g}" if lens else ""
                 folder = root / scene / (f"internet-{a.seed}-{a.max_shift:g}" + tag.replace(" ", "-"))
@@ -335,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                 _print(scene, "internet", r, f"focal error |median| {r['focal_error_pct']['median_abs']:.2f}% "
                                              f"(max {r['focal_error_pct']['max_abs']:.2f}%); ")
                 result.setdefault("internet", {})[f"{scene} seed {a.seed} shift {a.max_shift:g}{tag}"] = r
-        if "dark" in a.kind:
+        if "dark" in kinds:
             result.setdefault("dark", {}).update(dark_levels(root, a.dark_levels, a.seed))
         write_json(a.json, result)
         print(f"wrote {a.json}")
