@@ -1,4 +1,4 @@
-"""Real photos as users have them, made from real images with true cameras: handheld (EXIF and a lens) and internet.
+"""Real photos as users have them, made from real images with true cameras: handheld, internet and a dark turntable.
 
     python benchmarks/real_photos.py [--kind handheld,internet,dark] [--scenes fountain-P11,castle-P30] [--k1 -0.06]
                                      [--dark-levels 1:0.5,2:0.35,3:0.25] [--keep DIR]
@@ -35,8 +35,8 @@ flagged; pycolmap incremental 0.23° on the 6 it registers, GLOMAP 0.20° on 5).
 templeSparseRing (16 views, K and cameras known): each image blurred (Gaussian, σ px), darkened (× gain) and given
 sensor noise (σ 1.5 grey levels, seeded), saved as PNG, at the levels of ``--dark-levels`` (``σ:gain``: the default
 ``1:0.5,2:0.35,3:0.25`` brings the median image's 99th percentile of grey levels from 202 to 99, 67 and 47); run
-with the true K. Reported per level, for our methods and both peers: images solved (registered), median error and images
-within 1° of the truth; and per method the images more than 2° off left unflagged. Section ``dark``.
+with the true K. Reported per level, for our methods and both peers: images solved (registered), median error
+and images within 1° of the truth; and per method the images more than 2° off left unflagged. Section ``dark``.
 
 Each Strecha folder goes through ``run.py``'s ``main()`` without a K file, with the truth and with both pycolmap peers
 (incremental and global, which read the same EXIF themselves) in the same run. Reported per scene and lens:
@@ -186,6 +186,8 @@ def dark_copy(src: Path, dst: Path, blur: float, gain: float, seed: int = 0, noi
         out = dst / (p.stem + ".png")
         if not out.exists():
             ok, buf = cv2.imencode(".png", img)
+            if not ok:
+                raise RuntimeError(f"OpenCV could not encode {out.name} as PNG")
             tmp = out.with_suffix(".part.png")
             buf.tofile(str(tmp))
             tmp.replace(out)
