@@ -167,7 +167,7 @@ class CycleRounds:
         self.removed.append(best)
         self.kept[best] = False
         dead = self.through[self.ptr[best]:self.ptr[best + 1]]
-        dead = dead[self.alive[dead]]
+        dead = np.unique(dead[self.alive[dead]])  # a walk through a pair measured twice can pass an edge twice
         self.alive[dead] = False
         e = self.cycles.edges[dead]
         m = e >= 0

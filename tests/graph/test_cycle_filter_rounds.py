@@ -1,6 +1,8 @@
-"""pipeline.graph.loops.cycle_filter: the greedy rounds with cycle owners kept up to date give exactly what the
-earlier rounds gave (every candidate re-sorted and re-checked against its cycles each round), kept here as the
-definition."""
+"""pipeline.graph.loops.cycle_filter: its greedy rounds (cycle owners kept up to date, counts updated as edges go)
+give exactly what the rounds' definition gives, written here on its own: every round recounts the live cycles
+through each edge from scratch, finds each inconsistent cycle's owner by sorting its edges' bad fractions, and drops
+the first candidate (by bad fraction, then bad count, then index) that owns one. Only the set-up before the rounds
+(the cycles, their angles and verdicts: ``CycleRounds.start``) is shared with the code under test."""
 
 from __future__ import annotations
 
@@ -8,49 +10,58 @@ import numpy as np
 import pytest
 
 from pipeline.core import so3
-from pipeline.graph.cycles import expand_rows
-from pipeline.graph.loops import CycleRounds, _fraction, _owners, cycle_filter
+from pipeline.graph.loops import CycleRounds, cycle_filter
 
 FIELDS = ("kept", "n_cycles", "n_bad", "confirmed", "alive")  # what the rounds decide (the rest is set up before them)
 
 
-def _first_blamed_ref(order, bptr, bthrough, padded, alive, frac, batch=16):
-    start = 0
-    while start < len(order):
-        cand = order[start:start + batch]
-        who, pos = expand_rows(bptr, cand)
-        cycles = bthrough[pos]
-        live = alive[cycles]
-        who, cycles = who[live], cycles[live]
-        owned = _owners(padded[cycles], frac) == cand[who]
-        hits = np.flatnonzero(np.bincount(who[owned], minlength=len(cand)))
-        if hits.size:
-            return int(cand[hits[0]])
-        start += batch
-        batch *= 2
-    return -1
+def _recount(cyc_edges, live, bad, M):
+    """Live cycles and live inconsistent cycles through each edge, counted from scratch."""
+    e = cyc_edges[live]
+    valid = e >= 0
+    n_c = np.bincount(e[valid], minlength=M)
+    n_b = np.bincount(e[valid & bad[live][:, None]], minlength=M)
+    return n_c, n_b
 
 
 def _reference(edges, R_rel, n_cameras, sigma_deg, *, max_len=4, k_sigma=3.0, min_deg=1.0, max_deg=10.0,
                max_bad_fraction=0.5, min_cycles=1, calibrate=True, active=None, max_four_cycles=2_000_000):
-    """The filter's rounds before the owners were kept: each round sorts every candidate and checks them in order."""
+    """The rounds by their definition (module docstring), one edge per round, nothing carried between rounds but
+    which edges and cycles are gone."""
     st = CycleRounds.start(edges, R_rel, n_cameras, sigma_deg, max_len=max_len, k_sigma=k_sigma, min_deg=min_deg,
                            max_deg=max_deg, calibrate=calibrate, active=active, max_four_cycles=max_four_cycles)
-    alive, n_c, n_b, kept = st.alive, st.n_c, st.n_b, st.kept
+    cyc_edges, bad = st.cycles.edges, ~st.consistent
+    kept = st.kept.copy()
     M = len(kept)
-    _, bptr, bthrough, padded = st.inconsistent()
-    frac = np.append(_fraction(n_b, n_c), -1.0)
+    live = np.ones(len(cyc_edges), bool)
+    n_c, n_b = _recount(cyc_edges, live, bad, M)
+    n_cycles, n_bad = n_c.copy(), n_b.copy()
+    removed = []
     while True:
-        c = np.flatnonzero(kept & (n_c >= min_cycles) & (frac[:M] > max_bad_fraction))
-        best = _first_blamed_ref(c[np.lexsort((-n_b[c], -frac[c]))], bptr, bthrough, padded, alive, frac)
+        n_c, n_b = _recount(cyc_edges, live, bad, M)
+        frac = np.where(n_c > 0, n_b / np.maximum(n_c, 1), 0.0)
+        fpad = np.append(frac, -1.0)  # a triangle's fourth slot never tops a cycle
+        padded = np.where(cyc_edges >= 0, cyc_edges, M)
+        F = fpad[padded]
+        order = np.argsort(-F, axis=1, kind="stable")
+        top = np.take_along_axis(F, order[:, :2], axis=1)
+        owner = np.where(top[:, 0] > top[:, 1], np.take_along_axis(padded, order[:, :1], axis=1)[:, 0], -1)
+        owned = set(owner[live & bad & (owner >= 0)].tolist())
+        cand = [e for e in range(M) if kept[e] and n_c[e] >= min_cycles and frac[e] > max_bad_fraction]
+        cand.sort(key=lambda e: (-frac[e], -n_b[e], e))
+        best = next((e for e in cand if e in owned), -1)
         if best < 0:
             break
-        _, changed = st.drop(best)
-        frac[changed] = _fraction(n_b[changed], n_c[changed])
-    r = st.result()
-    return dict(kept=r.kept, removed=r.removed, n_cycles=r.n_cycles, n_bad=r.n_bad, kappa2=r.kappa2,
-                confirmed=r.confirmed, consistent=r.consistent, alive=r.alive, angles=r.angles,
-                confirm_deg=r.confirm_deg)
+        n_cycles[best], n_bad[best] = n_c[best], n_b[best]
+        kept[best] = False
+        removed.append(best)
+        live &= ~np.any(cyc_edges == best, axis=1)
+    n_c, n_b = _recount(cyc_edges, live, bad, M)
+    n_cycles[kept], n_bad[kept] = n_c[kept], n_b[kept]
+    confirmed = np.zeros(M, bool)
+    good = cyc_edges[live & ~bad]
+    confirmed[good[good >= 0]] = True
+    return dict(kept=kept, removed=removed, n_cycles=n_cycles, n_bad=n_bad, confirmed=confirmed & kept, alive=live)
 
 
 def _random_graph(rng, n, p, n_out, noise_deg=1.0):
