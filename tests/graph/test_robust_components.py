@@ -10,14 +10,18 @@ from pipeline.averaging.irls import IRLSConfig
 from pipeline.averaging.solve import average
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
-from pipeline.graph.checks import GraphChecks, ViewGraphConfig, _reject, _robust_filter, _robust_subgraph
+from pipeline.graph.checks import GraphChecks, ViewGraphConfig, _reject, _robust_filter
 
 
 def _reference(vg, chk, sigma_weak_deg, cfg):
     """The step before: a subgraph for every component, trees (lone cameras too) skipped after it was built."""
     if not chk.kept.any():
         return 0
-    keep, sub = _robust_subgraph(vg, chk, cfg)
+    # the pairs the robust solution weighs, by their definition: kept, or left unconfirmed when robust_unconfirmed
+    keep = np.array([k for k in range(vg.n_edges) if chk.kept[k]
+                     or (cfg.robust_unconfirmed and chk.step[k] == "unconfirmed")], dtype=np.int64)
+    sub = ViewGraph(vg.names, vg.edges[keep], vg.R_rel[keep], inliers=None if vg.inliers is None else vg.inliers[keep],
+                    allow_isolated=True)
     labels = sub.components()
     r = np.full(vg.n_edges, np.nan)
     for c in range(int(labels.max()) + 1):
