@@ -22,6 +22,7 @@ functions and classes on arrays: no I/O, no logging.
 from __future__ import annotations
 
 import contextlib
+import sys
 from collections.abc import Iterator
 from typing import Any
 
@@ -88,17 +89,20 @@ __all__ = ["REUSE_MIN_N", "NEGLIGIBLE_WEIGHT", "DENSE_FILL", "DENSE_PATTERN", "D
            "LaplacianSolver", "check_graph", "factor_symmetric", "DenseCholesky", "SymmetricFactorizer", "FactorState"]
 
 _BLAS_LIBS: list[Any] | None = None  # the BLAS libraries' threadpoolctl controllers, found at the first use
+_BLAS_MODULES = -1  # len(sys.modules) when they were found: a module imported since may have brought another
 
 
 @contextlib.contextmanager
 def _one_blas_thread() -> Iterator[None]:
     """One BLAS thread within it, each library's own count restored after: the libraries' controllers set directly
-    (under 1 µs) rather than through threadpoolctl's ``limit`` (15 µs a call, a fifth of a 247-row solve)."""
-    global _BLAS_LIBS
-    if _BLAS_LIBS is None:
+    (under 1 µs) rather than through threadpoolctl's ``limit`` (15 µs a call, a fifth of a 247-row solve). They are
+    looked up again after any import (OpenCV, for one, brings an OpenBLAS of its own when it is first imported)."""
+    global _BLAS_LIBS, _BLAS_MODULES
+    if _BLAS_LIBS is None or len(sys.modules) != _BLAS_MODULES:
         from threadpoolctl import ThreadpoolController  # noqa: PLC0415
 
         _BLAS_LIBS = list(ThreadpoolController().select(user_api="blas").lib_controllers)
+        _BLAS_MODULES = len(sys.modules)
     libs = _BLAS_LIBS
     before = [lib.get_num_threads() for lib in libs]
     for lib in libs:

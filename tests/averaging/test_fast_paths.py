@@ -29,6 +29,21 @@ def test_one_blas_thread_sets_and_restores_the_libraries_own_counts():
     assert _blas_counts() == outside
 
 
+def test_one_blas_thread_finds_the_libraries_again_after_an_import(monkeypatch):
+    """A library loaded after the first use (OpenCV brings its own OpenBLAS when first imported) is limited too: the
+    controllers are looked up again once a module was imported since (here: a stale list that holds none)."""
+    monkeypatch.setattr(kernel, "_BLAS_LIBS", [])
+    monkeypatch.setattr(kernel, "_BLAS_MODULES", -1)
+    outside = _blas_counts()
+    with kernel._one_blas_thread():
+        assert _blas_counts() == {1}
+    assert len(kernel._BLAS_LIBS) == len([d for d in threadpool_info() if d["user_api"] == "blas"]) > 0
+    assert _blas_counts() == outside
+    monkeypatch.setattr(kernel, "_BLAS_LIBS", [])  # no import since: the list stands as it is
+    with kernel._one_blas_thread():
+        assert kernel._BLAS_LIBS == []
+
+
 def test_dense_solve_takes_one_blas_thread_and_gives_lapacks_solution_to_the_bit():
     rng = np.random.default_rng(3)
     seen: list[set[int]] = []
@@ -180,7 +195,10 @@ def test_the_averagings_dense_factors_take_one_blas_thread_at_every_size_they_co
 
 def test_unique_keys_is_numpys_unique_with_its_inverse():
     rng = np.random.default_rng(19)
-    for size, count in ((10, 1), (61009, 80000), (61009, 300), (4_000_000, 80000), (50, 5000)):
+    # every case on the mask path (size ≤ 16 × count; above it the function is np.unique itself): one key, the
+    # boundary, a dense Laplacian's 80k keys, many repeats of few keys
+    for size, count in ((10, 1), (16 * 500, 500), (61009, 80000), (50, 5000), (7, 40)):
+        assert size <= 16 * count
         keys = rng.integers(0, size, count)
         u, inv = kernel._unique_keys(keys, size)
         u0, inv0 = np.unique(keys, return_inverse=True)

@@ -394,7 +394,7 @@ def test_no_loop_round_with_exhaustive_pairs_or_when_disabled(work: Path):
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "(exhaustive pairs: 24 images" in proc.stderr, proc.stderr  # why this WORK has none, as run.py says it
     proc = subprocess.run([sys.executable, "-m", "pipeline.loop_closure", "--work", str(work)], capture_output=True,
-                          text=True, cwd=REPO)  # the README's stage chain on its 12 views: exhaustive pairs
+                          text=True, cwd=REPO)  # the stage alone with its defaults on this WORK: exhaustive pairs
     assert proc.returncode == 2 and "(exhaustive pairs: " in proc.stderr and "pairs=auto is exhaustive up to 50" in \
         proc.stderr, proc.stderr
 
