@@ -59,6 +59,18 @@ def run_db(scene, db, tmp_path_factory, fast_config):
     return out, metrics
 
 
+def _verified_in_sqlite(path: Path) -> dict[tuple[int, int], int]:
+    """``(image_id1, image_id2) → inlier count`` of the pairs with inlier matches, read from the database file's own
+    ``two_view_geometries`` table with sqlite3 (COLMAP's pair id: ``id1 · 2147483647 + id2``, ``id1 < id2``): a
+    reference that shares nothing with the reader under test."""
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        rows = con.execute("SELECT pair_id, rows FROM two_view_geometries WHERE rows > 0").fetchall()
+    finally:
+        con.close()
+    return {(int(pid) // 2147483647, int(pid) % 2147483647): int(n) for pid, n in rows}
+
+
 def _median_error(metrics: Path) -> dict[str, float]:
     import json
 
@@ -75,8 +87,8 @@ def test_run_from_database_gives_rotations_close_to_truth(run_db, db):
     assert len(fs.names) == 6 and all(s.startswith("database:PINHOLE") for s in fs.K_source)
     np.testing.assert_allclose(fs.K[0], [[280, 0, 159.5], [0, 280, 119.5], [0, 0, 1]], atol=1e-9)
     # the matches are the database's verified inliers, pair for pair
-    verified = {(a, b): n for a, b, n in colmap_db.verified_pairs(db)}
-    assert len(ms.pairs) == len(verified)
+    verified = _verified_in_sqlite(db)
+    assert len(ms.pairs) == len(verified) > 0
     assert sorted(len(m) for m in ms.matches) == sorted(verified.values())
     rec = __import__("json").loads((work / "features.record.json").read_text())
     assert rec["inputs"]["database"] == colmap_db.database_fingerprint(db)
@@ -107,12 +119,19 @@ def test_a_sqlite_file_that_is_not_colmap_is_left_as_it_was(tmp_path):
     assert other.read_bytes() == raw  # pycolmap would have added COLMAP's tables to it
 
 
-def test_database_pair_selector_with_our_features(db, scene):
+def test_database_pair_selector_with_our_features(db, scene, tmp_path):
     names = sorted(p.name for p in scene.out.glob("*.png"))
-    pairs = select_pairs(f"database:{db}", names)
-    verified = {tuple(sorted((a - 1, b - 1))) for a, b, _ in colmap_db.verified_pairs(db)}  # ids 1.. in name order
-    assert {tuple(p) for p in pairs.tolist()} == verified
-    np.testing.assert_array_equal(database_pairs(db, names), pairs)
+    # a copy in which one pair's geometry holds no inlier match: it is not a verified pair
+    copy = Path(shutil.copy(db, tmp_path / "one_empty.db"))
+    with sqlite3.connect(copy) as con:
+        pid = con.execute("SELECT pair_id FROM two_view_geometries WHERE rows > 0 ORDER BY pair_id LIMIT 1").fetchone()[0]
+        con.execute("UPDATE two_view_geometries SET rows = 0, data = NULL WHERE pair_id = ?", (pid,))
+    con.close()
+    for path, n_empty in ((db, 0), (copy, 1)):
+        pairs = select_pairs(f"database:{path}", names)
+        verified = {tuple(sorted((a - 1, b - 1))) for a, b in _verified_in_sqlite(path)}  # ids 1.. in name order
+        assert {tuple(p) for p in pairs.tolist()} == verified and len(verified) == 15 - n_empty
+        np.testing.assert_array_equal(database_pairs(path, names), pairs)
     with pytest.raises(ConfigError, match="--database DB"):
         select_pairs("database", names)
 

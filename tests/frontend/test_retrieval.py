@@ -43,6 +43,8 @@ def test_retrieval_finds_the_overlapping_pairs(street):
     assert res["k"] == choose_k(n) == 8
     assert r["recall"] >= 0.95 and r["fraction_matched"] <= 0.40, r
     P = res["pairs"]
+    hits = {tuple(t) for t in truth.tolist()} & {tuple(q) for q in P.tolist()}  # both counted here, by hand
+    assert r["recall"] == len(hits) / len(truth) and r["fraction_matched"] == len(P) / (n * (n - 1) / 2)
     assert P.dtype == np.int64 and (P[:, 0] < P[:, 1]).all() and len(np.unique(P, axis=0)) == len(P)
     assert (np.lexsort(P.T[::-1]) == np.arange(len(P))).all()  # sorted
     again = retrieve_pairs(descs, responses=resp)  # deterministic: same seed, same pairs

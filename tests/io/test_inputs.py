@@ -177,7 +177,9 @@ def test_convert_command_round_trips(formats, tmp_path, capsys):
     vg = read_input_graph(tmp_path / "b.npz").vg
     assert _max_angle_deg(vg.R_rel, g.vg.R_rel) < 1e-8 and np.allclose(vg.H, g.vg.H)
     assert convert_cli([str(formats["1dsfm"]), str(tmp_path / "c.mat"), "-q"]) == 0
-    assert read_input_graph(tmp_path / "c.mat").R_gt is not None
+    src, mat = read_input_graph(formats["1dsfm"]), read_input_graph(tmp_path / "c.mat")
+    assert mat.R_gt is not None and mat.gt_mask.tolist() == src.gt_mask.tolist() and src.gt_mask.any()
+    assert _max_angle_deg(mat.R_gt[mat.gt_mask], src.R_gt[src.gt_mask]) < 1e-8  # the truth of the same cameras
     assert convert_cli([str(formats["npz"]), str(tmp_path / "d"), "-q"]) == 0  # a folder: 1DSfM
     assert read_input_graph(tmp_path / "d").vg.n_edges == g.vg.n_edges
     write_rotations(tmp_path / "r.txt", g.vg.names, g.R_true)

@@ -139,6 +139,7 @@ def test_write_l1_mat_round_trip(tmp_path) -> None:
     np.testing.assert_allclose(back.vg.R_rel, vg.R_rel, atol=1e-15)
     np.testing.assert_allclose(back.vg.H, vg.H, atol=1e-15)
     assert back.gt_mask.tolist() == [True, True, False, True]
+    np.testing.assert_allclose(back.R_gt[back.gt_mask], R[back.gt_mask], atol=1e-15)  # each camera's own truth
 
 
 def test_l1_mat_single_edge_keeps_3d_layout(tmp_path) -> None:

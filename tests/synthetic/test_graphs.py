@@ -63,7 +63,8 @@ def test_paper2_protocol() -> None:
     r = _residuals(g)
     nees = np.einsum("na,nab,nb->n", r, g.vg.H, r)
     assert abs(nees.mean() - 3.0) < 5 * math.sqrt(6 / nees.size)
-    # Whitened residuals are isotropic; a right-perturbation reading is not consistent.
+    # Whitened residuals are isotropic (the NEES above is what tells a right-perturbation generator: its mean is
+    # off 3 on these anisotropic H).
     L = np.linalg.cholesky(g.vg.H)
     z = np.einsum("nba,nb->na", L, r)
     np.testing.assert_allclose(np.cov(z.T), np.eye(3), atol=0.15)
