@@ -42,7 +42,7 @@ def test_cli_writes_rotations_and_stats(graph_file, tmp_path, method):
     assert rc == 0
     names, Rest = read_rotations(out)
     assert names == vg.names
-    assert _err(Rest, R).max() < 3.0
+    assert _err(Rest, R).max() < 1.6  # every method moves well off its spanning-tree start (2.94° worst here)
     stats = json.loads(js.read_text())
     for key in ("time_s", "iterations", "n_cameras", "n_edges"):
         assert key in stats
@@ -71,7 +71,7 @@ def test_init_from_file(graph_file, tmp_path):
     rc = main_cli([str(path), "--init", str(init), "--l1-iterations", "0", "--out", str(out), "-q"])
     assert rc == 0
     _, Rest = read_rotations(out)
-    assert _err(Rest, R).max() < 3.0
+    assert _err(Rest, R).max() < 1.6  # every method moves well off its spanning-tree start (2.94° worst here)
     # the file's rotations are the start: with no iteration at all they come back (a start that is not the truth,
     # so that neither the default tree start nor the solution could pass for it)
     R0 = R @ so3.exp(np.deg2rad(5.0) * np.random.default_rng(3).standard_normal((len(R), 3)))

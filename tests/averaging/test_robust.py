@@ -73,6 +73,24 @@ def test_auto_without_weights_is_paper_1():
 
 
 # -------------------------------------------------------------------------------- polish
+def test_the_two_densities_of_the_mixture_integrate_to_one():
+    """The outlier density is that of the residual of a Haar rotation (angle density (1 − cos θ)/π on [0, π]) and the
+    inlier one a 3-D Student-t: each integrates to 1 over residual vectors (by quadrature over the radius)."""
+    from scipy.integrate import quad
+
+    from pipeline.averaging.mixture import log_haar, mixture_terms
+
+    haar = quad(lambda t: np.exp(log_haar(np.array([t]))[0]) * 4 * np.pi * t * t, 0, np.pi, limit=200)[0]
+    assert haar == pytest.approx(1.0, abs=1e-6)
+    for nu, sc in ((1.0, 0.01), (2.0, 0.02), (8.0, 0.01), (32.0, 0.005)):
+        def dens(t):
+            ll, _, _ = mixture_terms(np.array([t * t]), np.zeros(1), np.zeros(1), sc, nu, 1e-300)
+            return np.exp(ll[0]) * 4 * np.pi * t * t
+        # eps → 0: the t density alone; its tail beyond 1e4 scales holds at most a few 1e-4 of the mass at ν = 1
+        mass = quad(dens, 0, 1e4 * sc, limit=500, points=[sc, 10 * sc, 100 * sc])[0]
+        assert mass == pytest.approx(1.0, abs=2e-3 if nu == 1.0 else 1e-5), (nu, mass)
+
+
 def test_mixture_fit_recovers_scale_outlier_share_and_tail():
     rng = np.random.default_rng(0)
     m, s = 4000, np.deg2rad(1.0)
@@ -84,6 +102,17 @@ def test_mixture_fit_recovers_scale_outlier_share_and_tail():
     assert fit.s == pytest.approx(s, rel=0.05) and fit.eps == pytest.approx(0.2, abs=0.03)
     assert fit.nu >= 8  # Gaussian inliers: a light tail
     assert (fit.gamma[out] < 0.5).mean() > 0.98 and (fit.gamma[~out] > 0.5).mean() > 0.98
+    # Student-t inliers (ν = 2, scale 1°) and 10% far residuals: the tail, the scale and the share, where the t's
+    # normalisation and its latent precision matter (with Gaussian inliers ν sits at the grid's top, u ≈ 1)
+    rng = np.random.default_rng(1)
+    m = 6000
+    inl = s * rng.standard_normal((m, 3)) / np.sqrt(rng.chisquare(2, m) / 2)[:, None]
+    out = rng.random(m) < 0.1
+    theta = np.linalg.norm(inl, axis=1)
+    theta[out] = np.arccos(rng.uniform(-1, 1, out.sum())) + 0.3
+    theta = np.minimum(theta, np.pi)
+    fit = fit_mixture(theta ** 2, np.zeros(m), theta, None, NU_GRID)
+    assert fit.nu <= 3 and fit.s == pytest.approx(s, rel=0.05) and fit.eps == pytest.approx(0.1, abs=0.02)
 
 
 def test_mixture_polish_beats_the_talwar_polish_on_mixture_noise():

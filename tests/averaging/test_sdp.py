@@ -12,6 +12,7 @@ from pipeline.averaging.sdp.certificate import (
     edge_cost,
     numerical_rank,
     relative_gap,
+    resolution_check,
     round_to_rotations,
     weight_matrices,
 )
@@ -232,7 +233,25 @@ def test_lower_bound_is_below_the_cost_of_any_rotations(noisy):
     assert st["certified"] and st["rank"] == 3 and st["gap"] < 1e-5
     # the noisy optimum fits the data better than the truth does
     assert st["primal_cost"] <= truth_cost
-    assert relative_gap(st["primal_cost"], st["lower_bound"]) == pytest.approx(st["gap"])
+    # the reported gap is (f(R̂) − d*)/|d*|, computed here from its parts
+    assert st["gap"] == pytest.approx((st["primal_cost"] - st["lower_bound"]) / abs(st["lower_bound"]), rel=1e-9)
+    assert relative_gap(2.0, -4.0) == pytest.approx(1.5) and relative_gap(1.0, 1.0) == 0.0
+
+
+def test_resolution_check_certifies_rank_three_within_a_share_of_the_resolution():
+    """certified ⇔ rank 3 and gap ≤ κ·ρ·f_res + the cost's rounding, with ρ = (N − 1)/(M − N + 1) and
+    f_res = f(R̂) + offset; the figures it returns, recomputed here."""
+    N, M, primal, offset = 11, 31, -80.0, 100.0  # f_res = 20, ρ = 10/21
+    res = 10 / 21 * 20.0
+    floor = 1e3 * np.finfo(float).eps * 100.0
+    ok = resolution_check(0.005 * res, primal, offset, N, M, rank=3)
+    assert ok["certified"] and ok["resolution"] == pytest.approx(res) and ok["cost_rounding"] == pytest.approx(floor)
+    assert ok["gap_vs_resolution"] == pytest.approx(0.005) and ok["gap_residual"] == pytest.approx(0.005 * res / 20)
+    assert not resolution_check(0.02 * res, primal, offset, N, M, rank=3)["certified"]  # above κ = 1%
+    assert not resolution_check(0.0, primal, offset, N, M, rank=4)["certified"]  # a zero gap does not make rank 4 tight
+    exact = resolution_check(0.5 * floor, -offset, offset, N, M, rank=3)  # exact data: f_res = 0, only the rounding
+    assert exact["certified"] and exact["resolution"] == 0.0
+    assert not resolution_check(2 * floor, -offset, offset, N, M, rank=3)["certified"]
 
 
 @pytest.mark.parametrize("form", ["primal", "dual"])

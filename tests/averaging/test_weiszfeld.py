@@ -9,6 +9,7 @@ from pipeline.core import so3
 from pipeline.averaging.weiszfeld import independent_sets, weiszfeld
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
+from pipeline.averaging.init import initial_rotations
 
 
 def _graph(n, p, sigma_deg, seed):
@@ -58,7 +59,9 @@ def test_sequential_order_option():
     vg, R = _graph(8, 0.8, 1.0, 4)
     res = weiszfeld(vg, order=np.arange(8)[::-1])
     assert res.stats["n_independent_sets"] == 8
-    assert np.median(_err(res.R, R)) < 2.0
+    # well below its spanning-tree start (1.6° median, 2.2° worst here): the sweeps in this order moved the cameras
+    start = initial_rotations(vg, "mst")
+    assert np.median(_err(res.R, R)) < 0.6 * np.median(_err(start, R)) and np.median(_err(res.R, R)) < 1.0
 
 
 def test_disconnected_rejected():

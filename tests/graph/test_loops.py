@@ -115,6 +115,35 @@ def test_cycle_check_on_a_ring():
     assert not cycle_check(E, Rm, n, kept, kept, np.full(n, 5.0), none, max_path_deg=15).checked.any()
 
 
+def test_the_loop_thresholds_are_k_sigma_of_the_loops_own_variance():
+    """Both checks' thresholds pinned, on noise-free rotations with one edge turned by a share of its threshold:
+    the path check's 3·√(σ_e² + Σ_path σ²) on a 12-camera ring (3·√12 ≈ 10.4° at σ = 1°), the cycle filter's
+    3·√(Σ_cycle σ²) on a triangle (3·√3 ≈ 5.2°, uncalibrated); 0.8 of it passes, 1.3 of it does not."""
+    rng = np.random.default_rng(4)
+    n = 12
+    R = so3.random_rotations(n, rng)
+    E = np.array([[k, k + 1] for k in range(n - 1)] + [[0, n - 1]])
+    exact = R[E[:, 1]] @ np.swapaxes(R[E[:, 0]], 1, 2)
+    kept, none, sigma = np.ones(n, bool), np.zeros(n, bool), np.full(n, 1.0)
+    thr = 3 * np.sqrt(12.0)
+    for share, ok in ((0.8, True), (1.3, False)):
+        Rm = exact.copy()
+        Rm[4] = so3.exp(np.deg2rad([0, share * thr, 0])) @ Rm[4]
+        pc = cycle_check(E, Rm, n, kept, kept, sigma, none, max_path_deg=20.0)
+        np.testing.assert_allclose(pc.threshold_deg, thr, rtol=1e-9)
+        np.testing.assert_allclose(pc.discrepancy_deg, share * thr, rtol=1e-6)
+        assert pc.checked.all() and (pc.consistent == ok).all(), (share, pc.discrepancy_deg)
+    T = np.array([[0, 1], [0, 2], [1, 2]])
+    exact = R[T[:, 1]] @ np.swapaxes(R[T[:, 0]], 1, 2)
+    thr = 3 * np.sqrt(3.0)
+    for share, ok in ((0.8, True), (1.3, False)):
+        Rm = exact.copy()
+        Rm[0] = so3.exp(np.deg2rad([share * thr, 0, 0])) @ Rm[0]
+        res = cycle_filter(T, Rm, 3, np.full(3, 1.0), calibrate=False, max_deg=None)
+        np.testing.assert_allclose(res.angles, share * thr, rtol=1e-6)
+        assert res.consistent.tolist() == [ok], (share, res.angles)
+
+
 def test_cycle_check_prefers_confirmed_paths():
     # edge (0, 3) is 30° off; 0-1-2-3 is a chain of confirmed edges, 0-4-3 a cheaper unconfirmed detour
     rng = np.random.default_rng(5)

@@ -43,8 +43,12 @@ def test_damaged_files_are_refused_naming_the_file(model, tmp_path, name, how) -
     data = {"cut": data[: len(data) - 5], "extra": data + b"\0" * 11,
             "count": (10**9).to_bytes(8, "little") + data[8:]}[how]
     (bad / name).write_bytes(data)
-    if how != "count" and name in ("rigs.bin", "points3D.bin"):  # only their count is bounded here
-        try:  # pycolmap reads the rest in the sandbox: a one-line error or the right cameras
+    # rigs.bin's records have a least size, so a cut one is refused by its count bound like the others; the bytes
+    # beyond the last record of rigs.bin and points3D.bin, and a cut points3D.bin (records of any size), are not
+    # checked here (a limitation): pycolmap reads them in the sandbox, and what is asked is a one-line error or the
+    # right cameras, never a crash or wrong ones
+    if how != "count" and not (name == "rigs.bin" and how == "cut") and name in ("rigs.bin", "points3D.bin"):
+        try:
             assert read_reference(bad).names == ["a.png", "b.png", "c.png"]
         except InputFileError as exc:
             assert str(bad) in str(exc) and "\n" not in str(exc)

@@ -99,6 +99,14 @@ def test_gauge_projection_removes_a_global_rotation():
     blocks = gauge_fixed_rotation_covariance(np.eye(15), R, 2.0)
     assert blocks.shape == (5, 3, 3)
     np.testing.assert_allclose(blocks, 2.0 * P.reshape(5, 3, 5, 3)[np.arange(5), :, np.arange(5), :], atol=1e-12)
+    # a joint covariance that is not a multiple of the identity: the projection on both sides, block by block
+    X = rng.normal(size=(15, 15))
+    S = X @ X.T + np.eye(15)
+    want = np.empty((5, 3, 3))
+    for k in range(5):
+        Pk = P[3 * k:3 * k + 3]  # camera k's rows of P
+        want[k] = 0.5 * Pk @ S @ Pk.T
+    np.testing.assert_allclose(gauge_fixed_rotation_covariance(S, R, 0.5), want, atol=1e-10)
     joint = np.eye(15)
     joint[4, 4] = np.nan  # one camera the problem does not determine: no covariance, not NaN in every camera
     with pytest.raises(ValueError, match="not finite"):
