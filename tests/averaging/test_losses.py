@@ -72,6 +72,15 @@ def test_table_values_at_a_point():
     assert get_loss("talwar").phi(np.array([2 * a]))[0] == 0.0
     assert get_loss("bisquare").phi(np.array([2 * a]))[0] == 0.0
     assert get_loss("l2").phi(x)[0] == 1.0
+    # the other seven against paper 1's ψ (Table 1), as weights φ = ψ/x at x = α/2 (and 2α beyond a floor of α)
+    assert get_loss("andrews").phi(x)[0] == pytest.approx(np.sin(0.5) / 0.5)
+    assert get_loss("fair").phi(x)[0] == pytest.approx(1 / 1.5)
+    assert get_loss("logistic").phi(x)[0] == pytest.approx(np.tanh(0.5) / 0.5)
+    assert get_loss("pseudo-huber").phi(x)[0] == pytest.approx(1 / np.sqrt(1.25))
+    assert get_loss("l1").phi(np.array([0.1]))[0] == pytest.approx(10.0)
+    assert get_loss("l1.5").phi(np.array([0.1]))[0] == pytest.approx(0.1 ** -0.5)
+    assert get_loss("l0.5").phi(np.array([2 * a]))[0] == pytest.approx((2 * a) ** -1.5)
+    assert get_loss("andrews").phi(np.array([4 * a]))[0] == 0.0  # beyond απ
 
 
 def test_alpha_is_in_degrees():
