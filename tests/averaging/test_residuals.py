@@ -6,13 +6,15 @@ from scipy.special import gammaln
 from pipeline.averaging import residuals
 from pipeline.averaging.kernel import LaplacianSolver, effective_weights
 from pipeline.averaging.mixture import MixtureModel, dof_factor, em_update, fit_mixture, log_haar, mixture_terms
-from pipeline.averaging.residuals import _graph_memo, edge_residuals, graph_residuals, held_measurements
+from pipeline.averaging.residuals import edge_residuals, graph_residuals, held_measurements
 from pipeline.core import so3
 from pipeline.core.viewgraph import ViewGraph
 
 
 def _plain_residuals(vg: ViewGraph, R: np.ndarray) -> np.ndarray:
-    q_rel, e0, e1 = _graph_memo(vg)
+    # from the view graph itself, not from the kernel's memo of it (a wrong memo would be on both sides)
+    q_rel = np.ascontiguousarray(so3.quat_from_matrix(vg.R_rel).T)
+    e0, e1 = np.asarray(vg.edges[:, 0], np.int64), np.asarray(vg.edges[:, 1], np.int64)
     q = np.ascontiguousarray(so3.quat_from_matrix(R).T)
     qj = q[:, e1]
     qj[1:] *= -1.0
