@@ -438,7 +438,7 @@ def test_dense_factors_take_one_blas_thread_where_threads_gain_nothing_or_crash(
 
     with threadpool_limits(limits=2, user_api="blas"):  # two threads outside, so that one inside can be told apart
         outside = {int(d["num_threads"]) for d in threadpool_info() if d["user_api"] == "blas"}
-        assert outside == {2}
+        assert 2 in outside  # a single-threaded build (cvxpy's solvers bring one) stays at 1 whatever is asked
         assert blas_threads_inside(kernel.DENSE_SINGLE_THREAD_SIZE - 1) == {1}
         assert blas_threads_inside(kernel.BLAS_THREADS_MAX_SIZE + 1) == {1}
         assert blas_threads_inside(kernel.DENSE_SINGLE_THREAD_SIZE) == outside
