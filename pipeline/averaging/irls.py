@@ -197,25 +197,27 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     run, starts = isotropic_start(vg, cfg, init, init_weights, solver, lossf, t0)
     R, history, it, converged = run["R"], run["history"], run["iterations"], run["converged"]
     polish_rule = StopRule(cfg.ftol, 0.01, cfg.tol_rad, cfg.refine_iterations)
-    tau, model, trust_used, trust = None, None, None, None
+    tau, model, trust_used, trust, fits = None, None, None, None, {}
     if cfg.refine and cfg.polish == "talwar":
         R, tau = talwar_polish(vg, R, solver, cfg.refine_min_deg, polish_rule, t0, history)
     elif cfg.refine:
-        R, model, trust_used, w, gamma, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
+        trust_used, fits, trust = _mixture(vg, R, solver, cfg, polish_rule, t0, history)
+        R, model = fits[trust_used].R, fits[trust_used].model
     r = graph_residuals(vg, R)
     theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     rescue_stats = None
     if cfg.refine and model is not None and cfg.rescue:
         again, rescue_stats = _rescue(vg, R, theta, model, solver, cfg, polish_rule, t0, history)
         if again is not None:
-            R, model, trust_used, w, gamma, fits, trust = again
+            trust_used, fits, trust = again
+            R, model = fits[trust_used].R, fits[trust_used].model
             r = graph_residuals(vg, R)
             theta = np.sqrt(np.einsum("ma,ma->m", r, r))
     if tau is not None:
         w = (theta <= tau).astype(np.float64)
         kept = w > 0
     elif model is not None:
-        kept = gamma >= 0.5
+        w, kept = fits[trust_used].weights, fits[trust_used].gamma >= 0.5
         m = 1.0 if trust is None else trust
         normalized = np.sqrt(m) * theta / model.s
     else:
@@ -227,7 +229,7 @@ def irls(vg: ViewGraph, config: IRLSConfig | None = None, *, init: str | np.ndar
     if not converged and cfg.max_iterations > 0:
         logger.warning("IRLS-%s stopped at the iteration cap (%d) with largest step %.3g rad",
                        lossf.name, cfg.max_iterations, history[-1]["max_step_rad"])
-    polish_it, polish_ok = (fits[trust_used].iterations, fits[trust_used].converged) if model is not None else (0, True)
+    polish_it, polish_ok = (fits[trust_used].iterations, fits[trust_used].converged) if fits else (0, True)
     if not polish_ok:
         logger.warning("IRLS-%s's polish stopped at its iteration cap (refine_iterations = %d) with largest step "
                        "%.3g rad", lossf.name, cfg.refine_iterations, history[-1]["max_step_rad"])
@@ -281,9 +283,11 @@ class PolishFit(NamedTuple):
 
 
 def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSConfig, rule: StopRule, t0: float,
-             history: list[dict[str, float]]
-             ) -> tuple[np.ndarray, Any, str, np.ndarray, np.ndarray, dict[str, Any], np.ndarray | None]:
-    """The mixture polish, isotropic and (with inlier counts) with per-edge trust; the likelier one wins."""
+             history: list[dict[str, float]]) -> tuple[str, dict[str, PolishFit], np.ndarray | None]:
+    """The mixture polish, isotropic and (with inlier counts) with per-edge trust; the likelier one wins.
+
+    Returns the winner's name, every polish by name, and the winner's per-edge trust (None: isotropic); the winner's
+    iterations are appended to ``history``."""
     trusts: dict[str, np.ndarray | None] = {"iso": None}
     if cfg.trust_inliers and vg.inliers is not None:
         n_in = np.maximum(np.asarray(vg.inliers, dtype=np.float64), 1.0)
@@ -297,10 +301,8 @@ def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSCon
         if name == "iso":
             R_iso = Rt
     best = max(fits, key=lambda k: fits[k].model.loglik)
-    f = fits[best]
-    R, model, hist, w, gamma = f.R, f.model, f.history, f.weights, f.gamma
-    history.extend(hist)
-    return R, model, best, w, gamma, fits, trusts[best]
+    history.extend(fits[best].history)
+    return best, fits, trusts[best]
 
 
 def _rescue(vg: ViewGraph, R: np.ndarray, theta: np.ndarray, model: Any, solver: LaplacianSolver, cfg: IRLSConfig,
@@ -316,15 +318,16 @@ def _rescue(vg: ViewGraph, R: np.ndarray, theta: np.ndarray, model: Any, solver:
     if not res.cameras.size:
         return None, stats
     hist: list[dict[str, float]] = []
-    again = _mixture(vg, res.R, solver, cfg, rule, t0, hist)
-    stats["loglik"] = [model.loglik, again[1].loglik]  # the polish's own objective decides
-    if again[1].loglik <= model.loglik:
+    best, fits, trust = _mixture(vg, res.R, solver, cfg, rule, t0, hist)
+    loglik = fits[best].model.loglik
+    stats["loglik"] = [model.loglik, loglik]  # the polish's own objective decides
+    if loglik <= model.loglik:
         return None, stats
     history.extend(hist)
     stats["kept"] = True
     logger.info("IRLS: %d camera(s) moved to the rotation their edges agree on (%s)", res.cameras.size,
                 ", ".join(stats["moved"][:5]))
-    return again, stats
+    return (best, fits, trust), stats
 
 
 def _final_problem(lossf: Loss, cfg: IRLSConfig, tau: float | None, model: Any, trust: str | None) -> str:
