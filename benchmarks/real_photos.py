@@ -63,7 +63,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipeline.core.atomic import write_json  # noqa: E402
+from pipeline.core.atomic import atomic_path, write_json  # noqa: E402
 from pipeline.frontend.distortion import simple_radial, undistort_points  # noqa: E402
 from pipeline.frontend.images import IMAGE_EXTENSIONS  # noqa: E402
 
@@ -160,12 +160,19 @@ def internet_copy(src: Path, dst: Path, K: np.ndarray, n: int, seed: int = 0, ma
                               borderMode=cv2.BORDER_CONSTANT)
         out = dst / (p.stem + ".jpg")
         if not out.exists():
-            ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, 90])
-            tmp = out.with_suffix(".part.jpg")
-            buf.tofile(str(tmp))
-            tmp.replace(out)
+            save_image(out, small, [cv2.IMWRITE_JPEG_QUALITY, 90])
         truth[out.name] = {"focal_px": f, "principal_point_px": pp, "size": [out_w, out_h], "k1": k1}
     return {"n_images": len(pick), "images": truth}
+
+
+def save_image(out: Path, img: np.ndarray, params: list[int] | None = None) -> None:
+    """``img`` encoded by its file's extension (OpenCV ``params``), written atomically; an image OpenCV cannot
+    encode is an error, not an empty file."""
+    ok, buf = cv2.imencode(out.suffix, img, params or [])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode {out.name}")
+    with atomic_path(out) as tmp:
+        buf.tofile(str(tmp))
 
 
 #: Dark turntable: the sensor noise added to every pixel (grey levels, σ).
@@ -185,12 +192,7 @@ def dark_copy(src: Path, dst: Path, blur: float, gain: float, seed: int = 0, noi
         p99.append(float(np.percentile(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), 99)))
         out = dst / (p.stem + ".png")
         if not out.exists():
-            ok, buf = cv2.imencode(".png", img)
-            if not ok:
-                raise RuntimeError(f"OpenCV could not encode {out.name} as PNG")
-            tmp = out.with_suffix(".part.png")
-            buf.tofile(str(tmp))
-            tmp.replace(out)
+            save_image(out, img)
     return {"blur_px": blur, "gain": gain, "noise": noise, "seed": seed, "grey_p99_median": float(np.median(p99)),
             "n_images": len(p99)}
 
@@ -264,13 +266,20 @@ def _print(scene: str, tag: str, r: dict, prior: str) -> None:
     print(f"{'':13s} {'':10s} flags: {fl}", flush=True)
 
 
-def dark_levels(root: Path, levels: str, seed: int) -> dict:
-    """The dark turntable (module docstring) at each ``BLUR:GAIN`` level of ``levels``; rows by level and seed."""
+def parse_levels(text: str) -> list[tuple[float, float]]:
+    """``--dark-levels``: comma-separated ``BLUR:GAIN`` pairs of numbers ≥ 0 (ValueError otherwise)."""
+    levels = [tuple(float(v) for v in lv.split(":")) for lv in text.split(",")]
+    if not all(len(lv) == 2 and min(lv) >= 0 for lv in levels):
+        raise ValueError(text)
+    return levels  # type: ignore[return-value]
+
+
+def dark_levels(root: Path, levels: list[tuple[float, float]], seed: int) -> dict:
+    """The dark turntable (module docstring) at each ``(blur, gain)`` of ``levels``; rows by level and seed."""
     temple = DATA / "middlebury-templeSparseRing"
     par = temple / "templeSR_par.txt"
     rows = {}
-    for level in levels.split(","):
-        blur, gain = (float(v) for v in level.split(":"))
+    for blur, gain in levels:
         folder = root / "temple-dark" / f"blur{blur:g}-gain{gain:g}-seed{seed}"
         info = dark_copy(temple, folder / "images", blur, gain, seed)
         rows[f"blur {blur:g} gain {gain:g} seed {seed}"] = r = {**info, **run_one(folder / "images", folder / "out",
@@ -309,9 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     if kinds - {"handheld", "internet", "dark"}:
         ap.error(f"--kind {a.kind}: expected handheld, internet and/or dark, separated by commas")
     try:
-        if not all(len(lv.split(":")) == 2 and all(float(v) >= 0 for v in lv.split(":"))
-                   for lv in a.dark_levels.split(",")):
-            raise ValueError
+        levels = parse_levels(a.dark_levels)
     except ValueError:
         ap.error(f"--dark-levels {a.dark_levels}: expected BLUR:GAIN pairs of numbers ≥ 0 separated by commas, "
                  "e.g. 1:0.5,2:0.35")
@@ -353,7 +360,7 @@ def main(argv: list[str] | None = None) -> int:
                                              f"(max {r['focal_error_pct']['max_abs']:.2f}%); ")
                 result.setdefault("internet", {})[f"{scene} seed {a.seed} shift {a.max_shift:g}{tag}"] = r
         if "dark" in kinds:
-            result.setdefault("dark", {}).update(dark_levels(root, a.dark_levels, a.seed))
+            result.setdefault("dark", {}).update(dark_levels(root, levels, a.seed))
         write_json(a.json, result)
         print(f"wrote {a.json}")
     finally:
