@@ -39,7 +39,7 @@ import numpy as np
 
 from pipeline.averaging.block import BlockLaplacianSolver, anisotropic_step, left_errors
 from pipeline.averaging.kernel import REUSE_MIN_N, apply_update
-from pipeline.averaging.mixture import NU_GRID, em_update, fit_mixture
+from pipeline.averaging.mixture import NU_GRID, em_update, fit_mixture, noise_edges
 from pipeline.averaging.stopping import StopRule, converged, robust_scale
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -144,7 +144,8 @@ class MixtureEM:
         self.half_logdet = 0.5 * np.linalg.slogdet(P)[1]
         self.R = R0.copy()
         self.q, self.theta = _quadratic(vg, self.R, P)
-        self.model = fit_mixture(self.q, self.half_logdet, self.theta, vg.n_cameras, nus)
+        self.fit, self.n_fit = noise_edges(vg.edges, vg.n_cameras)  # bridges say nothing of the noise
+        self.model = fit_mixture(self.q, self.half_logdet, self.theta, self.n_fit, nus, fit=self.fit)
         self.f_prev, self.iterations, self.converged, self.done = np.inf, 0, False, rule.max_iterations < 1
 
     def step(self) -> bool:
@@ -153,7 +154,7 @@ class MixtureEM:
             return True
         vg, n = self.vg, self.vg.n_cameras
         self.iterations += 1
-        w, self.model = em_update(self.q, self.half_logdet, self.theta, self.model, n)
+        w, self.model = em_update(self.q, self.half_logdet, self.theta, self.model, self.n_fit, fit=self.fit)
         f = -self.model.loglik * self.q.size
         dw = anisotropic_step(vg, self.R, self.solver, self.P, w, reuse=n >= REUSE_MIN_N)
         if not np.all(np.isfinite(dw)):
@@ -169,15 +170,16 @@ class MixtureEM:
 
     def loglik(self) -> float:
         """Mean per-edge log-likelihood at the current rotations, ν re-chosen from the grid (as the final fit's)."""
-        return fit_mixture(self.q, self.half_logdet, self.theta, self.vg.n_cameras, self.nus, s0=self.model.s,
-                           eps0=max(self.model.eps, 1e-3)).loglik
+        return fit_mixture(self.q, self.half_logdet, self.theta, self.n_fit, self.nus, s0=self.model.s,
+                           eps0=max(self.model.eps, 1e-3), fit=self.fit).loglik
 
     def result(self) -> MixtureFit:
         """The fit at the current rotations: (ν, s, ε, ``loglik``) refitted (for the selection); ``weights``
         ``γ u / s²`` and ``gamma`` of the last EM state, the final problem whose fixed point the rotations are."""
-        n = self.vg.n_cameras
-        w, last = em_update(self.q, self.half_logdet, self.theta, self.model, n)  # the next step's weights
-        model = fit_mixture(self.q, self.half_logdet, self.theta, n, self.nus, s0=last.s, eps0=max(last.eps, 1e-3))
+        n, fit = self.n_fit, self.fit
+        w, last = em_update(self.q, self.half_logdet, self.theta, self.model, n, fit=fit)  # the next step's weights
+        model = fit_mixture(self.q, self.half_logdet, self.theta, n, self.nus, s0=last.s, eps0=max(last.eps, 1e-3),
+                            fit=fit)
         return MixtureFit(self.metric, self.R, model.nu, model.s, model.eps, model.loglik, last.gamma, w,
                           self.iterations, self.converged)
 

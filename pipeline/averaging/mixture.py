@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import gammaln
 
-__all__ = ["NU_GRID", "EPS_MAX", "log_haar", "mixture_terms", "fit_mixture", "MixtureModel", "em_update", "dof_factor"]
+__all__ = ["NU_GRID", "EPS_MAX", "log_haar", "mixture_terms", "fit_mixture", "MixtureModel", "em_update", "dof_factor",
+           "noise_edges"]
 
 #: ν tried when fitting (1: Cauchy-like … 32: nearly Gaussian).
 NU_GRID = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 32.0)
@@ -89,10 +90,35 @@ def dof_factor(gamma: np.ndarray, n_cameras: int) -> float:
     return m_in / max(m_in - n_cameras + 1, 1.0)
 
 
+def noise_edges(edges: np.ndarray, n: int) -> tuple[np.ndarray | None, int]:
+    """The edges whose residuals say something of the noise, and the ``n_cameras`` of their fit.
+
+    A bridge (an edge in no cycle) is fitted exactly by any rotations: its residual is zero whatever its
+    error. Left in the fit, a sparse graph's bridges (a dark turntable: 10 of 19 edges) pull s towards zero
+    and the Student-t then calls every edge of a cycle an outlier; their likelihood also rewards a metric for
+    claiming a high precision where nothing can contradict it. Cut out (as integrating the rotations out of
+    the likelihood would: a bridge's precision cancels), the cycles alone inform (s, ε, ν), with the
+    degrees-of-freedom correction for the rotations they fit: ``N − C'`` of them, C' the blocks left when
+    the B bridges are cut (B + 1 in a connected graph).
+
+    Returns:
+        (M,) bool of the non-bridge edges, or None where every edge counts (no bridge, or no cycle at all),
+        and the ``n_cameras`` to pass with them (``N − B`` where the graph is connected).
+    """
+    from pipeline.graph.flags import bridges, two_edge_blocks  # the graph package's bridge finder
+
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    br = bridges(edges, n)
+    if not br.any() or br.all():
+        return None, n
+    blocks = int(two_edge_blocks(edges, n, np.ones(len(edges), bool), br).max()) + 1
+    return ~br, n - blocks + 1
+
+
 def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cameras: int | None = None,
                 nus: tuple[float, ...] = NU_GRID, iterations: int = 25,
                 s0: float | None = None, eps0: float = 0.1, eps_max: float = EPS_MAX,
-                max_grid_edges: int = 3000) -> MixtureModel:
+                max_grid_edges: int = 3000, fit: np.ndarray | None = None) -> MixtureModel:
     """EM for (s, ε) on fixed residuals, every ν of the grid at once; the best ν by likelihood.
 
     Args:
@@ -103,7 +129,16 @@ def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cam
             calling edges outliers and fitting the rest exactly).
         max_grid_edges: the grid search runs on an evenly strided subsample of at most this many
             edges (it only picks ν); (s, ε) are then refitted on all edges for the chosen ν.
+        fit: (M,) bool, the edges the model is fitted to (:func:`noise_edges`; None: all); ``loglik`` is
+            their mean, ``gamma`` every edge's posterior under the fitted model.
     """
+    if fit is not None:
+        q, half_logdet, theta = (np.asarray(a, dtype=np.float64) for a in (q, half_logdet, theta))
+        sub = fit_mixture(q[fit], half_logdet[fit], theta[fit], n_cameras, nus, iterations, s0, eps0, eps_max,
+                          max_grid_edges)
+        gamma = mixture_terms(q, half_logdet, log_haar(theta), sub.s, sub.nu, sub.eps)[1]
+        gamma[fit] = sub.gamma
+        return MixtureModel(sub.nu, sub.s, sub.eps, sub.loglik, gamma)
     q_all = np.asarray(q, dtype=np.float64)
     if len(nus) > 1 and q_all.size > max_grid_edges:
         idx = np.linspace(0, q_all.size - 1, max_grid_edges).astype(np.int64)
@@ -148,8 +183,8 @@ def _fit_terms(q: np.ndarray, half_logdet: np.ndarray, lh: np.ndarray, n_cameras
 
 
 def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: MixtureModel,
-              n_cameras: int | None = None,
-              eps_max: float = EPS_MAX, inner: int = 10) -> tuple[np.ndarray, MixtureModel]:
+              n_cameras: int | None = None, eps_max: float = EPS_MAX, inner: int = 10,
+              fit: np.ndarray | None = None) -> tuple[np.ndarray, MixtureModel]:
     """E-step + M-step of (s, ε) at the current residuals (ν fixed); returns the rotation step's weights.
 
     ``inner`` EM iterations on (s, ε) with the rotations fixed come first (cheap, no linear solve):
@@ -157,20 +192,29 @@ def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: 
     by 1e-4 per step while the largest camera update was already 4e-7 rad); with 10 the outer loop
     converges in about 10 iterations.
 
+    With ``fit`` (:func:`noise_edges`), (s, ε) and the likelihood come from those edges alone; the weights
+    and posteriors of the others (bridges) are evaluated at the same (s, ε).
+
     Returns:
         the IRLS weights ``γ u / s²`` (M,) of the rotation M-step (a weighted least squares in the
         metric P), and the updated model.
     """
-    q = np.asarray(q, dtype=np.float64)
-    half_logdet = np.asarray(half_logdet, dtype=np.float64)
-    lh = log_haar(np.asarray(theta, dtype=np.float64))  # once, for the inner EM and the step's weights
+    q_all = np.asarray(q, dtype=np.float64)
+    hl_all = np.asarray(half_logdet, dtype=np.float64)
+    lh_all = log_haar(np.asarray(theta, dtype=np.float64))  # once, for the inner EM and the step's weights
+    q, half_logdet, lh = (q_all, hl_all, lh_all) if fit is None else (q_all[fit], hl_all[fit], lh_all[fit])
     if inner > 1:  # the inner EM ends with the terms at its (s, ε), which are the step's: not evaluated again
         model, (ll, g, u) = _fit_terms(q, half_logdet, lh, n_cameras, (model.nu,), inner - 1, model.s,
                                        max(model.eps, 1e-4), eps_max)
     else:
         ll, g, u = mixture_terms(q, half_logdet, lh, model.s, model.nu, model.eps)
-    w = g * u / (model.s * model.s)
     dof = dof_factor(g, n_cameras) if n_cameras else 1.0
     s = max(float(np.sqrt(dof * np.sum(g * u * q) / (3.0 * max(float(g.sum()), 1e-12)))), 1e-12)
     eps = float(np.clip(1.0 - g.mean(), 1e-4, eps_max))
-    return w, MixtureModel(model.nu, s, eps, float(ll.mean()), g)
+    loglik = float(ll.mean())
+    if fit is not None:  # every edge's terms at the step's (s, ε); the fitted edges' are those above
+        _, g_all, u_all = mixture_terms(q_all, hl_all, lh_all, model.s, model.nu, model.eps)
+        g_all[fit], u_all[fit] = g, u
+        g, u = g_all, u_all
+    w = g * u / (model.s * model.s)
+    return w, MixtureModel(model.nu, s, eps, loglik, g)

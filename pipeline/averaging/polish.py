@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.averaging.kernel import LaplacianSolver, apply_update, graph_residuals
 from pipeline.averaging.losses import get_loss
-from pipeline.averaging.mixture import NU_GRID, MixtureModel, em_update, fit_mixture
+from pipeline.averaging.mixture import NU_GRID, MixtureModel, em_update, fit_mixture, noise_edges
 from pipeline.averaging.stopping import StopRule, converged, robust_scale
 from pipeline.core.errors import ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
@@ -110,14 +110,14 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
         would use, of which the rotations are the fixed point; the inlier posteriors (M,);
         the iterations taken and whether the rule was met (False: stopped at its cap).
     """
-    n = vg.n_cameras
+    fit, n = noise_edges(vg.edges, vg.n_cameras)  # the bridges' zero residuals say nothing of the noise
     m = np.ones(vg.n_edges) if trust is None else np.asarray(trust, dtype=np.float64)
     hl = 1.5 * np.log(m)  # ½ log det(m I)
     th = residual_angles(vg, R)
-    state = {"model": fit_mixture(m * th * th, hl, th, n, nus)}
+    state = {"model": fit_mixture(m * th * th, hl, th, n, nus, fit=fit)}
 
     def weights(theta: np.ndarray) -> np.ndarray:
-        w, state["model"] = em_update(m * theta * theta, hl, theta, state["model"], n)
+        w, state["model"] = em_update(m * theta * theta, hl, theta, state["model"], n, fit=fit)
         return w * m
 
     R, it, ok = reweighted(vg, R, solver, weights, lambda theta: -state["model"].loglik * theta.size, rule, stage, t0,
@@ -127,7 +127,8 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
     last = state["model"]
     if not refit:
         return R, last, w_final, last.gamma, it, ok
-    return (R, fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3)), w_final, last.gamma,
+    return (R, fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3), fit=fit), w_final,
+            last.gamma,
             it, ok)
 
 

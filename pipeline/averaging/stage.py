@@ -70,8 +70,9 @@ class AveragingStage(Stage[Config]):
     title = "rotation averaging"
     config_cls = Config
     # 2: a g2o file's coupled information gives the rotation's marginal H; Bundler truth needs f > 0;
-    # 3: the SDP's start certificate asks for its target less the cost's rounding level (fountain-P11 certified)
-    version = 3
+    # 3: the SDP's start certificate asks for its target less the cost's rounding level (fountain-P11 certified);
+    # 4: the residual model is fitted to the edges on a cycle (a sparse graph's bridges collapsed its scale)
+    version = 4
 
     def __init__(self, folder: Path, spec: MethodSpec, viewgraph: Path, *, label: str | None = None,
                  rotations: Path | None = None, init: Path | None = None,
