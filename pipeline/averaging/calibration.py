@@ -139,12 +139,14 @@ class MixtureEM:
     """
 
     def __init__(self, vg: ViewGraph, R0: np.ndarray, metric: str, P: np.ndarray, rule: StopRule,
-                 solver: BlockLaplacianSolver, nus: tuple[float, ...] = NU_GRID) -> None:
+                 solver: BlockLaplacianSolver, nus: tuple[float, ...] = NU_GRID,
+                 noise: tuple[np.ndarray | None, int] | None = None) -> None:
         self.vg, self.metric, self.P, self.rule, self.solver, self.nus = vg, metric, P, rule, solver, nus
         self.half_logdet = 0.5 * np.linalg.slogdet(P)[1]
         self.R = R0.copy()
         self.q, self.theta = _quadratic(vg, self.R, P)
-        self.fit, self.n_fit = noise_edges(vg.edges, vg.n_cameras)  # bridges say nothing of the noise
+        # bridges say nothing of the noise; ``noise`` is :func:`noise_edges` of vg where the caller has it
+        self.fit, self.n_fit = noise_edges(vg.edges, vg.n_cameras) if noise is None else noise
         self.model = fit_mixture(self.q, self.half_logdet, self.theta, self.n_fit, nus, fit=self.fit)
         self.f_prev, self.iterations, self.converged, self.done = np.inf, 0, False, rule.max_iterations < 1
 
@@ -212,7 +214,8 @@ def race_metrics(vg: ViewGraph, R0: np.ndarray, metrics: dict[str, np.ndarray], 
         ``{"checkpoint", "iterations", "loglik", "behind"}``: where it stopped, the EM iterations it ran (fewer
         where it had converged before), its score and how far behind the leader's (nats per edge).
     """
-    ems = {name: MixtureEM(vg, R0, name, P, rule, solver) for name, P in metrics.items()}
+    noise = noise_edges(vg.edges, vg.n_cameras)  # once for every candidate
+    ems = {name: MixtureEM(vg, R0, name, P, rule, solver, noise=noise) for name, P in metrics.items()}
     dropped: dict[str, dict[str, float]] = {}
     for k, margin in checkpoints:
         alive = [e for name, e in ems.items() if name not in dropped]

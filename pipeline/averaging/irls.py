@@ -66,6 +66,7 @@ from pipeline.averaging.init import initial_rotations
 from pipeline.averaging.kernel import LaplacianSolver, check_graph, graph_residuals
 from pipeline.averaging.l1 import L1StartConfig, l1_averaging
 from pipeline.averaging.losses import Loss, get_loss
+from pipeline.averaging.mixture import noise_edges
 from pipeline.averaging.polish import mixture_polish, residual_angles, reweighted, selection_cost, talwar_polish
 from pipeline.averaging.rescue import rescue_cameras
 from pipeline.averaging.result import AveragingResult, method_config, start_of
@@ -294,9 +295,11 @@ def _mixture(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, cfg: IRLSCon
         trusts["inliers"] = n_in / np.median(n_in)
     fits: dict[str, PolishFit] = {}
     R_iso = R
+    noise = noise_edges(vg.edges, vg.n_cameras)  # the edges the residual model is fitted to, once
     for name, m in trusts.items():  # "iso" first; the trusted polish starts from its answer
         hist: list[dict[str, float]] = []
-        Rt, model, w, gamma, it, ok = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1)
+        Rt, model, w, gamma, it, ok = mixture_polish(vg, R_iso, solver, m, rule, t0, hist, refit=len(trusts) > 1,
+                                                     noise=noise)
         fits[name] = PolishFit(Rt, model, hist, w, gamma, it, ok)
         if name == "iso":
             R_iso = Rt

@@ -96,13 +96,15 @@ def reweighted(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, weight_fn:
 
 def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust: np.ndarray | None, rule: StopRule,
                    t0: float, history: History, stage: str = "refine", nus: tuple[float, ...] = NU_GRID,
-                   refit: bool = True) -> tuple[np.ndarray, MixtureModel, np.ndarray, np.ndarray, int, bool]:
+                   refit: bool = True, noise: tuple[np.ndarray | None, int] | None = None
+                   ) -> tuple[np.ndarray, MixtureModel, np.ndarray, np.ndarray, int, bool]:
     """EM for the t + Haar residual mixture with isotropic per-edge trust ``trust`` (M,) or 1.
 
     The E-step weights ``γ u m / s²`` drive the scalar IRLS step; (s, ε) are re-estimated
     in closed form each iteration (10 inner EM steps, a degrees-of-freedom correction of
     s²); ν is chosen on :data:`~pipeline.averaging.mixture.NU_GRID` at the start and, with
-    ``refit``, again at the end for the likelihood.
+    ``refit``, again at the end for the likelihood. The model is fitted to the edges on a cycle
+    (``noise``: :func:`~pipeline.averaging.mixture.noise_edges` of ``vg``, computed where None).
 
     Returns:
         The rotations; the fitted model at them (``loglik``: mean per-edge log-likelihood,
@@ -110,7 +112,7 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
         would use, of which the rotations are the fixed point; the inlier posteriors (M,);
         the iterations taken and whether the rule was met (False: stopped at its cap).
     """
-    fit, n = noise_edges(vg.edges, vg.n_cameras)  # the bridges' zero residuals say nothing of the noise
+    fit, n = noise_edges(vg.edges, vg.n_cameras) if noise is None else noise  # bridges say nothing of the noise
     m = np.ones(vg.n_edges) if trust is None else np.asarray(trust, dtype=np.float64)
     hl = 1.5 * np.log(m)  # ½ log det(m I)
     th = residual_angles(vg, R)
