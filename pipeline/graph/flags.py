@@ -7,6 +7,10 @@ Pure functions on arrays. A camera is flagged when
   can never be detected), i.e. it lies outside the largest 2-edge-connected block of
   its component; every bridge on the path from its block to that one is named, in
   order (its rotation rests on each of them);
+- its block is that largest one, but more than half of its component's cameras hang off it through one
+  bridge: aligned as a whole (to the truth, to another model), an error δ in that pair moves the block by
+  δ·(far side)/N and the cameras beyond by the rest, so the block takes the larger share of an error nothing
+  can detect;
 - none of its pairs is in a consistent cycle (unconfirmed);
 - one of its pairs is confirmed only loosely: every cycle (or path) that confirms it closes above
   ``confirm_max_deg`` (the checks' tolerance widens with the pairs' overconfidence, κ, up to
@@ -175,6 +179,27 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
     return core[block], path[block], count[block]
 
 
+def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, cams: np.ndarray, comp: np.ndarray,
+                size: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """The core cameras that lie on the smaller side of a bridge (module docstring), and why.
+
+    Without the core's cameras, each part of a component that hung off the core through one bridge is a
+    connected piece of its own (blocks and bridges form a tree): the core is the smaller side of a bridge
+    when the largest such piece holds more than half of the component's cameras."""
+    comp_size = np.bincount(comp[cams], minlength=n)
+    rest = kept & ~core[edges[:, 0]] & ~core[edges[:, 1]]
+    piece = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)[1]
+    piece_size = np.bincount(piece[cams & ~core], minlength=n)
+    far = np.zeros(n, np.int64)  # per component: its largest piece hanging off the core
+    hang = np.flatnonzero(cams & ~core)
+    np.maximum.at(far, comp[hang], piece_size[piece[hang]])
+    ks = np.flatnonzero(core & (2 * far[comp] > comp_size[comp]))
+    return ks, [f"{far[comp[k]]} of the {comp_size[comp[k]]} cameras of its component hang off its block (the "
+                f"largest that cycles join, {size[k]} cameras) through one bridge: aligned as a whole, an error in "
+                "that pair moves this block more than the cameras beyond it, and nothing can detect it"
+                for k in ks]
+
+
 def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> str:
     """Why a camera is flagged whose block hangs off the core through ``count`` bridges in series (``path``: the
     first of them, from its block on)."""
@@ -276,6 +301,8 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
+    comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)[1]
+    add(*_minor_core(edges, n, kept, cams & in_core, cams, comp, size))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
@@ -289,7 +316,7 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     disputed = np.flatnonzero(cams & (rej > 0))
     add(disputed, [f"{rej[k]} of its {rej[k] + deg[k]} pairs disagree with the others and were rejected"
                    for k in disputed])
-    n_comp = len(np.unique(connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)[1][cams]))
+    n_comp = len(np.unique(comp[cams]))
     n_cycles = int(kept.sum()) - int(cams.sum()) + n_comp
     messages = [NO_CYCLE] if n_cycles == 0 else []
     if n_cycles and cycles_checked and not (kept & confirmed).any():
