@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import gammaln
 
+from pipeline.graph.flags import bridges, two_edge_blocks
+
 __all__ = ["NU_GRID", "EPS_MAX", "log_haar", "mixture_terms", "fit_mixture", "MixtureModel", "em_update", "dof_factor",
            "noise_edges"]
 
@@ -105,8 +107,6 @@ def noise_edges(edges: np.ndarray, n: int) -> tuple[np.ndarray | None, int]:
         (M,) bool of the non-bridge edges, or None where every edge counts (no bridge, or no cycle at all),
         and the ``n_cameras`` to pass with them (``N − B`` where the graph is connected).
     """
-    from pipeline.graph.flags import bridges, two_edge_blocks  # the graph package's bridge finder
-
     edges = np.asarray(edges, np.int64).reshape(-1, 2)
     br = bridges(edges, n)
     if not br.any() or br.all():

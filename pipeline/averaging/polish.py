@@ -129,9 +129,8 @@ def mixture_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, trust:
     last = state["model"]
     if not refit:
         return R, last, w_final, last.gamma, it, ok
-    return (R, fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3), fit=fit), w_final,
-            last.gamma,
-            it, ok)
+    model = fit_mixture(m * th * th, hl, th, n, nus, s0=last.s, eps0=max(last.eps, 1e-3), fit=fit)
+    return R, model, w_final, last.gamma, it, ok
 
 
 def talwar_polish(vg: ViewGraph, R: np.ndarray, solver: LaplacianSolver, min_deg: float, rule: StopRule, t0: float,
