@@ -180,24 +180,32 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
 
 
 def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, cams: np.ndarray, comp: np.ndarray,
-                size: np.ndarray) -> tuple[np.ndarray, list[str]]:
-    """The core cameras that lie on the smaller side of a bridge (module docstring), and why.
+                size: np.ndarray, pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
+    """The core cameras that lie on the smaller side of a bridge (module docstring), and why, naming the bridge.
 
     Without the core's cameras, each part of a component that hung off the core through one bridge is a
     connected piece of its own (blocks and bridges form a tree): the core is the smaller side of a bridge
-    when the largest such piece holds more than half of the component's cameras."""
+    when the largest such piece holds more than half of the component's cameras. A kept pair with one camera
+    in the core and one outside is a bridge (the core is 2-edge-connected): the one into the largest piece is
+    named."""
     comp_size = np.bincount(comp[cams], minlength=n)
     rest = kept & ~core[edges[:, 0]] & ~core[edges[:, 1]]
     piece = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)[1]
     piece_size = np.bincount(piece[cams & ~core], minlength=n)
-    far = np.zeros(n, np.int64)  # per component: its largest piece hanging off the core
-    hang = np.flatnonzero(cams & ~core)
-    np.maximum.at(far, comp[hang], piece_size[piece[hang]])
+    out = np.flatnonzero(kept & (core[edges[:, 0]] != core[edges[:, 1]]))  # the bridges leaving a core
+    beyond = np.where(core[edges[out, 0]], edges[out, 1], edges[out, 0])
+    far = np.zeros(n, np.int64)  # per component: its largest piece hanging off the core, and its bridge
+    via = np.full(n, -1)
+    order = np.lexsort((out, -piece_size[piece[beyond]]))  # largest piece first, then the lowest edge
+    c = comp[beyond[order]]
+    first = np.unique(c, return_index=True)[1]
+    far[c[first]] = piece_size[piece[beyond[order[first]]]]
+    via[c[first]] = out[order[first]]
     ks = np.flatnonzero(core & (2 * far[comp] > comp_size[comp]))
     return ks, [f"{far[comp[k]]} of the {comp_size[comp[k]]} cameras of its component hang off its block (the "
-                f"largest that cycles join, {size[k]} cameras) through one bridge: aligned as a whole, an error in "
-                "that pair moves this block more than the cameras beyond it, and nothing can detect it"
-                for k in ks]
+                f"largest that cycles join, {size[k]} cameras) through the bridge pair {pair(via[comp[k]])}: "
+                "aligned as a whole, an error in that pair moves this block more than the cameras beyond it, and "
+                "nothing can detect it" for k in ks]
 
 
 def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> str:
@@ -302,7 +310,7 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
     comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)[1]
-    add(*_minor_core(edges, n, kept, cams & in_core, cams, comp, size))
+    add(*_minor_core(edges, n, kept, cams & in_core, cams, comp, size, pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])

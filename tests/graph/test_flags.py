@@ -58,8 +58,9 @@ def test_bridges_in_series_are_all_named():
     # of the whole, more than the cameras beyond (test_a_core_on_the_smaller_side_of_a_bridge_takes_most_of_its_error)
     for k in (0, 1, 2):
         assert fl.cameras[k] == ["4 of the 7 cameras of its component hang off its block (the largest that cycles "
-                                 "join, 3 cameras) through one bridge: aligned as a whole, an error in that pair moves "
-                                 "this block more than the cameras beyond it, and nothing can detect it"]
+                                 "join, 3 cameras) through the bridge pair (c2, c3): aligned as a whole, an error in "
+                                 "that pair moves this block more than the cameras beyond it, and nothing can detect "
+                                 "it"]
     # a tail of five bridges: three are named, and how many more
     E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7]])
     fl = graph_flags(E, 8, np.ones(8, bool), np.array([1, 1, 1, 0, 0, 0, 0, 0], bool), np.zeros(8, bool), NAMES)
@@ -103,8 +104,20 @@ def test_a_core_on_the_smaller_side_of_a_bridge_takes_most_of_its_error():
     assert core_flagged([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [0, 5], [5, 6]], 7) == set()
     # one tail of 4 beyond a triangle and a pendant elsewhere: 4 of 8 is not more than half
     assert core_flagged([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [0, 7]], 8) == set()
-    # a tail of 5 beyond it (5 of 9): flagged, and only the core's cameras carry that reason
-    assert core_flagged([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7], [0, 8]], 9) == {0, 1, 2}
+    # a tail of 5 beyond it (5 of 9): flagged, and only the core's cameras carry that reason, naming the tail's bridge
+    # (not the pendant's)
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7], [0, 8]])
+    assert core_flagged(E, 9) == {0, 1, 2}
+    fl = graph_flags(E, 9, np.ones(len(E), bool), ~bridges(E, 9), np.zeros(len(E), bool), NAMES)
+    assert "5 of the 9 cameras of its component hang off its block (the largest that cycles join, 3 cameras) " \
+           "through the bridge pair (c2, c3)" in fl.cameras[0][0]
+    # two components at once: each core judged on its own (the second, 0-8 above shifted by 9, flagged; the first a
+    # square of 4 with 3 beyond, not)
+    E2 = np.r_[[[0, 1], [1, 2], [2, 3], [0, 3], [3, 4], [4, 5], [5, 6]], E + 9]
+    names = [f"c{k}" for k in range(18)]
+    fl = graph_flags(E2, 18, np.ones(len(E2), bool), ~bridges(E2, 18), np.zeros(len(E2), bool), names)
+    flagged = {k for k, ws in fl.cameras.items() if any("hang off its block" in w for w in ws)}
+    assert flagged == {9, 10, 11} and "through the bridge pair (c11, c12)" in fl.cameras[9][0]
 
 
 def test_rejected_pairs_and_the_cameras_considered():
