@@ -115,6 +115,13 @@ def noise_edges(edges: np.ndarray, n: int) -> tuple[np.ndarray | None, int]:
     return ~br, n - blocks + 1
 
 
+def _check_fit(fit: np.ndarray) -> None:
+    """A ``fit`` mask must select an edge: a model fitted to none would be NaN (:func:`noise_edges` returns None
+    rather than an empty mask)."""
+    if not np.any(fit):
+        raise ValueError("fit selects no edge: pass fit=None to fit every edge")
+
+
 def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cameras: int | None = None,
                 nus: tuple[float, ...] = NU_GRID, iterations: int = 25,
                 s0: float | None = None, eps0: float = 0.1, eps_max: float = EPS_MAX,
@@ -133,6 +140,7 @@ def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cam
             their mean, ``gamma`` every edge's posterior under the fitted model.
     """
     if fit is not None:
+        _check_fit(fit)
         q, half_logdet, theta = (np.asarray(a, dtype=np.float64) for a in (q, half_logdet, theta))
         sub = fit_mixture(q[fit], half_logdet[fit], theta[fit], n_cameras, nus, iterations, s0, eps0, eps_max,
                           max_grid_edges)
@@ -199,6 +207,8 @@ def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: 
         the IRLS weights ``γ u / s²`` (M,) of the rotation M-step (a weighted least squares in the
         metric P), and the updated model.
     """
+    if fit is not None:
+        _check_fit(fit)
     q_all = np.asarray(q, dtype=np.float64)
     hl_all = np.asarray(half_logdet, dtype=np.float64)
     lh_all = log_haar(np.asarray(theta, dtype=np.float64))  # once, for the inner EM and the step's weights

@@ -201,7 +201,8 @@ def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, c
     first = np.unique(c, return_index=True)[1]
     far[c[first]] = piece_size[piece[beyond[order[first]]]]
     via[c[first]] = out[order[first]]
-    ks = np.flatnonzero(core & (2 * far[comp] > comp_size[comp]))
+    # a block of one camera (a tree's lowest label) is not joined by cycles: nothing to judge
+    ks = np.flatnonzero(core & (size > 1) & (2 * far[comp] > comp_size[comp]))
     return ks, [f"{far[comp[k]]} of the {comp_size[comp[k]]} cameras of its component hang off its block (the "
                 f"largest that cycles join, {size[k]} cameras) through the bridge pair {pair(via[comp[k]])}: "
                 "aligned as a whole, an error in that pair moves this block more than the cameras beyond it, and "

@@ -111,8 +111,9 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     config_cls = ViewGraphConfig
     # 4: pairs[].tracks; 5: the other components (OUT/component-k/); 6: loosely confirmed cameras; 7: bridges in
     # series; 8: a removed edge's cycles leave the counts once each (a walk through a pair measured twice); 9: a core
-    # that more than half its component's cameras hang off through one bridge is flagged; 10: that bridge is named
-    version = 10
+    # that more than half its component's cameras hang off through one bridge is flagged; 10: that bridge is named;
+    # 11: not a tree's one-camera 'core'
+    version = 11
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)

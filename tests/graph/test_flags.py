@@ -175,3 +175,39 @@ def test_a_scene_whose_cycles_close_wider_than_its_pairs_claim_says_so():
     assert msg.startswith("the pairs' short cycles close 4.0× wider than their two-view precisions (H) claim, beyond "
                           "the 3× the checks assume") and "(to at most 10°)" in msg
     assert overconfidence_message(16.0, ViewGraphConfig(h_inflation=4.5)) == []
+
+
+TAIL = [[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6]]  # a triangle and a tail of 4: 4 of 7
+
+
+def _minor(E, n, cameras=None):
+    E = np.asarray(E)
+    fl = graph_flags(E, n, np.ones(len(E), bool), ~bridges(E, n), np.zeros(len(E), bool), NAMES, cameras=cameras)
+    return {k: w for k, ws in fl.cameras.items() for w in ws if "hang off its block" in w}
+
+
+def test_the_named_bridge_is_the_one_into_the_largest_piece_not_the_first_listed():
+    E = [[0, 8], [0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [6, 7]]  # the pendant's pair listed first
+    flagged = _minor(E, 9)
+    assert set(flagged) == {0, 1, 2} and "through the bridge pair (c2, c3)" in flagged[0]
+
+
+def test_the_cameras_considered_decide_the_sides_of_a_bridge():
+    assert set(_minor(TAIL, 7)) == {0, 1, 2}
+    assert _minor(TAIL, 7, cameras=np.array([1, 1, 1, 1, 1, 1, 0], bool)) == {}  # 3 of 6: not more than half
+    # a tail of 5 (5 of 8) cut at its first camera: the triangle is a component of its own, nothing hangs off it
+    long_tail = TAIL + [[6, 7]]
+    assert set(_minor(long_tail, 8)) == {0, 1, 2}
+    assert not set(_minor(long_tail, 8, cameras=np.array([1, 1, 1, 0, 1, 1, 1, 1], bool))) & {0, 1, 2}
+    # a triangle 0-1-7 and a 5-cycle 0-1-4-3-2 through its pair (0, 1), c6 off 4, c5 off 2: without c3 the
+    # two halves of the 5-cycle (2, 5 and 4, 6) hang off the triangle apart, 2 of 7 each
+    E = [[0, 1], [0, 2], [0, 7], [1, 4], [1, 7], [2, 3], [2, 5], [3, 4], [4, 6]]
+    assert _minor(E, 8, cameras=np.array([1, 1, 1, 0, 1, 1, 1, 1], bool)) == {}
+
+
+def test_a_forest_has_no_core_to_flag():
+    """A tree's 'core' is an arbitrary single camera (the lowest label): no block is joined by cycles."""
+    for E in ([[0, 1], [1, 2], [2, 3]], [[0, 1], [1, 2], [1, 3]], [[0, 3], [1, 3], [2, 3]]):
+        assert _minor(E, 4) == {}, E
+    # the tail cut off by the cameras considered is a tree of its own
+    assert _minor(TAIL, 7, cameras=np.array([1, 1, 1, 0, 1, 1, 1], bool)) == {}
