@@ -144,10 +144,10 @@ class GraphFlags:
 
 
 def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.ndarray, block: np.ndarray,
-                          shown: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                          shown: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per camera: whether its block is its component's largest (the core), the bridges on the path from its block
     to the core in order, the one leaving its block first ((N, ``shown``) edge indices, -1 past the path's end),
-    and how many bridges that path has."""
+    how many bridges that path has, and its component's label (of the kept edges)."""
     n_blocks = int(block.max()) + 1
     size = np.bincount(block, minlength=n_blocks)
     _, comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)
@@ -176,22 +176,22 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
     for k in range(shown):  # one block towards the core per step, every block at once
         path[:, k] = np.where(at >= 0, towards[np.maximum(at, 0)], -1)
         at = np.where(at >= 0, parent[np.maximum(at, 0)], -1)
-    return core[block], path[block], count[block]
+    return core[block], path[block], count[block], comp
 
 
-def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, cams: np.ndarray, comp: np.ndarray,
-                size: np.ndarray, pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
+def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, comp: np.ndarray, size: np.ndarray,
+                pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
     """The core cameras that lie on the smaller side of a bridge (module docstring), and why, naming the bridge.
 
     Without the core's cameras, each part of a component that hung off the core through one bridge is a
     connected piece of its own (blocks and bridges form a tree): the core is the smaller side of a bridge
     when the largest such piece holds more than half of the component's cameras. A kept pair with one camera
     in the core and one outside is a bridge (the core is 2-edge-connected): the one into the largest piece is
-    named."""
-    comp_size = np.bincount(comp[cams], minlength=n)
+    named. ``kept`` holds the considered cameras' pairs only, so every other camera is a component of its own."""
+    comp_size = np.bincount(comp, minlength=n)
     rest = kept & ~core[edges[:, 0]] & ~core[edges[:, 1]]
     piece = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)[1]
-    piece_size = np.bincount(piece[cams & ~core], minlength=n)
+    piece_size = np.bincount(piece[~core], minlength=n)
     out = np.flatnonzero(kept & (core[edges[:, 0]] != core[edges[:, 1]]))  # the bridges leaving a core
     beyond = np.where(core[edges[out, 0]], edges[out, 1], edges[out, 0])
     far = np.zeros(n, np.int64)  # per component: its largest piece hanging off the core, and its bridge
@@ -305,13 +305,12 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     add(inc_c[one], [f"rests on a single pair {pair(e)}: nothing checks it" for e in inc_e[one]])
     br = bridges(edges, n, kept)
     block = two_edge_blocks(edges, n, kept, br)
-    in_core, path, n_path = _bridges_towards_core(edges, n, kept, br, block)
+    in_core, path, n_path, comp = _bridges_towards_core(edges, n, kept, br, block)
     size = np.bincount(block, minlength=int(block.max()) + 1)[block]
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
-    comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)[1]
-    add(*_minor_core(edges, n, kept, cams & in_core, cams, comp, size, pair))
+    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
