@@ -10,7 +10,8 @@ Pure functions on arrays. A camera is flagged when
 - its block is that largest one, but more than half of its component's cameras hang off it through one
   bridge: aligned as a whole (to the truth, to another model), an error δ in that pair moves the block by
   δ·(far side)/N and the cameras beyond by the rest, so the block takes the larger share of an error nothing
-  can detect;
+  can detect; or it is one of several equally large blocks (which of them is the reference the others hang
+  off is then arbitrary: each is flagged, whatever the cameras' labels);
 - none of its pairs is in a consistent cycle (unconfirmed);
 - one of its pairs is confirmed only loosely: every cycle (or path) that confirms it closes above
   ``confirm_max_deg`` (the checks' tolerance widens with the pairs' overconfidence, κ, up to
@@ -180,8 +181,9 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
 
 
 def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, comp: np.ndarray, size: np.ndarray,
-                pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
-    """The core cameras that lie on the smaller side of a bridge (module docstring), and why, naming the bridge.
+                tied: np.ndarray, pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
+    """The core cameras that lie on the smaller side of a bridge (module docstring), or whose block is one of
+    ``tied`` (per camera) equally large ones, and why, naming the bridge.
 
     Without the core's cameras, each part of a component that hung off the core through one bridge is a
     connected piece of its own (blocks and bridges form a tree): the core is the smaller side of a bridge
@@ -202,11 +204,29 @@ def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, c
     far[c[first]] = piece_size[piece[beyond[order[first]]]]
     via[c[first]] = out[order[first]]
     # a block of one camera (a tree's lowest label) is not joined by cycles: nothing to judge
-    ks = np.flatnonzero(core & (size > 1) & (2 * far[comp] > comp_size[comp]))
+    minor = core & (size > 1) & (2 * far[comp] > comp_size[comp])
+    ks = np.flatnonzero(minor | (core & (size > 1) & (tied > 1) & (via[comp] >= 0)))
     return ks, [f"{far[comp[k]]} of the {comp_size[comp[k]]} cameras of its component hang off its block (the "
                 f"largest that cycles join, {size[k]} cameras) through the bridge pair {pair(via[comp[k]])}: "
                 "aligned as a whole, an error in that pair moves this block more than the cameras beyond it, and "
-                "nothing can detect it" for k in ks]
+                "nothing can detect it" if minor[k] else
+                f"its block is one of {tied[k]} equally large ones that cycles join in its component ({size[k]} "
+                f"cameras each), joined only through bridges (from this one, {pair(via[comp[k]])}): no block is "
+                "the reference the others hang off, and an error in such a pair moves this block and cannot be "
+                "detected" for k in ks]
+
+
+def _tied_cores(block: np.ndarray, comp: np.ndarray) -> np.ndarray:
+    """Per camera: how many blocks of its component are as large as its largest one (1: a single core). Which of
+    several is taken for the core is the lowest label, so each is flagged (:func:`_minor_core`), whatever the
+    labelling."""
+    size = np.bincount(block)
+    comp_of_block = np.zeros(len(size), np.int64)
+    comp_of_block[block] = comp
+    top = np.zeros(len(comp), np.int64)
+    np.maximum.at(top, comp_of_block, size)
+    n_top = np.bincount(comp_of_block[size == top[comp_of_block]], minlength=len(comp))
+    return n_top[comp]
 
 
 def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> str:
@@ -221,17 +241,24 @@ def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> 
 
 
 def _flag_bridged(edges: np.ndarray, n: int, kept: np.ndarray, bridged: np.ndarray, cams: np.ndarray,
-                  pair: Callable[[int], str], add: Callable[[np.ndarray, list[str]], None]) -> None:
-    """Flag the cameras outside the largest part that the kept edges without ``bridged`` leave, naming the bridged
-    pairs that join their part (a few bridged edges: one loop over them)."""
+                  comp: np.ndarray, pair: Callable[[int], str], add: Callable[[np.ndarray, list[str]], None]) -> None:
+    """Flag the cameras outside the largest part of their component (``comp``) that the kept edges without
+    ``bridged`` leave, naming the bridged pairs that join their part (a few bridged edges: one loop over them).
+    Where several parts of a component are the largest, none is the reference: each is flagged."""
     rest = kept & ~bridged
     _, part = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)
-    main = np.bincount(part[cams]).argmax()
+    size = np.bincount(part[cams], minlength=n)
+    comp_of_part = np.zeros(n, np.int64)
+    comp_of_part[part[cams]] = comp[cams]
+    top = np.zeros(n, np.int64)
+    np.maximum.at(top, comp_of_part, size)
+    n_top = np.bincount(comp_of_part[(size > 0) & (size == top[comp_of_part])], minlength=n)
+    main = (size == top[comp_of_part]) & (n_top[comp_of_part] == 1)  # per part: its component's one largest
     via: dict[int, list[int]] = {}
     for e in np.flatnonzero(bridged):
         for p in {int(part[edges[e, 0]]), int(part[edges[e, 1]])}:
             via.setdefault(p, []).append(int(e))
-    out = np.flatnonzero(cams & (part != main))
+    out = np.flatnonzero(cams & ~main[part])
     add(out, [_bridged_reason(via.get(int(part[k]), []), pair) for k in out])
 
 
@@ -310,7 +337,7 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
-    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, pair))
+    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, _tied_cores(block, comp), pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
@@ -319,7 +346,7 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
         add(*_loose_reasons(edges, np.flatnonzero(kept & confirmed & (cd > confirm_max_deg)), cd, cams, pair,
                             confirm_max_deg))
     if bridged is not None and (kept & bridged).any():
-        _flag_bridged(edges, n, kept, kept & np.asarray(bridged, bool), cams, pair, add)
+        _flag_bridged(edges, n, kept, kept & np.asarray(bridged, bool), cams, comp, pair, add)
     rej = np.bincount(edges[np.asarray(inconsistent, bool)].ravel(), minlength=n)
     disputed = np.flatnonzero(cams & (rej > 0))
     add(disputed, [f"{rej[k]} of its {rej[k] + deg[k]} pairs disagree with the others and were rejected"

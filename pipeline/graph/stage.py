@@ -113,7 +113,7 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     # series; 8: a removed edge's cycles leave the counts once each (a walk through a pair measured twice); 9: a core
     # that more than half its component's cameras hang off through one bridge is flagged; 10: that bridge is named;
     # 11: not a tree's one-camera 'core'
-    version = 11
+    version = 12
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
         super().__init__(out, config)

@@ -211,3 +211,85 @@ def test_a_forest_has_no_core_to_flag():
         assert _minor(E, 4) == {}, E
     # the tail cut off by the cameras considered is a tree of its own
     assert _minor(TAIL, 7, cameras=np.array([1, 1, 1, 0, 1, 1, 1], bool)) == {}
+
+
+def _blocks_joined_by_bridges(sizes, rng):
+    """Cycles of the given sizes (1: a lone camera) joined into a tree by one random bridge each; the edges and the
+    bridges' indices."""
+    E, first = [], []
+    for s in sizes:
+        c0 = first[-1] + sizes[len(first) - 1] if first else 0
+        first.append(c0)
+        E += [[c0 + k, c0 + (k + 1) % s] for k in range(s)] if s > 2 else []
+    bridge_at = []
+    for b in range(1, len(sizes)):
+        a = int(rng.integers(b))
+        bridge_at.append(len(E))
+        E.append([first[a] + int(rng.integers(sizes[a])), first[b] + int(rng.integers(sizes[b]))])
+    return np.array(E), np.array(bridge_at, np.int64), first[-1] + sizes[-1]
+
+
+def _flagged_names(E, n, bridged=None, perm=None, order=None):
+    perm = np.arange(n) if perm is None else perm
+    order = np.arange(len(E)) if order is None else order
+    names = [""] * n
+    for k in range(n):
+        names[perm[k]] = f"c{k}"
+    Ep = np.sort(perm[E], axis=1)[order]
+    kept = np.ones(len(E), bool)
+    fl = graph_flags(Ep, n, kept, ~bridges(Ep, n), np.zeros(len(E), bool), names,
+                     bridged=None if bridged is None else bridged[order])
+    return {names[k] for k in fl.cameras}
+
+
+def test_which_cameras_are_flagged_does_not_depend_on_their_labels():
+    """Which of equally large blocks was the core (the reference the others hang off, unflagged) went by the lowest
+    label, so relabelling the cameras of one graph flagged different ones: every such block is flagged now."""
+    # two triangles joined by a bridge: each takes half of its error, whichever is listed first
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [3, 5]])
+    assert _flagged_names(E, 6) == {f"c{k}" for k in range(6)}
+    fl = graph_flags(E, 6, np.ones(7, bool), ~bridges(E, 6), np.zeros(7, bool), NAMES)
+    assert fl.cameras[0] == ["its block is one of 2 equally large ones that cycles join in its component (3 cameras "
+                             "each), joined only through bridges (from this one, (c2, c3)): no block is the reference "
+                             "the others hang off, and an error in such a pair moves this block and cannot be "
+                             "detected"]
+    # a 4-cycle and a triangle: the 4-cycle is the reference, whatever the labels
+    E4 = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [5, 6], [3, 6]])
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        assert _flagged_names(E4, 7, perm=rng.permutation(7)) == {"c0", "c1", "c2"}
+    # random trees of cycles, with ties, relabelled and their pairs listed in another order
+    n_tied = 0
+    for seed in range(60):
+        rng = np.random.default_rng(seed)
+        sizes = rng.choice([1, 3, 3, 4, 5], size=int(rng.integers(2, 7)))
+        E, at, n = _blocks_joined_by_bridges(list(sizes), rng)
+        bridged = np.zeros(len(E), bool)
+        bridged[at[rng.random(len(at)) < 0.3]] = True
+        want = _flagged_names(E, n, bridged)
+        n_tied += int(np.sum(sizes == sizes.max()) > 1 and sizes.max() > 1)
+        for _ in range(3):
+            got = _flagged_names(E, n, bridged, rng.permutation(n), rng.permutation(len(E)))
+            assert got == want, (seed, sizes.tolist())
+    assert n_tied >= 15
+
+
+def test_pairs_kept_to_join_a_part_are_judged_in_their_own_component():
+    """The largest part left without the bridged pairs was taken over the whole graph, so a second component with no
+    such pair was flagged whole, 'joined to the rest only through 0 pair(s)'."""
+    # component 1: a triangle, a bridged pair, a bow tie of five; component 2: a triangle off a 5-camera block
+    E = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [3, 5], [5, 14], [14, 15], [5, 15],
+                  [6, 7], [7, 8], [6, 8], [8, 9], [9, 10], [10, 11], [9, 11], [11, 12], [12, 13], [9, 13]])
+    bridged = np.zeros(len(E), bool)
+    bridged[3] = True
+    names = [f"c{k}" for k in range(16)]
+    fl = graph_flags(E, 16, np.ones(len(E), bool), ~bridges(E, 16), np.zeros(len(E), bool), names, bridged=bridged)
+    assert set(fl.cameras) == {0, 1, 2, 6, 7, 8}
+    assert all(any("kept so that its part of the graph is not lost: (c2, c3)" in w for w in fl.cameras[k])
+               for k in (0, 1, 2))
+    # two equal parts joined by a bridged pair: neither is the reference
+    E2 = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [3, 5]])
+    b2 = np.zeros(7, bool)
+    b2[3] = True
+    fl = graph_flags(E2, 6, np.ones(7, bool), ~bridges(E2, 6), np.zeros(7, bool), NAMES, bridged=b2)
+    assert all(any("kept so that its part" in w for w in fl.cameras[k]) for k in range(6))
