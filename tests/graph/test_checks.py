@@ -115,9 +115,18 @@ def test_a_pan_that_alone_joins_two_blocks_is_kept_and_flagged():
     assert chk.kept[:-2].all() and not chk.bridged[:-2].any() and chk.info["bridged"] == 2
     fl = graph_flags(vg.edges, 21, chk.kept, chk.confirmed, chk.inconsistent, vg.names, bridged=chk.bridged)
     joined = {k for k, w in fl.cameras.items() if any("no cycle confirms" in x for x in w)}
-    assert joined == set(range(10, 21))  # the first block is the main part; the second hangs on the pan
+    # two blocks of 10: neither is the main part (the lower labels were, until the flags stopped depending on them)
+    assert joined == set(range(21))
     assert "(c09, c20)" in next(x for x in fl.cameras[20] if "no cycle confirms" in x)
     assert "(c10, c20)" in next(x for x in fl.cameras[15] if "no cycle confirms" in x)
+    assert "(c09, c20)" in next(x for x in fl.cameras[5] if "no cycle confirms" in x)
+    # a larger first block is the main part: the second hangs on the pan
+    big = _blocks_joined_by_pans()
+    keep = ~np.isin(big.edges, [18, 19]).any(axis=1)  # cameras 18 and 19 leave the second block
+    chk = check_view_graph(big)
+    fl = graph_flags(big.edges, 21, chk.kept & keep, chk.confirmed, chk.inconsistent, big.names,
+                     bridged=chk.bridged)
+    assert {k for k, w in fl.cameras.items() if any("no cycle confirms" in x for x in w)} == set(range(10, 18)) | {20}
     # dropped when keep_bridges is off, or when the pair is weak (it could be anything)
     assert not check_view_graph(vg, ViewGraphConfig(keep_bridges=False)).kept[-2:].any()
     vg.stats["n_inliers_E"][-1], vg.stats["n_matches"][-1] = 20, 30
