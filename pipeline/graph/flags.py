@@ -183,7 +183,7 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
 def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, comp: np.ndarray, size: np.ndarray,
                 tied: np.ndarray, pair: Callable[[int], str]) -> tuple[np.ndarray, list[str]]:
     """The core cameras that lie on the smaller side of a bridge (module docstring), or whose block is one of
-    ``tied`` (per camera) equally large ones, and why, naming the bridge.
+    ``tied`` (per camera) equally large ones (:func:`_ties_of_largest`), and why, naming the bridge.
 
     Without the core's cameras, each part of a component that hung off the core through one bridge is a
     connected piece of its own (blocks and bridges form a tree): the core is the smaller side of a bridge
@@ -216,17 +216,18 @@ def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, c
                 "detected" for k in ks]
 
 
-def _tied_cores(block: np.ndarray, comp: np.ndarray) -> np.ndarray:
-    """Per camera: how many blocks of its component are as large as its largest one (1: a single core). Which of
-    several is taken for the core is the lowest label, so each is flagged (:func:`_minor_core`), whatever the
-    labelling."""
-    size = np.bincount(block)
-    comp_of_block = np.zeros(len(size), np.int64)
-    comp_of_block[block] = comp
-    top = np.zeros(len(comp), np.int64)
-    np.maximum.at(top, comp_of_block, size)
-    n_top = np.bincount(comp_of_block[size == top[comp_of_block]], minlength=len(comp))
-    return n_top[comp]
+def _ties_of_largest(piece: np.ndarray, group: np.ndarray, cams: np.ndarray) -> np.ndarray:
+    """Per piece label (``piece``: each camera's; ``group``: each camera's component; pieces sized by the cameras
+    ``cams``): how many pieces of its component are as large as its largest one if it is one of them (1: the one
+    largest), else 0. Which of several is taken for the reference is arbitrary, so each is flagged."""
+    n = len(piece)
+    size = np.bincount(piece[cams], minlength=n)
+    group_of = np.zeros(n, np.int64)
+    group_of[piece[cams]] = group[cams]
+    top = np.zeros(n, np.int64)
+    np.maximum.at(top, group_of, size)
+    largest = (size > 0) & (size == top[group_of])
+    return np.where(largest, np.bincount(group_of[largest], minlength=n)[group_of], 0)
 
 
 def _bridge_reason(path: np.ndarray, count: int, pair: Callable[[int], str]) -> str:
@@ -247,13 +248,7 @@ def _flag_bridged(edges: np.ndarray, n: int, kept: np.ndarray, bridged: np.ndarr
     Where several parts of a component are the largest, none is the reference: each is flagged."""
     rest = kept & ~bridged
     _, part = connected_components(_graph(edges[rest, 0], edges[rest, 1], n), directed=False)
-    size = np.bincount(part[cams], minlength=n)
-    comp_of_part = np.zeros(n, np.int64)
-    comp_of_part[part[cams]] = comp[cams]
-    top = np.zeros(n, np.int64)
-    np.maximum.at(top, comp_of_part, size)
-    n_top = np.bincount(comp_of_part[(size > 0) & (size == top[comp_of_part])], minlength=n)
-    main = (size == top[comp_of_part]) & (n_top[comp_of_part] == 1)  # per part: its component's one largest
+    main = _ties_of_largest(part, comp, cams) == 1  # per part: its component's one largest
     via: dict[int, list[int]] = {}
     for e in np.flatnonzero(bridged):
         for p in {int(part[edges[e, 0]]), int(part[edges[e, 1]])}:
@@ -337,7 +332,8 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
-    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, _tied_cores(block, comp), pair))
+    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, _ties_of_largest(block, comp, np.ones(n, bool))[block],
+                    pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])
