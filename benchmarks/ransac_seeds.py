@@ -12,7 +12,8 @@ colmap-ra on median and on mean).
     python benchmarks/ransac_seeds.py [--scenes temple fountain castle] [--seeds 0 1 2 3 4 5 6 7] [--keep DIR]
 
 → ``benchmarks/results/ransac_seeds.json``. Seed 0 is the default, whose run the README's rows come from.
-A run folder under ``--keep`` whose config is the same is read, not run again.
+A run folder under ``--keep`` whose config is the same is read, not run again, whatever code made it: empty the
+folder after a change of the code.
 """
 
 from __future__ import annotations
@@ -107,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
             if not (a.data / SCENES[scene][0]).is_dir():
                 print(f"skipping {scene}: {a.data / SCENES[scene][0]} not found")
                 continue
-            print(f"{scene}: seed  pairs  flagged  " + "  ".join(f"{m:>19s}" for m in METHODS) + "   (median / mean, deg)")
+            head = "  ".join(f"{m:>19s}" for m in METHODS)
+            print(f"{scene}: seed  pairs  flagged  {head}   (median / mean, deg)")
             mine = []
             for seed in a.seeds:
                 r = run_seed(scene, seed, a.data, root)

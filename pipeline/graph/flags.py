@@ -217,9 +217,9 @@ def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, c
 
 
 def _ties_of_largest(piece: np.ndarray, group: np.ndarray, cams: np.ndarray) -> np.ndarray:
-    """Per piece label (``piece``: each camera's; ``group``: each camera's component; pieces sized by the cameras
-    ``cams``): how many pieces of its component are as large as its largest one if it is one of them (1: the one
-    largest), else 0. Which of several is taken for the reference is arbitrary, so each is flagged."""
+    """Per piece label: if the piece is one of the largest of its component, how many pieces of that component are
+    that large (1: it alone), else 0. ``piece``, ``group``: each camera's piece and component; a piece's size counts
+    the cameras ``cams``. Which of several largest pieces is the reference is arbitrary, so each is flagged."""
     n = len(piece)
     size = np.bincount(piece[cams], minlength=n)
     group_of = np.zeros(n, np.int64)
@@ -332,8 +332,8 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
-    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, _ties_of_largest(block, comp, np.ones(n, bool))[block],
-                    pair))
+    tied = _ties_of_largest(block, comp, np.ones(n, bool))[block]
+    add(*_minor_core(edges, n, kept, cams & in_core, comp, size, tied, pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
     add(unconf, [f"none of its {deg[k]} pairs is in a consistent cycle: unconfirmed" for k in unconf])

@@ -112,7 +112,8 @@ class ViewGraphStage(Stage[ViewGraphConfig]):
     # 4: pairs[].tracks; 5: the other components (OUT/component-k/); 6: loosely confirmed cameras; 7: bridges in
     # series; 8: a removed edge's cycles leave the counts once each (a walk through a pair measured twice); 9: a core
     # that more than half its component's cameras hang off through one bridge is flagged; 10: that bridge is named;
-    # 11: not a tree's one-camera 'core'
+    # 11: not a tree's one-camera 'core'; 12: each of several equally large blocks (or parts joined by bridged pairs) is
+    # flagged, whatever the labels, and the bridged pairs are judged per component
     version = 12
 
     def __init__(self, out: Path, config: ViewGraphConfig | None = None, *, work: Path) -> None:
