@@ -30,11 +30,9 @@ from pathlib import Path
 from statistics import median
 
 import yaml
+from refine import SCENES  # the scenes' images, truth and K (benchmarks/, the script's folder, is on sys.path)
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pipeline.core.atomic import write_json  # noqa: E402
-from refine import SCENES  # noqa: E402  (the scenes' images, truth and K)
+from pipeline.core.atomic import write_json
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "ransac_seeds.json"
