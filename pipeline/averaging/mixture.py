@@ -144,8 +144,9 @@ def fit_mixture(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, n_cam
         q, half_logdet, theta = (np.asarray(a, dtype=np.float64) for a in (q, half_logdet, theta))
         sub = fit_mixture(q[fit], half_logdet[fit], theta[fit], n_cameras, nus, iterations, s0, eps0, eps_max,
                           max_grid_edges)
-        gamma = mixture_terms(q, half_logdet, log_haar(theta), sub.s, sub.nu, sub.eps)[1]
+        gamma = np.empty(q.size)
         gamma[fit] = sub.gamma
+        gamma[~fit] = mixture_terms(q[~fit], half_logdet[~fit], log_haar(theta[~fit]), sub.s, sub.nu, sub.eps)[1]
         return MixtureModel(sub.nu, sub.s, sub.eps, sub.loglik, gamma)
     q_all = np.asarray(q, dtype=np.float64)
     if len(nus) > 1 and q_all.size > max_grid_edges:
@@ -222,9 +223,11 @@ def em_update(q: np.ndarray, half_logdet: np.ndarray, theta: np.ndarray, model: 
     s = max(float(np.sqrt(dof * np.sum(g * u * q) / (3.0 * max(float(g.sum()), 1e-12)))), 1e-12)
     eps = float(np.clip(1.0 - g.mean(), 1e-4, eps_max))
     loglik = float(ll.mean())
-    if fit is not None:  # every edge's terms at the step's (s, ε); the fitted edges' are those above
-        _, g_all, u_all = mixture_terms(q_all, hl_all, lh_all, model.s, model.nu, model.eps)
+    if fit is not None:  # the other edges' terms at the step's (s, ε); the fitted edges' are those above
+        g_all, u_all = np.empty(q_all.size), np.empty(q_all.size)
         g_all[fit], u_all[fit] = g, u
+        _, g_all[~fit], u_all[~fit] = mixture_terms(q_all[~fit], hl_all[~fit], lh_all[~fit], model.s, model.nu,
+                                                    model.eps)
         g, u = g_all, u_all
     w = g * u / (model.s * model.s)
     return w, MixtureModel(model.nu, s, eps, loglik, g)
