@@ -77,9 +77,16 @@ def run_pycolmap(vg: ViewGraph, options: Any) -> tuple[np.ndarray, np.ndarray, f
         e = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(Rr), np.zeros(3)))
         e.num_matches = int(n)
         pg.add_edge(int(a) + 1, int(b) + 1, e)
+    # COLMAP's INFO lines would drown ours: GLOG_minloglevel (have_pycolmap) acts only if set before glog starts,
+    # and another stage may have imported pycolmap first
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 1)
     t = time.perf_counter()
-    ok = bool(pycolmap.run_rotation_averaging(options, pg, rec, []))
-    dt = time.perf_counter() - t
+    try:
+        ok = bool(pycolmap.run_rotation_averaging(options, pg, rec, []))
+    finally:
+        dt = time.perf_counter() - t
+        pycolmap.logging.minloglevel = level
     R = np.tile(np.eye(3), (N, 1, 1))
     registered = np.zeros(N, dtype=bool)
     for iid, im in rec.images.items():

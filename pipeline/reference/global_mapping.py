@@ -72,6 +72,9 @@ class GlobalReferenceStage(PeerStage):
     def map(self, pc: Any, db_path: Path, out: Path) -> dict[int, Any]:
         """``pycolmap.global_mapping`` of the database into folder ``out``."""
         opts = self.common_options(pc.GlobalPipelineOptions())
+        if not getattr(pc, "has_cuda", False):  # a CPU build: its solvers are used either way, without two warnings
+            opts.mapper.global_positioning.use_gpu = False
+            opts.mapper.bundle_adjustment.ceres.use_gpu = False
         if self.fixed_intrinsics():
             ba = opts.mapper.bundle_adjustment  # a reference: the assignments stick
             ba.refine_focal_length = False

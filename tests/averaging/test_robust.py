@@ -217,6 +217,25 @@ def test_colmap_ra_is_a_method_on_our_graph():
         average(vg, "colmap-ra", init="mst")
 
 
+def test_colmap_ra_keeps_colmaps_info_lines_off_the_console(capfd):
+    """glog reads GLOG_minloglevel once, when pycolmap is first imported: in a run where another stage imported it
+    at INFO level, the method itself must hold COLMAP's INFO lines back (``run.py -q`` printed one), and leave the
+    level as it found it."""
+    import pycolmap
+
+    g = paper1_graph(12, 0.5, 1.0, 0.0, seed=4)
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0  # as glog starts without GLOG_minloglevel
+    try:
+        capfd.readouterr()
+        average(g.vg, "colmap-ra")
+        err = capfd.readouterr().err
+        assert pycolmap.logging.minloglevel == 0
+    finally:
+        pycolmap.logging.minloglevel = level
+    assert "rotation_averaging" not in err and not [ln for ln in err.splitlines() if ln.startswith("I2")], err
+
+
 # -------------------------------------------------------------------------------- evidence
 def test_every_rotation_carries_its_evidence():
     g = paper1_graph(12, 0.6, 1.0, 0.0, seed=5)

@@ -86,6 +86,27 @@ def test_shares_the_incremental_database_and_never_writes_it(scene, peers, tmp_p
     glomap.main(scene, out, database_dir=peers / "reference", progress=False)  # intact result: reused
 
 
+def test_a_cpu_build_of_pycolmap_maps_without_asking_for_a_gpu():
+    """On a pycolmap built without CUDA, GLOMAP's global positioning and bundle adjustment run on the CPU either way;
+    asked for the GPU they say so in two warnings on every run (``run.py -q`` printed them). With CUDA, the GPU
+    options are left as pycolmap sets them."""
+    import types
+
+    import pycolmap
+
+    for has_cuda in (False, True):
+        seen: dict[str, object] = {}
+        pc = types.SimpleNamespace(GlobalPipelineOptions=pycolmap.GlobalPipelineOptions, has_cuda=has_cuda,
+                                   global_mapping=lambda db, images, out, opts: seen.update(opts=opts) or {})
+        stage = types.SimpleNamespace(common_options=lambda o: o, fixed_intrinsics=lambda: False, images=Path("."))
+        glomap.GlobalReferenceStage.map(stage, pc, Path("db"), Path("out"))
+        mapper = seen["opts"].mapper
+        default = pycolmap.GlobalPipelineOptions().mapper
+        gpu = (mapper.global_positioning.use_gpu, mapper.bundle_adjustment.ceres.use_gpu)
+        assert gpu == ((default.global_positioning.use_gpu, default.bundle_adjustment.ceres.use_gpu) if has_cuda
+                       else (False, False))
+
+
 def test_config_shares_the_database_options():
     rc = reference.ReferenceConfig(max_image_size=1000, num_threads=1)
     gc = glomap.GlobalReferenceConfig.sharing_database(rc, {"seed": 3})
