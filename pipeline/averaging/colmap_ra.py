@@ -24,6 +24,7 @@ The loops over edges here are glue for pycolmap's one-object-per-edge API.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass
@@ -38,6 +39,8 @@ from pipeline.core.errors import ConfigError, ViewGraphError
 from pipeline.core.viewgraph import ViewGraph
 
 __all__ = ["ColmapRAConfig", "colmap_ra", "have_pycolmap", "run_pycolmap"]
+
+logger = logging.getLogger(__name__)
 
 
 def have_pycolmap() -> bool:
@@ -77,10 +80,11 @@ def run_pycolmap(vg: ViewGraph, options: Any) -> tuple[np.ndarray, np.ndarray, f
         e = pycolmap.PoseGraphEdge(pycolmap.Rigid3d(pycolmap.Rotation3d(Rr), np.zeros(3)))
         e.num_matches = int(n)
         pg.add_edge(int(a) + 1, int(b) + 1, e)
-    # COLMAP's INFO lines would drown ours: GLOG_minloglevel (have_pycolmap) acts only if set before glog starts,
-    # and another stage may have imported pycolmap first
+    # COLMAP's INFO lines would drown ours (shown when debugging, as the other stages do): GLOG_minloglevel
+    # (have_pycolmap) acts only if set before glog starts, and another stage may have imported pycolmap first
     level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(level, 1)
+    if not logger.isEnabledFor(logging.DEBUG):
+        pycolmap.logging.minloglevel = max(level, 1)
     t = time.perf_counter()
     try:
         ok = bool(pycolmap.run_rotation_averaging(options, pg, rec, []))

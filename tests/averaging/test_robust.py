@@ -3,6 +3,8 @@ calibration of IRLS-H, colmap-ra, the per-camera evidence. Every check is agains
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -220,7 +222,7 @@ def test_colmap_ra_is_a_method_on_our_graph():
 def test_colmap_ra_keeps_colmaps_info_lines_off_the_console(capfd):
     """glog reads GLOG_minloglevel once, when pycolmap is first imported: in a run where another stage imported it
     at INFO level, the method itself must hold COLMAP's INFO lines back (``run.py -q`` printed one), and leave the
-    level as it found it."""
+    level as it found it; when debugging (``-v``) they are shown, as the other stages show COLMAP's."""
     import pycolmap
 
     g = paper1_graph(12, 0.5, 1.0, 0.0, seed=4)
@@ -234,6 +236,15 @@ def test_colmap_ra_keeps_colmaps_info_lines_off_the_console(capfd):
     finally:
         pycolmap.logging.minloglevel = level
     assert "rotation_averaging" not in err and not [ln for ln in err.splitlines() if ln.startswith("I2")], err
+    logging.getLogger("pipeline.averaging.colmap_ra").setLevel(logging.DEBUG)  # debugging: COLMAP's lines shown
+    try:
+        pycolmap.logging.minloglevel = 0
+        capfd.readouterr()
+        average(g.vg, "colmap-ra")
+        assert "rotation_averaging" in capfd.readouterr().err
+    finally:
+        logging.getLogger("pipeline.averaging.colmap_ra").setLevel(logging.NOTSET)
+        pycolmap.logging.minloglevel = level
 
 
 # -------------------------------------------------------------------------------- evidence
