@@ -78,10 +78,13 @@ def summary(rows: list[dict]) -> dict:
             out[m] = {"median_deg": {"min": min(med), "median": median(med), "max": max(med)}}
     both = [r for r in rows if r["irls-l0.5"]["median_deg"] is not None and r["irls-h-l0.5"]["median_deg"] is not None]
     out["irls_h_le_irls"] = sum(r["irls-h-l0.5"]["median_deg"] <= r["irls-l0.5"]["median_deg"] for r in both)
-    out["irls_le_colmap_ra_median"] = sum(r["irls-l0.5"]["median_deg"] <= r["colmap-ra"]["median_deg"] for r in rows)
-    out["irls_le_colmap_ra_mean"] = sum(r["irls-l0.5"]["mean_deg"] <= r["colmap-ra"]["mean_deg"] for r in rows)
-    out["irls_le_colmap_ra_both"] = sum(r["irls-l0.5"]["median_deg"] <= r["colmap-ra"]["median_deg"]
-                                        and r["irls-l0.5"]["mean_deg"] <= r["colmap-ra"]["mean_deg"] for r in rows)
+
+    def le(r: dict, key: str) -> bool:
+        return r["irls-l0.5"][key] <= r["colmap-ra"][key]
+
+    out["irls_le_colmap_ra_median"] = sum(le(r, "median_deg") for r in rows)
+    out["irls_le_colmap_ra_mean"] = sum(le(r, "mean_deg") for r in rows)
+    out["irls_le_colmap_ra_both"] = sum(le(r, "median_deg") and le(r, "mean_deg") for r in rows)
     return out
 
 

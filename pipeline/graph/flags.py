@@ -145,20 +145,20 @@ class GraphFlags:
 
 
 def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.ndarray, block: np.ndarray,
-                          shown: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                          shown: int = 3) -> tuple[np.ndarray, ...]:
     """Per camera: whether its block is its component's largest (the core), the bridges on the path from its block
     to the core in order, the one leaving its block first ((N, ``shown``) edge indices, -1 past the path's end),
-    how many bridges that path has, and its component's label (of the kept edges)."""
+    how many bridges that path has, its component's label (of the kept edges), and how many blocks of its component
+    are as large as the largest when its own is one of them (else 0: :func:`_ties_of_largest`)."""
     n_blocks = int(block.max()) + 1
-    size = np.bincount(block, minlength=n_blocks)
     _, comp = connected_components(_graph(edges[kept, 0], edges[kept, 1], n), directed=False)
     comp_of_block = np.zeros(n_blocks, np.int64)
     comp_of_block[block] = comp
+    tied = _ties_of_largest(block, comp, np.ones(n, bool))[:n_blocks]
     # the core of a component: its largest block (the lowest label among equals)
-    order = np.lexsort((np.arange(n_blocks), -size, comp_of_block))
-    first = np.r_[True, comp_of_block[order][1:] != comp_of_block[order][:-1]]
+    largest = np.flatnonzero(tied > 0)
     core = np.zeros(n_blocks, bool)
-    core[order[first]] = True
+    core[largest[np.unique(comp_of_block[largest], return_index=True)[1]]] = True
     bi = np.flatnonzero(br)
     ba, bb = block[edges[bi, 0]], block[edges[bi, 1]]
     cores = np.flatnonzero(core)
@@ -177,7 +177,7 @@ def _bridges_towards_core(edges: np.ndarray, n: int, kept: np.ndarray, br: np.nd
     for k in range(shown):  # one block towards the core per step, every block at once
         path[:, k] = np.where(at >= 0, towards[np.maximum(at, 0)], -1)
         at = np.where(at >= 0, parent[np.maximum(at, 0)], -1)
-    return core[block], path[block], count[block], comp
+    return core[block], path[block], count[block], comp, tied[block]
 
 
 def _minor_core(edges: np.ndarray, n: int, kept: np.ndarray, core: np.ndarray, comp: np.ndarray, size: np.ndarray,
@@ -327,12 +327,11 @@ def graph_flags(edges: np.ndarray, n: int, kept: np.ndarray, confirmed: np.ndarr
     add(inc_c[one], [f"rests on a single pair {pair(e)}: nothing checks it" for e in inc_e[one]])
     br = bridges(edges, n, kept)
     block = two_edge_blocks(edges, n, kept, br)
-    in_core, path, n_path, comp = _bridges_towards_core(edges, n, kept, br, block)
+    in_core, path, n_path, comp, tied = _bridges_towards_core(edges, n, kept, br, block)
     size = np.bincount(block, minlength=int(block.max()) + 1)[block]
     # a lone camera's one pair is said above, unless the bridges beyond it are more
     cut = np.flatnonzero(cams & ~in_core & (path[:, 0] >= 0) & ((deg > 1) | (size > 1) | (n_path > 1)))
     add(cut, [_bridge_reason(path[k], int(n_path[k]), pair) for k in cut])
-    tied = _ties_of_largest(block, comp, np.ones(n, bool))[block]
     add(*_minor_core(edges, n, kept, cams & in_core, comp, size, tied, pair))
     conf = np.bincount(edges[kept & confirmed].ravel(), minlength=n)
     unconf = np.flatnonzero(cams & (deg > 1) & (conf == 0) & cycles_checked)
